@@ -1,0 +1,3 @@
+from sonarloc.cli import main
+
+raise SystemExit(main())

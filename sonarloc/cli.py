@@ -1,0 +1,55 @@
+"""The ``sonarloc`` command: a thin shell over the library.
+
+Each subcommand lives in ``sonarloc/commands/<name>.py`` with ``add_arguments(parser)``
+and ``run(args) -> int``; it is imported only when used. Errors on bad input become a
+one-line message and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from sonarloc import __version__
+from sonarloc.errors import SonarlocError
+
+# name -> (module, one-line help). Keep in the order of FORMATS.md section 6.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("sonarloc.commands.simulate", "simulated log (and scan CSV) from a map"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sonarloc",
+        description="Localize a mobile robot with time-of-flight sonar (Kuc's forward model).",
+    )
+    parser.add_argument("--version", action="version", version=f"sonarloc {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module_name, help_text) in COMMANDS.items():
+        module = importlib.import_module(module_name)
+        p = sub.add_parser(name, help=help_text, description=(module.__doc__ or help_text).strip())
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except (SonarlocError, ValueError, OSError) as err:
+        print(f"sonarloc {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

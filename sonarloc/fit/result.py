@@ -1,0 +1,62 @@
+"""The fit result: one landmark with its covariance and a status that says why.
+
+This type is the contract between ``fit`` (which makes them) and ``localize`` /
+``maps`` (which consume them). Fits never raise on numerical trouble; a result
+whose ``status`` is not ``OK`` carries a human-readable ``reason``.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+class FitStatus(enum.Enum):
+    OK = "ok"
+    TOO_FEW_POINTS = "too_few_points"
+    FLAT = "flat"                 # curve too flat for its bearing (strong plane, tiny arc)
+    PARTIAL = "partial"           # minimum outside the covered arc: bearing is bounded only
+    UNRESOLVED = "unresolved"     # overlapping reflectors or point/line not separable
+    NO_ECHO = "no_echo"
+    BAD_INPUT = "bad_input"       # NaN/inf, inconsistent lengths after cleaning
+
+
+@dataclass(frozen=True)
+class Landmark:
+    """A fitted landmark in the frame of the readings' poses (``odom`` for a robot).
+
+    ``params``: (x_m, y_m, kappa_us) for ``kind == "point"``, (rho_m, alpha_rad,
+    kappa_us) for ``"line"`` (the wall x cos(alpha) + y sin(alpha) = rho, rho >= 0);
+    ``cov``: their 3x3 covariance (alpha in radians).
+
+    ``ref_t_s`` / ``ref_pose``: time and transducer pose (x_m, y_m, yaw_rad) of the
+    segment's reference reading (its last); ``range_m`` / ``bearing_rad`` are seen from
+    there (bearing: frame angle to the reflecting point, or of the wall normal).
+    """
+
+    kind: Literal["point", "line"]
+    params: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    range_m: float
+    bearing_rad: float
+    n_readings: int
+    ref_t_s: float
+    ref_pose: tuple[float, float, float]
+    status: FitStatus = FitStatus.OK
+    reason: str = ""
+    tier: str = "gauss"
+    rms_us: float = float("nan")
+    sensors: tuple[int, ...] = ()
+    extra: dict[str, object] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status is FitStatus.OK
+
+    @property
+    def kappa_us(self) -> float:
+        return float(self.params[2])

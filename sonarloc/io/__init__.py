@@ -1,0 +1,1 @@
+"""Input/output: log files, wire protocols (pure encode/decode) and device drivers."""

@@ -1,0 +1,268 @@
+"""Log JSONL (FORMATS.md section 4): typed records, a writer and a forgiving reader.
+
+One JSON object per line, non-decreasing ``t_s``; ``type`` says which record.
+The reader never stops a long run silently: malformed lines are skipped and named
+by line number in :class:`LogStats`, unknown record types are counted, and time
+going backwards is reported. ``strict=True`` raises :class:`LogFormatError` instead.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any, ClassVar
+
+from sonarloc.errors import LogFormatError
+
+
+@dataclass(frozen=True)
+class SensorMount:
+    """A transducer's mount pose in ``base_link`` (metres, degrees CCW)."""
+
+    id: int
+    x_m: float
+    y_m: float
+    yaw_deg: float
+
+
+@dataclass(frozen=True)
+class RigRecord:
+    sensors: tuple[SensorMount, ...]
+    speed_of_sound_mps: float = 343.0
+    t_s: float = 0.0
+    type: ClassVar[str] = "rig"
+
+
+@dataclass(frozen=True)
+class InitRecord:
+    t_s: float
+    x_m: float
+    y_m: float
+    yaw_deg: float
+    sd_xy_m: float
+    sd_yaw_deg: float
+    type: ClassVar[str] = "init"
+
+
+@dataclass(frozen=True)
+class OdomRecord:
+    """Wheel-odometry pose of ``base_link`` in ``odom`` (integrated, drifting)."""
+
+    t_s: float
+    x_m: float
+    y_m: float
+    yaw_deg: float
+    type: ClassVar[str] = "odom"
+
+
+@dataclass(frozen=True)
+class TofRecord:
+    """One ping: ``tof_us`` is None when no echo came back."""
+
+    t_s: float
+    sensor: int
+    tof_us: float | None
+    pan_deg: float | None = None
+    type: ClassVar[str] = "tof"
+
+
+@dataclass(frozen=True)
+class TruthRecord:
+    """True pose of ``base_link`` in ``map`` (simulator only; localization never reads it)."""
+
+    t_s: float
+    x_m: float
+    y_m: float
+    yaw_deg: float
+    type: ClassVar[str] = "truth"
+
+
+Record = RigRecord | InitRecord | OdomRecord | TofRecord | TruthRecord
+
+
+def record_to_dict(rec: Record) -> dict[str, Any]:
+    """The JSON object of a record, with ``type`` first and optional fields omitted when None."""
+    if isinstance(rec, RigRecord):
+        return {"type": "rig", "t_s": rec.t_s,
+                "sensors": [{"id": s.id, "x_m": s.x_m, "y_m": s.y_m, "yaw_deg": s.yaw_deg}
+                            for s in rec.sensors],
+                "speed_of_sound_mps": rec.speed_of_sound_mps}
+    out: dict[str, Any] = {"type": rec.type}
+    for name in rec.__dataclass_fields__:
+        if name == "type":
+            continue
+        value = getattr(rec, name)
+        if value is None and name == "pan_deg":
+            continue
+        out[name] = value
+    return out
+
+
+def _num(obj: dict[str, Any], name: str, default: float | None = None) -> float:
+    if name not in obj:
+        if default is not None:
+            return default
+        raise ValueError(f"missing field `{name}`")
+    value = obj[name]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"field `{name}` must be a finite number, got {value!r}")
+    return float(value)
+
+
+def record_from_dict(obj: dict[str, Any]) -> Record | None:
+    """Parse one JSON object; None for an unknown ``type``; ValueError names a bad field."""
+    kind = obj.get("type")
+    if kind == "tof":
+        tof = obj.get("tof_us")
+        if tof is not None:
+            tof = _num(obj, "tof_us")
+        sensor = obj.get("sensor", 0)
+        if isinstance(sensor, bool) or not isinstance(sensor, int):
+            raise ValueError(f"field `sensor` must be an integer, got {sensor!r}")
+        pan = _num(obj, "pan_deg") if obj.get("pan_deg") is not None else None
+        return TofRecord(_num(obj, "t_s"), sensor, tof, pan)
+    if kind in ("odom", "truth"):
+        pose = {n: _num(obj, n) for n in ("t_s", "x_m", "y_m", "yaw_deg")}
+        return OdomRecord(**pose) if kind == "odom" else TruthRecord(**pose)
+    if kind == "init":
+        return InitRecord(**{n: _num(obj, n) for n in
+                             ("t_s", "x_m", "y_m", "yaw_deg", "sd_xy_m", "sd_yaw_deg")})
+    if kind == "rig":
+        sensors = obj.get("sensors")
+        if not isinstance(sensors, list) or not sensors:
+            raise ValueError("field `sensors` must be a non-empty list")
+        mounts = []
+        for i, s in enumerate(sensors):
+            if not isinstance(s, dict) or isinstance(s.get("id"), bool) \
+                    or not isinstance(s.get("id"), int):
+                raise ValueError(f"sensors[{i}] needs an integer `id`")
+            try:
+                mounts.append(SensorMount(s["id"], _num(s, "x_m"), _num(s, "y_m"),
+                                          _num(s, "yaw_deg")))
+            except ValueError as err:
+                raise ValueError(f"sensors[{i}]: {err}") from None
+        if len({m.id for m in mounts}) != len(mounts):
+            raise ValueError("sensor ids must be unique")
+        c = _num(obj, "speed_of_sound_mps", 343.0)
+        if c <= 0:
+            raise ValueError(f"`speed_of_sound_mps` must be positive, got {c!r}")
+        return RigRecord(tuple(mounts), c, _num(obj, "t_s", 0.0))
+    return None
+
+
+@dataclass
+class LogStats:
+    """What a reader met besides good records."""
+
+    records: int = 0
+    unknown: Counter[str] = field(default_factory=Counter)
+    malformed: list[tuple[int, str]] = field(default_factory=list)
+    time_backwards: list[tuple[int, float, float]] = field(default_factory=list)
+
+    MAX_KEPT = 1000  # malformed/backwards lines kept verbatim; the rest only counted
+    malformed_count: int = 0
+    time_backwards_count: int = 0
+
+    def summary(self) -> str:
+        parts = [f"{self.records} records"]
+        if self.unknown:
+            parts.append(f"{sum(self.unknown.values())} of unknown type "
+                         f"({', '.join(f'{k}: {v}' for k, v in sorted(self.unknown.items()))})")
+        if self.malformed_count:
+            first = self.malformed[0]
+            parts.append(f"{self.malformed_count} malformed (first: line {first[0]}: {first[1]})")
+        if self.time_backwards_count:
+            ln, prev, now = self.time_backwards[0]
+            parts.append(f"time went backwards {self.time_backwards_count} times "
+                         f"(first: line {ln}, {now} after {prev})")
+        return "; ".join(parts)
+
+
+def iter_log(
+    source: str | Path | IO[str], stats: LogStats | None = None, strict: bool = False
+) -> Iterator[Record]:
+    """Yield the records of a log file (path or open text stream), one at a time.
+
+    Memory stays flat whatever the length of the log. Problems go to ``stats``
+    (or raise :class:`LogFormatError` naming the line when ``strict``).
+    """
+    stats = stats if stats is not None else LogStats()
+    if isinstance(source, (str, Path)):
+        try:
+            handle: IO[str] = open(source, encoding="utf-8", errors="replace")  # noqa: SIM115
+        except OSError as err:
+            raise LogFormatError(f"cannot open log {source}: {err.strerror}") from err
+        close = True
+    else:
+        handle, close = source, False
+    last_t = -math.inf
+    try:
+        for lineno, line in enumerate(handle, start=1):
+            if not line.strip():
+                continue
+            try:
+                obj = json.loads(line)
+                if not isinstance(obj, dict):
+                    raise ValueError("not a JSON object")
+                rec = record_from_dict(obj)
+            except ValueError as err:  # json.JSONDecodeError is a ValueError
+                msg = str(err).splitlines()[0][:200]
+                if strict:
+                    raise LogFormatError(f"line {lineno}: {msg}") from err
+                stats.malformed_count += 1
+                if len(stats.malformed) < stats.MAX_KEPT:
+                    stats.malformed.append((lineno, msg))
+                continue
+            if rec is None:
+                stats.unknown[str(obj.get("type"))[:40]] += 1
+                continue
+            if rec.t_s < last_t:
+                if strict:
+                    raise LogFormatError(f"line {lineno}: time went backwards "
+                                         f"({rec.t_s} after {last_t})")
+                stats.time_backwards_count += 1
+                if len(stats.time_backwards) < stats.MAX_KEPT:
+                    stats.time_backwards.append((lineno, last_t, rec.t_s))
+            last_t = max(last_t, rec.t_s)
+            stats.records += 1
+            yield rec
+    finally:
+        if close:
+            handle.close()
+
+
+class LogWriter:
+    """Write records as JSONL to a path or text stream (use as a context manager)."""
+
+    def __init__(self, target: str | Path | IO[str]):
+        if isinstance(target, (str, Path)):
+            self._handle: IO[str] = open(target, "w", encoding="utf-8")  # noqa: SIM115
+            self._close = True
+        else:
+            self._handle, self._close = target, False
+
+    def write(self, rec: Record) -> None:
+        self._handle.write(json.dumps(record_to_dict(rec), separators=(",", ":")) + "\n")
+
+    def write_all(self, recs: Iterable[Record]) -> None:
+        for rec in recs:
+            self.write(rec)
+
+    def flush(self) -> None:
+        self._handle.flush()
+
+    def close(self) -> None:
+        if self._close:
+            self._handle.close()
+        else:
+            self._handle.flush()
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,75 @@
+import io
+import json
+
+import pytest
+
+from sonarloc.errors import LogFormatError
+from sonarloc.io.logfile import (
+    InitRecord,
+    LogStats,
+    LogWriter,
+    OdomRecord,
+    RigRecord,
+    SensorMount,
+    TofRecord,
+    TruthRecord,
+    iter_log,
+)
+
+RECORDS = [
+    RigRecord((SensorMount(0, 0.2, 0.0, 0.0), SensorMount(1, 0.0, 0.2, 90.0)), 343.5),
+    InitRecord(0.0, 1.0, 2.0, 30.0, 0.1, 5.0),
+    OdomRecord(0.0, 0.0, 0.0, 0.0),
+    TofRecord(0.01, 0, 8746.0),
+    TofRecord(0.02, 1, None, pan_deg=-12.3),
+    TruthRecord(0.02, 1.0, 2.0, 30.0),
+]
+
+
+def test_round_trip():
+    buf = io.StringIO()
+    LogWriter(buf).write_all(RECORDS)
+    stats = LogStats()
+    back = list(iter_log(io.StringIO(buf.getvalue()), stats))
+    assert back == RECORDS
+    assert stats.records == len(RECORDS) and stats.malformed_count == 0
+
+
+def test_no_echo_is_null_and_pan_optional():
+    buf = io.StringIO()
+    LogWriter(buf).write_all([TofRecord(1.0, 3, None), TofRecord(1.0, 3, 900.0, 5.0)])
+    lines = [json.loads(s) for s in buf.getvalue().splitlines()]
+    assert lines[0] == {"type": "tof", "t_s": 1.0, "sensor": 3, "tof_us": None}
+    assert lines[1]["pan_deg"] == 5.0
+
+
+def test_bad_lines_are_named_counted_and_skipped():
+    text = "\n".join([
+        '{"type":"odom","t_s":0,"x_m":0,"y_m":0,"yaw_deg":0}',
+        "{not json",
+        '{"type":"odom","t_s":1,"x_m":"a","y_m":0,"yaw_deg":0}',
+        '{"type":"imu","t_s":1.5}',
+        '{"type":"tof","t_s":2,"sensor":0,"tof_us":1000}',
+        '{"type":"tof","t_s":1.9,"sensor":0,"tof_us":NaN}',
+        '{"type":"tof","t_s":1.8,"sensor":0,"tof_us":1200}',
+        "[1, 2]",
+    ])
+    stats = LogStats()
+    recs = list(iter_log(io.StringIO(text), stats))
+    assert [r.t_s for r in recs] == [0.0, 2.0, 1.8]
+    assert [ln for ln, _ in stats.malformed] == [2, 3, 6, 8]
+    assert "x_m" in stats.malformed[1][1]
+    assert stats.unknown == {"imu": 1}
+    assert stats.time_backwards == [(7, 2.0, 1.8)]
+    assert "line 2" in stats.summary()
+
+
+def test_strict_raises_with_line_number():
+    with pytest.raises(LogFormatError, match="line 2"):
+        list(iter_log(io.StringIO('{"type":"odom","t_s":0,"x_m":0,"y_m":0,"yaw_deg":0}\n{x\n'),
+                      strict=True))
+
+
+def test_missing_file_is_a_clear_error(tmp_path):
+    with pytest.raises(LogFormatError, match="cannot open log"):
+        list(iter_log(tmp_path / "nope.jsonl"))
