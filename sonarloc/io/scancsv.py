@@ -1,0 +1,143 @@
+"""Scan CSV (FORMATS.md section 1): one row per ping of a transducer with known pose.
+
+Columns in any order, header required, unknown columns ignored: ``t_s, x_m, y_m,
+yaw_deg, tof_us`` and optional ``sensor``. An empty or ``nan`` ``tof_us`` means no
+echo. A bad file raises :class:`LogFormatError` naming the line and column.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sonarloc.errors import LogFormatError
+
+REQUIRED = ("t_s", "x_m", "y_m", "yaw_deg", "tof_us")
+
+
+@dataclass(frozen=True)
+class ScanReadings:
+    """Readings of one or more transducers, as parallel arrays of length n.
+
+    ``yaw_rad`` is the transducer axis direction in the frame; ``tof_us`` is NaN where
+    no echo came back; ``sensor`` the integer transducer id.
+    """
+
+    t_s: NDArray[np.float64]
+    x_m: NDArray[np.float64]
+    y_m: NDArray[np.float64]
+    yaw_rad: NDArray[np.float64]
+    tof_us: NDArray[np.float64]
+    sensor: NDArray[np.int64]
+
+    def __post_init__(self) -> None:
+        n = len(self.t_s)
+        for name in ("x_m", "y_m", "yaw_rad", "tof_us", "sensor"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"`{name}` has length {len(getattr(self, name))}, expected {n}")
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    def select(self, mask: NDArray[np.bool_] | slice) -> ScanReadings:
+        """The readings at ``mask`` (boolean array, index array or slice)."""
+        return ScanReadings(self.t_s[mask], self.x_m[mask], self.y_m[mask],
+                            self.yaw_rad[mask], self.tof_us[mask], self.sensor[mask])
+
+
+def _column(rows: list[list[str]], index: int, name: str, line_of: list[int],
+            empty_is_nan: bool) -> NDArray[np.float64]:
+    values = [row[index] if index < len(row) else "" for row in rows]
+    if empty_is_nan:
+        values = [v if v.strip() else "nan" for v in values]
+    try:
+        return np.array(values, dtype=float)
+    except ValueError:
+        pass
+    for i, v in enumerate(values):  # slow path only to name the culprit
+        try:
+            float(v)
+        except ValueError:
+            raise LogFormatError(
+                f"line {line_of[i]}: column `{name}` must be a number, got {v!r}"
+            ) from None
+    raise LogFormatError(f"column `{name}` could not be parsed")  # pragma: no cover
+
+
+def read_scan_csv(source: str | Path | IO[str]) -> ScanReadings:
+    """Read a scan CSV from a path or text stream.
+
+    Poses must be finite and ``t_s`` non-decreasing; ``tof_us`` may be empty/NaN (no
+    echo) or any number (non-finite values are kept for the fitter to reject).
+    """
+    if isinstance(source, (str, Path)):
+        try:
+            with open(source, newline="", encoding="utf-8", errors="replace") as handle:
+                return read_scan_csv(handle)
+        except OSError as err:
+            raise LogFormatError(f"cannot open scan {source}: {err.strerror}") from err
+    reader = csv.reader(source)
+    try:
+        header = next(reader)
+    except StopIteration:
+        raise LogFormatError("line 1: empty file, expected a header row") from None
+    names = [h.strip() for h in header]
+    missing = [c for c in REQUIRED if c not in names]
+    if missing:
+        raise LogFormatError(f"line 1: header lacks column(s) {', '.join(missing)}")
+    rows = [row for row in reader]
+    # Blank lines are allowed; keep line numbers right for messages.
+    line_of = [i + 2 for i, row in enumerate(rows) if row and any(c.strip() for c in row)]
+    rows = [row for row in rows if row and any(c.strip() for c in row)]
+    col = {name: names.index(name) for name in names if name in (*REQUIRED, "sensor")}
+    for i, row in enumerate(rows):
+        if len(row) < len(names):
+            raise LogFormatError(f"line {line_of[i]}: {len(row)} fields, header has {len(names)}")
+    arrays = {}
+    for name in REQUIRED:
+        arr = _column(rows, col[name], name, line_of, empty_is_nan=(name == "tof_us"))
+        if name != "tof_us":
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise LogFormatError(f"line {line_of[i]}: column `{name}` must be finite, "
+                                     f"got {rows[i][col[name]]!r}")
+        arrays[name] = arr
+    if "sensor" in col:
+        raw = [row[col["sensor"]].strip() or "0" for row in rows]
+        try:
+            sensor = np.array([int(v) for v in raw], dtype=np.int64)
+        except ValueError:
+            i = next(i for i, v in enumerate(raw) if not v.lstrip("-").isdigit())
+            raise LogFormatError(f"line {line_of[i]}: column `sensor` must be an integer, "
+                                 f"got {raw[i]!r}") from None
+    else:
+        sensor = np.zeros(len(rows), dtype=np.int64)
+    t = arrays["t_s"]
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise LogFormatError(f"line {line_of[i]}: `t_s` went backwards ({t[i]} after {t[i - 1]})")
+    return ScanReadings(t, arrays["x_m"], arrays["y_m"], np.deg2rad(arrays["yaw_deg"]),
+                        arrays["tof_us"], sensor)
+
+
+def write_scan_csv(target: str | Path | IO[str], scan: ScanReadings) -> None:
+    """Write readings as a scan CSV (no echo = empty ``tof_us``)."""
+    if isinstance(target, (str, Path)):
+        with open(target, "w", newline="", encoding="utf-8") as handle:
+            write_scan_csv(handle, scan)
+        return
+    target.write("t_s,x_m,y_m,yaw_deg,tof_us,sensor\n")
+    columns = zip(scan.t_s.tolist(), scan.x_m.tolist(), scan.y_m.tolist(),
+                  np.rad2deg(scan.yaw_rad).tolist(), scan.tof_us.tolist(),
+                  scan.sensor.tolist(), strict=True)
+    for t, x, y, yaw, tof, sensor in columns:
+        tof_text = "" if math.isnan(tof) else repr(tof)
+        target.write(f"{t!r},{x!r},{y!r},{yaw!r},{tof_text},{sensor}\n")

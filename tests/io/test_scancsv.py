@@ -1,0 +1,56 @@
+import io
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from sonarloc.errors import LogFormatError
+from sonarloc.io.scancsv import ScanReadings, read_scan_csv, write_scan_csv
+
+
+def test_columns_any_order_unknown_ignored_empty_is_no_echo():
+    text = ("tof_us,comment,yaw_deg,t_s,y_m,x_m\n"
+            "8746,a,4.0,0.0,0,0\n,b,4.3,0.1,0,0\nnan,c,4.6,0.1,0,0\n")
+    scan = read_scan_csv(io.StringIO(text))
+    assert len(scan) == 3
+    assert scan.tof_us[0] == 8746.0 and np.isnan(scan.tof_us[1:]).all()
+    np.testing.assert_allclose(np.rad2deg(scan.yaw_rad), [4.0, 4.3, 4.6])
+    assert (scan.sensor == 0).all()
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("", "line 1: empty"),
+        ("t_s,x_m,y_m,tof_us\n0,0,0,1\n", "lacks column.*yaw_deg"),
+        ("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,1\n0.1,zero,0,0,1\n", "line 3: column `x_m`"),
+        ("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,1\n\n0.1,0,0,nan,1\n", "line 4: column `yaw_deg`"),
+        ("t_s,x_m,y_m,yaw_deg,tof_us\n1,0,0,0,1\n0.5,0,0,0,1\n", "line 3: `t_s` went backwards"),
+        ("t_s,x_m,y_m,yaw_deg,tof_us,sensor\n1,0,0,0,1,x\n", "line 2: column `sensor`"),
+        ("t_s,x_m,y_m,yaw_deg,tof_us\n1,0,0\n", "line 2: 3 fields"),
+    ],
+)
+def test_bad_files_name_the_line(text, match):
+    with pytest.raises(LogFormatError, match=match):
+        read_scan_csv(io.StringIO(text))
+
+
+finite = st.floats(-1e4, 1e4, allow_nan=False)
+
+
+@given(st.lists(st.tuples(finite, finite, finite, st.one_of(st.just(float("nan")),
+                                                             st.floats(0, 6e4)),
+                          st.integers(0, 31)), max_size=30))
+def test_round_trip(rows):
+    n = len(rows)
+    arr = np.array([r[:4] for r in rows], dtype=float).reshape(n, 4)
+    scan = ScanReadings(np.arange(n) * 0.01, arr[:, 0], arr[:, 1], np.deg2rad(arr[:, 2]),
+                        arr[:, 3], np.array([r[4] for r in rows], dtype=np.int64))
+    buf = io.StringIO()
+    write_scan_csv(buf, scan)
+    back = read_scan_csv(io.StringIO(buf.getvalue()))
+    for name in ("t_s", "x_m", "y_m", "yaw_rad", "tof_us"):
+        np.testing.assert_allclose(getattr(back, name), getattr(scan, name), rtol=1e-12,
+                                   atol=1e-12)
+    np.testing.assert_array_equal(back.sensor, scan.sensor)
