@@ -106,7 +106,7 @@ def covariance_ellipse(mean: ArrayLike, cov: ArrayLike, n_sigma: float = 2.0, n:
 def draw_scan(
     ax: Any, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike, tof_us: ArrayLike,
     landmarks: Sequence[Landmark] = (), c_mps: float = SPEED_OF_SOUND_MPS,
-    sigma_deg: float = GAUSS_SIGMA_DEG, max_delay_us: float = 60.0,
+    sigma_deg: float = GAUSS_SIGMA_DEG, max_delay_us: float = 25.0,
 ) -> None:
     """A scan as TOF against bearing, referenced to its smallest TOF (the paper's Fig. 4/5).
 
