@@ -124,7 +124,8 @@ def draw_scan(
     if (~ok).any():
         ax.plot(np.degrees(yaw[~ok]), np.zeros((~ok).sum()) - 2.0, "|", ms=4,
                 color="lightgray", label="no echo", zorder=1)
-    px, py = float(np.mean(x_m)), float(np.mean(y_m))
+    px = float(np.mean(np.asarray(x_m, dtype=float)))
+    py = float(np.mean(np.asarray(y_m, dtype=float)))
     grid = np.linspace(yaw.min() if yaw.size else -1.0, yaw.max() if yaw.size else 1.0, 1200)
     colors = iter(["tab:red", "tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:olive",
                    "tab:cyan", "tab:pink"] * 50)
