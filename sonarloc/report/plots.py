@@ -194,6 +194,11 @@ def draw_map(ax: Any, source: str | Path | Mapping[str, Any], labels: bool = Fal
             lines = [coords] if gtype == "LineString" else coords
             for line in lines:
                 a = np.asarray(line, dtype=float).reshape(-1, 2)
+                if kind == "route":
+                    ax.plot(a[:, 0], a[:, 1], ":", color="0.6", lw=1.0,
+                            label=None if "route" in drawn else "route")
+                    drawn.add("route")
+                    continue
                 style = {"color": "0.25", "lw": 2.0} if kind != "plane" else \
                     {"color": "tab:brown", "lw": 2.0}
                 ax.plot(a[:, 0], a[:, 1], solid_capstyle="butt",
