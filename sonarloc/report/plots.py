@@ -106,7 +106,7 @@ def covariance_ellipse(mean: ArrayLike, cov: ArrayLike, n_sigma: float = 2.0, n:
 def draw_scan(
     ax: Any, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike, tof_us: ArrayLike,
     landmarks: Sequence[Landmark] = (), c_mps: float = SPEED_OF_SOUND_MPS,
-    sigma_deg: float = GAUSS_SIGMA_DEG, max_delay_us: float = 60.0,
+    sigma_deg: float = GAUSS_SIGMA_DEG, max_delay_us: float = 25.0,
 ) -> None:
     """A scan as TOF against bearing, referenced to its smallest TOF (the paper's Fig. 4/5).
 
@@ -124,7 +124,8 @@ def draw_scan(
     if (~ok).any():
         ax.plot(np.degrees(yaw[~ok]), np.zeros((~ok).sum()) - 2.0, "|", ms=4,
                 color="lightgray", label="no echo", zorder=1)
-    px, py = float(np.mean(x_m)), float(np.mean(y_m))
+    px = float(np.mean(np.asarray(x_m, dtype=float)))
+    py = float(np.mean(np.asarray(y_m, dtype=float)))
     grid = np.linspace(yaw.min() if yaw.size else -1.0, yaw.max() if yaw.size else 1.0, 1200)
     colors = iter(["tab:red", "tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:olive",
                    "tab:cyan", "tab:pink"] * 50)
@@ -193,6 +194,11 @@ def draw_map(ax: Any, source: str | Path | Mapping[str, Any], labels: bool = Fal
             lines = [coords] if gtype == "LineString" else coords
             for line in lines:
                 a = np.asarray(line, dtype=float).reshape(-1, 2)
+                if kind == "route":
+                    ax.plot(a[:, 0], a[:, 1], ":", color="0.6", lw=1.0,
+                            label=None if "route" in drawn else "route")
+                    drawn.add("route")
+                    continue
                 style = {"color": "0.25", "lw": 2.0} if kind != "plane" else \
                     {"color": "tab:brown", "lw": 2.0}
                 ax.plot(a[:, 0], a[:, 1], solid_capstyle="butt",
