@@ -60,7 +60,7 @@ from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
 
 Array = NDArray[np.float64]
-Method = Literal["kuc", "conventional"]
+Method = Literal["kuc", "conventional", "odometry"]
 Status = Literal["initializing", "tracking", "dead_reckoning", "lost"]
 
 
@@ -83,7 +83,8 @@ class LocalizerConfig:
 
     Attributes
     ----------
-    method : ``"kuc"`` (fitted landmarks) or ``"conventional"`` (range along the axis).
+    method : ``"kuc"`` (fitted landmarks), ``"conventional"`` (range along the axis) or
+        ``"odometry"`` (readings ignored: dead reckoning from the prior, for comparison).
     odom_noise : odometry increment noise model of :func:`~sonarloc.localize.ekf.predict`.
     association : gate and ambiguity settings.
     history_s : how far back delayed observations can be fused.
@@ -115,8 +116,9 @@ class LocalizerConfig:
     dead_reckoning_after_s: float = 5.0
 
     def __post_init__(self) -> None:
-        if self.method not in ("kuc", "conventional"):
-            raise ValueError(f"`method` must be 'kuc' or 'conventional', got {self.method!r}")
+        if self.method not in ("kuc", "conventional", "odometry"):
+            raise ValueError(f"`method` must be 'kuc', 'conventional' or 'odometry', got "
+                             f"{self.method!r}")
         for name in ("history_s", "conventional_range_sd_m", "conventional_bearing_sd_deg",
                      "max_range_m", "lost_sd_m", "dead_reckoning_after_s", "fit_cov_scale"):
             v = getattr(self, name)
@@ -212,9 +214,11 @@ class FusionOutcome:
 
 def default_landmark_source(speed_of_sound_mps: float = 343.0) -> LandmarkSource:
     """The fitting stage's online segmenter + fitter (``sonarloc.fit``)."""
-    from sonarloc.fit.online import OnlineFitter
+    from sonarloc.fit.landmarks import OnlineFitter
+    from sonarloc.fit.lsq import FitConfig
+    from sonarloc.physics.tof import ModuleParams
 
-    src: LandmarkSource = OnlineFitter.for_speed_of_sound(speed_of_sound_mps)
+    src: LandmarkSource = OnlineFitter(FitConfig(module=ModuleParams(c_mps=speed_of_sound_mps)))
     return src
 
 
@@ -469,6 +473,8 @@ class Localizer:
         return base, mount
 
     def _process_tof(self, r: TofRecord) -> None:
+        if self.config.method == "odometry":
+            return
         if r.t_s < self._times[0]:
             self.stats.skipped["tof_older_than_history"] += 1
             return
