@@ -14,6 +14,8 @@ def no_source(c):
 
 
 def loc(**cfg):
+    # the synthetic landmarks' covariance is exact: no floor
+    cfg = {"fit_sd_floor_m": 0.0, "fit_sd_floor_deg": 0.0, **cfg}
     return Localizer(room_map(), LocalizerConfig(**cfg), landmark_source=no_source)
 
 
