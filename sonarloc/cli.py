@@ -19,10 +19,14 @@ from sonarloc.errors import SonarlocError
 COMMANDS: dict[str, tuple[str, str]] = {
     "fit": ("sonarloc.commands.fit", "landmarks from TOF readings of a scan CSV"),
     "simulate": ("sonarloc.commands.simulate", "simulated log (and scan CSV) from a map"),
+    "plot": ("sonarloc.commands.plot", "plot a scan with model curves, a sonar map, a trajectory"),
+    "bench": ("sonarloc.commands.bench", "run the benchmarks, gather speed-against-error tables"),
+    "rosbag": ("sonarloc.commands.rosbag", "ROS bags: import Range/Odometry, export poses"),
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser; with ``only``, just that subcommand's module is imported."""
     parser = argparse.ArgumentParser(
         prog="sonarloc",
         description="Localize a mobile robot with time-of-flight sonar (Kuc's forward model).",
@@ -30,16 +34,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"sonarloc {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
+        if only is not None and name != only:
+            sub.add_parser(name, help=help_text)
+            continue
         module = importlib.import_module(module_name)
-        p = sub.add_parser(name, help=help_text, description=(module.__doc__ or help_text).strip())
+        p = sub.add_parser(name, help=help_text, description=(module.__doc__ or help_text).strip(),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args_list = list(sys.argv[1:] if argv is None else argv)
+    first = next((a for a in args_list if not a.startswith("-")), None)
+    parser = build_parser(only=first if first in COMMANDS else "")
+    args = parser.parse_args(args_list)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
