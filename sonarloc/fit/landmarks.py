@@ -22,15 +22,16 @@ from sonarloc.fit import model as M
 from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, fit_batch, pack_segments
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig, SegmenterStats
-from sonarloc.fit.select import choose_kind, choose_tier, overlap_check
+from sonarloc.fit.select import KAPPA_WALL_US, choose_kind, choose_tier, overlap_check
 from sonarloc.io.scancsv import ScanReadings
 
 Array = NDArray[np.float64]
 
 SegmentLike = Segment | ScanReadings | tuple[Array, Array, Array, Array, Array]
+_Cleaned = tuple[Array, Array, Array, Array, Array, NDArray[np.int64]]
 
 
-def _arrays(seg: SegmentLike) -> tuple[Array, Array, Array, Array, Array, NDArray[np.int64]]:
+def _arrays(seg: SegmentLike) -> _Cleaned:
     if isinstance(seg, Segment):
         seg = seg.readings
     if isinstance(seg, ScanReadings):
@@ -64,7 +65,7 @@ def conventional(t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array, tof_us: Arr
     return float(r), float(M.wrap_angle(yaw_rad[i])), float(t_s[i])
 
 
-def _fallback(seg_arrays: tuple[Array, ...], status: FitStatus, reason: str,
+def _fallback(seg_arrays: _Cleaned, status: FitStatus, reason: str,
               cfg: FitConfig, extra: dict[str, object]) -> Landmark:
     """A result for a segment that could not be fitted: the conventional reading with a
     covariance as wide as the beam (finite), or NaN parameters if there was no echo."""
@@ -124,7 +125,7 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     cfg = config or FitConfig()
     n = len(segments)
     out: list[Landmark | None] = [None] * n
-    cleaned: list[tuple[Array, ...]] = []
+    cleaned: list[_Cleaned] = []
     meta: list[dict[str, object]] = []
     for seg in segments:
         t, x, y, yaw, tof, sensor = _arrays(seg)
@@ -175,6 +176,10 @@ def _fit_and_select(batch: SegmentBatch, cfg: FitConfig) -> list[_Choice]:
             row = point.take(np.array([b]))
         choices.append(_Choice(kinds[b], "gauss", row, list(kind_notes[b]), dict(kind_extra[b])))
     choose_tier(batch, choices, cfg)
+    for b, ch in enumerate(choices):
+        if base[b] <= cfg_baseline(cfg) and ch.extra.get("kind_basis") == "strength":
+            # one viewpoint: point and line are the same fit; the final kappa decides
+            ch.kind = "line" if ch.fit.local[0, 2] < KAPPA_WALL_US else "point"
     overlap_check(batch, choices, cfg)
     return choices
 
@@ -191,7 +196,7 @@ def _take_batch(batch: SegmentBatch, idx: NDArray[np.int64]) -> SegmentBatch:
     return _take(batch, idx)
 
 
-def _landmark(batch: SegmentBatch, j: int, ch: _Choice, arrs: tuple[Array, ...],
+def _landmark(batch: SegmentBatch, j: int, ch: _Choice, arrs: _Cleaned,
               cfg: FitConfig, meta: dict[str, object]) -> Landmark:
     f = ch.fit
     local = f.local[0].copy()
@@ -231,7 +236,7 @@ def _landmark(batch: SegmentBatch, j: int, ch: _Choice, arrs: tuple[Array, ...],
     elif ch.extra.get("overlap"):
         status = FitStatus.UNRESOLVED
         reasons.insert(0, str(ch.extra["overlap"]))
-    elif outside > max(2.0 * sd_phi, math.radians(1.0)):
+    elif outside > math.radians(1.0) and _delay_span_us(batch, j, ch, cfg) > 3.0:
         status = FitStatus.PARTIAL
         reasons.insert(0, f"minimum of the U {math.degrees(outside):.1f} deg outside the arc "
                           "covered by echoes: bearing bounded only")
@@ -246,6 +251,21 @@ def _landmark(batch: SegmentBatch, j: int, ch: _Choice, arrs: tuple[Array, ...],
         ref_t_s=float(t[ref_i]), ref_pose=(float(x[ref_i]), float(y[ref_i]), float(yaw[ref_i])),
         status=status, reason="; ".join(reasons), tier=ch.tier, rms_us=resid_us,
         sensors=sensors, extra=extra)
+
+
+def _delay_span_us(batch: SegmentBatch, j: int, ch: _Choice, cfg: FitConfig) -> float:
+    """How much the fitted threshold delay varies over the used echoes [us]: a partial U
+    shows a clear arm, a flat curve (strong plane) does not."""
+    f = ch.fit
+    used = f.used[0]
+    if not used.any():
+        return 0.0
+    p = f.local[0]
+    geo = M.geometry(ch.kind, p[0], p[1], batch.px[j, used], batch.py[j, used],
+                     batch.yaw[j, used])
+    g, _, _ = M.beam_delay_factor(geo.theta, ch.tier, cfg.module, derivative=False)
+    d = np.minimum(p[2] * g, 1e6)
+    return float(d.max() - d.min())
 
 
 def _raw_rms(f: BatchFit) -> float:

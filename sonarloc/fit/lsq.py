@@ -49,6 +49,10 @@ class FitConfig:
         (at most ``max_outlier_fraction`` of a segment's echoes).
     flat_bearing_sd_deg : a fit whose bearing SD exceeds this is ``FLAT``.
     kappa_min_us : lower bound of kappa.
+    kappa_guess_us : kappa of the conventional fallback result.
+    second_start_dcost : a second local minimum of the grid profile within this much
+        (-2 log-likelihood) of the best is refined too, and the better result kept.
+    chunk : segments fitted together (keeps the arrays in cache).
     """
 
     module: ModuleParams = field(default_factory=ModuleParams)
@@ -62,6 +66,7 @@ class FitConfig:
     flat_bearing_sd_deg: float = 3.0
     kappa_min_us: float = 1e-3
     kappa_guess_us: float = 1.0
+    second_start_dcost: float = 6.0
     chunk: int = 256
 
     def __post_init__(self) -> None:
@@ -214,9 +219,9 @@ class BatchFit:
             "robust_cost")))
 
 
-def _solve_2x2_profile(w: Array, g: Array, y: Array, kmin: float
-                       ) -> tuple[Array, Array, Array]:
-    """Weighted LS of y = T + K g over the last axis, K >= kmin. Returns T, K, cost."""
+def _solve_2x2_profile(w: Array, g: Array, y: Array, kmin: float | Array,
+                       kmax: float | Array = np.inf) -> tuple[Array, Array, Array]:
+    """Weighted LS of y = T + K g over the last axis, kmin <= K <= kmax -> T, K, cost."""
     S0 = w.sum(-1)
     S1 = (w * g).sum(-1)
     S2 = (w * g * g).sum(-1)
@@ -227,7 +232,7 @@ def _solve_2x2_profile(w: Array, g: Array, y: Array, kmin: float
     det = S0 * S2 - S1 * S1
     good = det > 1e-12 * np.maximum(S0 * S2, 1e-300)
     K = np.where(good, (S0 * Sgy - S1 * Sy) / np.where(good, det, 1.0), kmin)
-    K = np.maximum(K, kmin)
+    K = np.clip(K, kmin, np.maximum(kmax, kmin))
     S0s = np.maximum(S0, 1e-300)
     T = (Sy - K * S1) / S0s
     cost = Syy - 2 * T * Sy - 2 * K * Sgy + T * T * S0 + 2 * T * K * S1 + K * K * S2
@@ -316,8 +321,9 @@ def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConf
 
 
 def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray,
-                cfg: FitConfig) -> tuple[Array, Array, NDArray[np.bool_]]:
-    """Global bracket: best (r, phi, kappa) on a bearing grid; also the arc (lo, hi)."""
+                cfg: FitConfig) -> tuple[Array, Array, NDArray[np.bool_], Array]:
+    """Global bracket on a bearing grid: the best (r, phi, kappa) node, the best other
+    local minimum and whether it is close enough to be refined too; the arc (lo, hi)."""
     mod = cfg.module
     tau = M.us_per_m(mod)
     B = batch.size
@@ -331,17 +337,22 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     hi = np.max(np.where(use, rel, -np.inf), axis=1)
     lo = np.where(np.isfinite(lo), lo, 0.0)
     hi = np.where(np.isfinite(hi), hi, 0.0)
-    # nodes: uniform over the covered arc, coarser over the margins (partial U's)
+    # nodes: uniform over the covered arc, coarser over the margins (partial U's); each
+    # segment has its own count (the rest padded at the end), so that a segment's fit
+    # does not depend on the other segments of the batch
     step = np.deg2rad(cfg.grid_step_deg)
-    n_in = int(np.clip(np.ceil((hi - lo).max(initial=0.0) / step) + 1, 3, 721))
+    n_in = np.clip(np.ceil((hi - lo) / step).astype(np.int64) + 1, 3, 721)     # (B,)
     n_out = int(np.ceil(cfg.margin_deg / (2.0 * cfg.grid_step_deg)))
-    margin_frac = np.arange(n_out, 0, -1) / n_out
     margin = np.deg2rad(cfg.margin_deg)
-    offs = np.concatenate([
-        lo[:, None] - margin * margin_frac[None, :],
-        lo[:, None] + (hi - lo)[:, None] * np.linspace(0.0, 1.0, n_in)[None, :],
-        hi[:, None] + margin * margin_frac[None, ::-1]], axis=1)        # (B, G)
-    n_grid = offs.shape[1]
+    n_grid = int(n_in.max(initial=3)) + 2 * n_out
+    j = np.arange(n_grid)[None, :]
+    n_in_c = n_in[:, None]
+    inner = lo[:, None] + (hi - lo)[:, None] * (j - n_out) / np.maximum(n_in_c - 1, 1)
+    left = lo[:, None] - margin * (n_out - j) / max(n_out, 1)
+    right = hi[:, None] + margin * (j - n_out - n_in_c + 1) / max(n_out, 1)
+    pad = j >= n_in_c + 2 * n_out
+    offs = np.where(j < n_out, left, np.where(j < n_out + n_in_c, inner, right))
+    offs = np.where(pad, hi[:, None] + margin, offs)                          # (B, G)
     phis = centre[:, None] + offs
     r0 = y0 / tau
     geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
@@ -349,14 +360,26 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     g, _, _ = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
     scale = np.exp(0.5 * M.sigma_a(mod) ** 2)
     geff = g * scale
-    # bearing-independent weights, so that the profile costs of the nodes compare
-    # (weights from the model at each node would discount far-off readings)
-    w = np.where(use[:, None, :], 1.0, 0.0)
+    # bearing-independent weights (the on-axis variance), so that the profile costs of
+    # the nodes compare (weights from the model at each node would discount far-off
+    # readings) and weigh against the detection terms as a likelihood does
+    w = np.where(use[:, None, :], 1.0 / float(M.tof_variance_us2(0.0, mod)), 0.0)
     yc = (ymask - y0[:, None])[:, None, :] - tau * (geo.R - r0[:, None, None])
     yc = np.where(use[:, None, :], yc, 0.0)
+    if cfg.detection:
+        # echoes were detected: the one nearest the axis must be detectable (z < 2)
+        g_min = np.min(np.where(use[:, None, :], g, np.inf), axis=-1)
+        kmax = (mod.detection_limit_us * np.exp(2.0 * M.sigma_a(mod)) * scale
+                / np.where(np.isfinite(g_min), g_min, 1.0))
+    else:
+        kmax = np.full(phis.shape, np.inf)
     T, Keff, cost = _solve_2x2_profile(w, np.where(use[:, None, :], geff, 0.0), yc,
-                                       cfg.kappa_min_us * scale)
+                                       cfg.kappa_min_us * scale, kmax)
     K = Keff / scale
+    if cfg.detection:
+        _, _, lg = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
+        lpd, _, _ = M.probit_terms(-M.detection_z(K[..., None], lg, mod), want_info=False)
+        cost = cost - 2.0 * np.where(use[:, None, :], lpd, 0.0).sum(-1)
     if cfg.detection and batch.ne_valid.any():
         ng = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.ne_px[:, None, :],
                         batch.ne_py[:, None, :], batch.ne_yaw[:, None, :])
@@ -364,32 +387,42 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
         zn = M.detection_z(K[..., None], lgn, mod)
         lpn, _, _ = M.probit_terms(zn, want_info=False)
         cost = cost - 2.0 * np.where(batch.ne_valid[:, None, :], lpn, 0.0).sum(-1)
-    cost = np.where(np.isfinite(cost), cost, np.inf)
-    k = np.argmin(cost, axis=1)
+    cost = np.where(np.isfinite(cost) & ~pad, cost, np.inf)
     rows = np.arange(B)
-    best_phi = phis[rows, k]
-    # parabolic refinement through the best node and its neighbours
-    kl = np.clip(k - 1, 0, n_grid - 1)
-    kr = np.clip(k + 1, 0, n_grid - 1)
-    cl, c0, cr = cost[rows, kl], cost[rows, k], cost[rows, kr]
-    interior = (k > 0) & (k < n_grid - 1) & np.isfinite(cl) & np.isfinite(cr)
-    denom = cl - 2 * c0 + cr
-    with np.errstate(invalid="ignore", divide="ignore"):
-        shift = np.where(interior & (denom > 0), 0.5 * (cl - cr) / denom, 0.0)
-    shift = np.clip(shift, -0.5, 0.5)
-    dphi = np.where(shift > 0, phis[rows, kr] - phis[rows, k], phis[rows, k] - phis[rows, kl])
-    best_phi = best_phi + shift * dphi
-    to = T[rows, k] + y0
-    start = np.stack([to / tau, best_phi, np.maximum(K[rows, k], cfg.kappa_min_us)], axis=-1)
     arc = np.stack([centre + lo, centre + hi], axis=-1)
-    at_edge = (k == 0) | (k == n_grid - 1)
-    return start, arc, at_edge
+    k1 = np.argmin(cost, axis=1)
+    # the best other local minimum (at least two nodes away) for a second start
+    left = np.concatenate([np.full((B, 1), np.inf), cost[:, :-1]], axis=1)
+    right = np.concatenate([cost[:, 1:], np.full((B, 1), np.inf)], axis=1)
+    local_min = (cost <= left) & (cost <= right) & np.isfinite(cost)
+    far = np.abs(np.arange(n_grid)[None, :] - k1[:, None]) >= 2
+    c2 = np.where(local_min & far, cost, np.inf)
+    k2 = np.argmin(c2, axis=1)
+    second = np.isfinite(c2[rows, k2]) & (c2[rows, k2] - cost[rows, k1] < cfg.second_start_dcost)
+    starts = []
+    for k in (k1, k2):
+        best_phi = phis[rows, k]
+        # parabolic refinement through the node and its neighbours
+        kl = np.clip(k - 1, 0, n_grid - 1)
+        kr = np.clip(k + 1, 0, n_grid - 1)
+        cl, c0, cr = cost[rows, kl], cost[rows, k], cost[rows, kr]
+        interior = (k > 0) & (k < n_grid - 1) & np.isfinite(cl) & np.isfinite(cr)
+        denom = cl - 2 * c0 + cr
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shift = np.where(interior & (denom > 0), 0.5 * (cl - cr) / denom, 0.0)
+        shift = np.clip(shift, -0.5, 0.5)
+        dphi = np.where(shift > 0, phis[rows, kr] - phis[rows, k],
+                        phis[rows, k] - phis[rows, kl])
+        best_phi = best_phi + shift * dphi
+        to = T[rows, k] + y0
+        starts.append(np.stack([to / tau, best_phi, np.maximum(K[rows, k], cfg.kappa_min_us)],
+                               axis=-1))
+    return starts[0], starts[1], second, arc
 
 
 def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             cfg: FitConfig, rounds: int) -> tuple[Array, NDArray[np.bool_]]:
     """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective."""
-    mod = cfg.module
     B = p.shape[0]
     lam = np.full(B, 1e-3)
     converged = np.zeros(B, dtype=bool)
@@ -398,6 +431,7 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
         # variances from the current delays, fixed for this round
         s2 = _variances(kind, tier, p, batch, cfg)
         F, grad, H, _ = _evaluate(kind, tier, p, batch, y, use, s2, cfg)
+        done = np.zeros(B, dtype=bool)
         for _ in range(cfg.iterations):
             diag = np.maximum(np.einsum("bkk->bk", H), 1e-12)
             A = H + (lam[:, None] * diag)[:, :, None] * np.eye(3)[None]
@@ -414,16 +448,44 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             q[:, 0] = np.maximum(q[:, 0], 1e-3)
             q[:, 2] = np.maximum(q[:, 2], cfg.kappa_min_us)
             Fq, gq, Hq, _ = _evaluate(kind, tier, q, batch, y, use, s2, cfg)
-            ok = np.isfinite(Fq) & (Fq <= F)
+            ok = np.isfinite(Fq) & (Fq <= F) & ~done
             p = np.where(ok[:, None], q, p)
             F = np.where(ok, Fq, F)
             grad = np.where(ok[:, None], gq, grad)
             H = np.where(ok[:, None, None], Hq, H)
             lam = np.where(ok, np.maximum(lam / 4.0, 1e-9), np.minimum(lam * 8.0, 1e9))
-            converged = ok & np.all(np.abs(delta) < step_scale, axis=1)
-            if converged.all():
+            # a segment that stopped moving is frozen for the rest of the round, so
+            # its result does not depend on the other segments of the batch
+            done |= ok & np.all(np.abs(delta) < step_scale, axis=1)
+            if done.all():
                 break
+        converged = done
     return p, converged
+
+
+def _full_cost(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
+               cfg: FitConfig) -> Array:
+    """-2 log-likelihood (B,) at ``p``, with the TOF variances' log-determinant."""
+    s2 = _variances(kind, tier, p, batch, cfg)
+    F, _, _, _ = _evaluate(kind, tier, p, batch, y, use, s2, cfg, want_derivs=False)
+    return F + np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
+
+
+def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig
+           ) -> tuple[Array, NDArray[np.bool_], Array]:
+    """Grid bracket + refinement (from a second start where the grid is ambiguous)."""
+    start, start2, second, arc = _grid_start(kind, tier, batch, y, use, cfg)
+    p, conv = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
+    idx = np.flatnonzero(second)
+    if idx.size:
+        sub = _take(batch, idx)
+        p2, conv2 = _refine(kind, tier, start2[idx], sub, y[idx], use[idx], cfg, cfg.rounds)
+        f1 = _full_cost(kind, tier, p[idx], sub, y[idx], use[idx], cfg)
+        f2 = _full_cost(kind, tier, p2, sub, y[idx], use[idx], cfg)
+        better = f2 < f1
+        p[idx[better]] = p2[better]
+        conv[idx[better]] = conv2[better]
+    return p, conv, arc
 
 
 def _covariance(H: Array) -> Array:
@@ -483,8 +545,7 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
         use0 = use0 & use
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
-    start, arc, _ = _grid_start(kind, tier, batch, y, use0, cfg)
-    p, conv = _refine(kind, tier, start, batch, y, use0, cfg, cfg.rounds)
+    p, conv, arc = _solve(kind, tier, batch, y, use0, cfg)
     # spikes: drop the worst echoes beyond outlier_sigma, then polish again
     s2 = _variances(kind, tier, p, batch, cfg)
     _, _, _, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg, want_derivs=False)
@@ -502,8 +563,7 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
             redo = drop.any(1)
             idx = np.flatnonzero(redo)
             sub = _take(batch, idx)
-            start2, _, _ = _grid_start(kind, tier, sub, y[idx], use1[idx], cfg)
-            p2, c2 = _refine(kind, tier, start2, sub, y[idx], use1[idx], cfg, cfg.rounds)
+            p2, c2, _ = _solve(kind, tier, sub, y[idx], use1[idx], cfg)
             p[idx] = p2
             conv[idx] = c2
             use0 = use1

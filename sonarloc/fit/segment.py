@@ -22,9 +22,11 @@ A reading that covers a segment's last seen landmark direction (within
 ``miss_half_width_deg``) without being associated with it is a *miss*; ``miss_limit``
 consecutive misses close the segment (the landmark has left the beam or is hidden).
 Isolated readings (spikes, cross-talk) open segments that never reach ``min_echoes``
-and are dropped, counted in :class:`SegmenterStats`. No-echo readings next to a
-segment (same sensor, up to ``censor_window`` on each side) are attached to it: they
-bound the arc in the fit.
+and are dropped, counted in :class:`SegmenterStats`. Readings next to a segment (same
+sensor, up to ``censor_window`` on each side) that show its landmark was *not*
+detected are attached to it with a NaN TOF: no-echo readings, and echoes from farther
+away (the module reports the first crossing, so a farther echo wins only if the
+nearer landmark stayed below threshold). They bound the arc in the fit.
 """
 
 from __future__ import annotations
@@ -163,7 +165,8 @@ class Segmenter:
         self.module = module or ModuleParams()
         self.stats = SegmenterStats()
         self._open: list[_Open] = []
-        self._recent: dict[int, deque[tuple[float, float, float, float, float, int]]] = {}
+        self._recent: dict[int, deque[tuple[tuple[float, float, float, float, float, int],
+                                            float]]] = {}
         self._next_id = 0
         self._last_t = -math.inf
         cfg = self.config
@@ -216,9 +219,16 @@ class Segmenter:
                 if s is best:
                     continue
                 if self._covers(s, x, y, yaw):
+                    # a farther echo won: this landmark was not detected (censor)
+                    if (R > s.last[4] + self._gate_m and sensor in s.sensors
+                            and s.trailing < self.config.censor_window):
+                        s.rows.append((t, x, y, yaw, math.nan, sensor))
+                        s.trailing += 1
                     s.misses += 1
                     if s.misses >= self.config.miss_limit:
                         closed += self._close(s, "misses")
+            if self.config.censor_window:
+                self._remember(row, R)
             if best is not None:
                 best.rows.append(row)
                 best.n_echo += 1
@@ -241,8 +251,7 @@ class Segmenter:
                     if s.misses >= self.config.miss_limit:
                         closed += self._close(s, "misses")
             if self.config.censor_window:
-                dq = self._recent.setdefault(sensor, deque(maxlen=self.config.censor_window))
-                dq.append(row)
+                self._remember(row, math.inf)
         return closed
 
     def flush(self) -> list[Segment]:
@@ -261,6 +270,13 @@ class Segmenter:
         yield from self.flush()
 
     # -- internals -------------------------------------------------------------------
+
+    def _remember(self, row: tuple[float, float, float, float, float, int], R: float) -> None:
+        sensor = row[5]
+        dq = self._recent.get(sensor)
+        if dq is None:
+            dq = self._recent[sensor] = deque(maxlen=self.config.censor_window)
+        dq.append((row, R))
 
     def _arc_points(self, s: _Open) -> list[tuple[float, float]]:
         _, lx, ly, lyaw, lR, _ = s.last
@@ -299,10 +315,13 @@ class Segmenter:
         lead: list[tuple[float, float, float, float, float, int]] = []
         dq = self._recent.get(sensor)
         if dq:
-            for r in dq:
-                if (t - r[0] <= self.config.max_gap_s
-                        and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam):
-                    lead.append(r)
+            # earlier readings of this sensor that saw nothing here: no echo, or a
+            # farther echo won (the first crossing would have been this landmark's)
+            for r, r_range in dq:
+                if (r is not row and t - r[0] <= self.config.max_gap_s
+                        and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
+                        and r_range > R + self._gate_m):
+                    lead.append((r[0], r[1], r[2], r[3], math.nan, r[5]))
         s = _Open(self._next_id, lead + [row], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
         self._next_id += 1
         self._open.append(s)
