@@ -188,3 +188,43 @@ def test_build_map_accepts_programmatic_features():
     m = map_from_geojson(fc(feat("Point", [1, 2], kind="pole", radius_m=0.05)))
     again = build_map(m.features)
     assert again.reflectors == m.reflectors
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-5, 5) | st.floats(allow_nan=True)
+    | st.sampled_from(["pole", "wall", "rod", "route", "Point", "Feature", "x"]),
+    lambda children: st.lists(children, max_size=5)
+    | st.dictionaries(st.sampled_from(["type", "kind", "coordinates", "geometry", "properties",
+                                       "radius_m", "kappa_us", "id", "vertices", "features"]),
+                      children, max_size=5),
+    max_leaves=25)
+geometries = st.fixed_dictionaries({
+    "type": st.sampled_from(["Point", "LineString", "Polygon", "MultiPoint", "Nope"]),
+    "coordinates": json_values
+    | st.lists(st.floats(-10, 10), min_size=2, max_size=2)
+    | st.lists(st.lists(st.floats(-10, 10), min_size=2, max_size=2), max_size=5)
+    | st.lists(st.lists(st.lists(st.integers(-3, 3), min_size=2, max_size=2), max_size=6),
+               max_size=2)})
+features = st.fixed_dictionaries(
+    {"type": st.just("Feature"), "geometry": geometries | json_values,
+     "properties": st.fixed_dictionaries(
+         {"kind": st.sampled_from(list(("pole", "rod", "corner", "edge", "point", "wall",
+                                        "plane", "route", "x"))) | json_values},
+         optional={"radius_m": json_values | st.floats(-1, 1),
+                   "kappa_us": json_values | st.floats(-1, 5),
+                   "id": json_values, "vertices": json_values | st.sampled_from(
+                       ["auto", "corner", "edge", "none"])}) | json_values})
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(json_values, st.fixed_dictionaries(
+    {"type": st.just("FeatureCollection"),
+     "features": st.lists(features | json_values, max_size=4)})))
+def test_garbage_maps_give_map_or_maperror(obj):
+    try:
+        m = map_from_geojson(obj)
+    except MapError as err:
+        assert str(err)
+        return
+    for r in m.reflectors:  # what loads is sound
+        assert r.kappa_us > 0 and r.radius_m >= 0 and not r.geometry.is_empty

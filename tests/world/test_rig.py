@@ -124,3 +124,25 @@ def test_rig_files_and_names(tmp_path):
         rig_by_name("ring17")
     with pytest.raises(ValueError, match="need a pan rig"):
         rig_by_name("ring16", repeat=2)
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-3, 20) | st.floats(allow_nan=True)
+    | st.sampled_from(["pan", "ring", "-40:40:0.3", "x"]),
+    lambda children: st.lists(children, max_size=4)
+    | st.dictionaries(st.sampled_from(["kind", "sensors", "groups", "slot_s", "pan", "repeat",
+                                       "ping_period_s", "range_gate_m", "id", "x_m", "yaw_deg",
+                                       "start_deg", "stop_deg", "step_deg"]),
+                      children, max_size=6),
+    max_leaves=20)
+
+
+@settings(max_examples=300, deadline=None)
+@given(json_values)
+def test_garbage_rigs_give_rig_or_valueerror(obj):
+    try:
+        rig = rig_from_json(obj)
+    except ValueError as err:
+        assert str(err)
+        return
+    assert rig_from_json(rig_to_json(rig)) == rig

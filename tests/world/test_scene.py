@@ -206,3 +206,21 @@ def test_reach_half_angle_covers_side_lobes_of_strong_reflectors():
     assert 20 < plane < 35 and rod < plane
     with pytest.raises(ValueError, match="kappa_us"):
         reach_half_angle_rad(-1.0)
+
+
+def test_candidate_work_does_not_grow_with_map_size():
+    """The coarse query returns what is near the beam: same density, 30x the area, same work."""
+    rng = np.random.default_rng(9)
+    work = []
+    for n in (100, 3000):
+        side = math.sqrt(n / 0.5)
+        m = map_from_geojson(fc(*[pt(*rng.uniform(0, side, 2).tolist(), kind="pole",
+                                     radius_m=0.05) for _ in range(n)]))
+        scene = Scene(m, ModuleParams(max_range_m=5.0))
+        xy = rng.uniform(side / 2 - 3, side / 2 + 3, (200, 2))
+        yaw = rng.uniform(-np.pi, np.pi, 200)
+        pairs = m.query_bounds(sector_bounds(xy[:, 0], xy[:, 1], yaw, 5.05,
+                                             scene.half_angle_rad))
+        work.append(pairs.shape[1] / 200)
+    assert work[1] < 2.0 * work[0] + 2
+    assert work[1] < 100  # of 3000 reflectors
