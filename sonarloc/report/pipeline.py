@@ -175,34 +175,21 @@ class _SegmentKeeper:
         return [v for pool in self.best.values() for _, _, v in pool]
 
 
-def _recording_source(keeper: _SegmentKeeper) -> Callable[[float], Any]:
-    """The fitting stage's online fitter, also handing its segments to ``keeper``."""
-    from sonarloc.fit.landmarks import OnlineFitter, fit_segments
-    from sonarloc.fit.lsq import FitConfig
-    from sonarloc.physics.tof import ModuleParams
+def _recording_source(keeper: _SegmentKeeper, max_readings: int | None) -> Callable[[float], Any]:
+    """The Localizer's own landmark source, also handing each fitted segment to ``keeper``."""
+    from sonarloc.localize.localizer import SegmentFitSource
 
-    class RecordingFitter(OnlineFitter):
-        def _fit(self, closed: list[Any]) -> list[Landmark]:
-            if not closed:
-                return []
-            lms = fit_segments(closed, self.config)
-            by_id = {seg.seg_id: seg for seg in closed}
-            for lm in lms:
-                seg_id = lm.extra.get("seg_id", -1)
-                seg = by_id.get(seg_id) if isinstance(seg_id, int) else None
-                if seg is not None:
+    class RecordingSource(SegmentFitSource):
+        def _fit(self) -> list[Landmark]:
+            segs = [s for _, s in self._waiting]
+            lms = super()._fit()
+            if len(lms) == len(segs):  # one landmark per segment, in order
+                for seg, lm in zip(segs, lms, strict=True):
                     keeper.offer(lm, seg.readings)
             return lms
 
-        def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
-                 sensor: int = 0) -> list[Landmark]:
-            return self._fit(self.segmenter.push(t_s, x_m, y_m, yaw_rad, tof_us, sensor))
-
-        def flush(self) -> list[Landmark]:
-            return self._fit(self.segmenter.flush())
-
     def factory(c_mps: float) -> Any:
-        return RecordingFitter(FitConfig(module=ModuleParams(c_mps=c_mps)))
+        return RecordingSource(c_mps, max_readings=max_readings)
 
     return factory
 
@@ -256,8 +243,9 @@ def run_drive(config: DriveConfig = DriveConfig(),
                 outcomes.append((lm, out.fused))
             return out
 
-    loc = _Localizer(FeatureMap.from_map(world_map), LocalizerConfig(method=config.method),
-                     landmark_source=_recording_source(keeper))
+    loc_config = LocalizerConfig(method=config.method)
+    loc = _Localizer(FeatureMap.from_map(world_map), loc_config,
+                     landmark_source=_recording_source(keeper, loc_config.segment_max_readings))
     if config.device == "can":
         channel = f"sonarloc-drive-{os.getpid()}-{next(_channels)}"
         module = SimModule.on_can(tee, interface="virtual", channel=channel, rate=config.rate)

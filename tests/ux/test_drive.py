@@ -46,6 +46,9 @@ def test_drive_serial_same_numbers_as_can():
     assert len(ser.estimate) == len(ser.truth) == 121
     # truth never crossed the wire; the odometry-only track starts at the prior
     assert ser.odometry.shape == ser.truth.shape
+    # the figure's material: landmarks in map with their match flag, segments with readings
+    assert any(fused for _, fused in ser.landmarks)
+    assert ser.segments and all(len(v.tof_us) >= 5 for v in ser.segments)
 
 
 def test_drive_text_report(tmp_path: Path, run_cli):
