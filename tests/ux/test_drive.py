@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sonarloc.report.pipeline import DriveConfig, find_map, run_drive
@@ -48,7 +49,7 @@ def test_drive_serial_same_numbers_as_can():
     assert ser.odometry.shape == ser.truth.shape
     # the figure's material: landmarks in map with their match flag, segments with readings
     assert any(fused for _, fused in ser.landmarks)
-    assert ser.segments and all(len(v.tof_us) >= 5 for v in ser.segments)
+    assert ser.segments and all(np.isfinite(v.tof_us).sum() >= 3 for v in ser.segments)
 
 
 def test_drive_text_report(tmp_path: Path, run_cli):
