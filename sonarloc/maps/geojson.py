@@ -108,11 +108,12 @@ class Reflector:
     cone_rad: tuple[float, float] | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Map:
     """A validated map: its source features, reflectors, routes and a spatial index.
 
     Build one with :func:`load_map`, :func:`map_from_geojson` or :func:`build_map`.
+    Immutable; equality and hash are by identity (usable as a cache key).
     """
 
     features: tuple[MapFeature, ...]
