@@ -17,6 +17,7 @@ from sonarloc.errors import SonarlocError
 
 # name -> (module, one-line help). Keep in the order of FORMATS.md section 6.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "drive": ("sonarloc.commands.drive", "the main job: simulated drive, fit, EKF, report, plot"),
     "fit": ("sonarloc.commands.fit", "landmarks from TOF readings of a scan CSV"),
     "simulate": ("sonarloc.commands.simulate", "simulated log (and scan CSV) from a map"),
     "localize": ("sonarloc.commands.localize", "EKF localization of a log against a map"),
