@@ -1,3 +1,4 @@
+import io
 import math
 
 import numpy as np
@@ -7,6 +8,7 @@ from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.io.logfile import LogWriter, TruthRecord, iter_log
 from sonarloc.io.posescsv import PoseTrack, read_poses_csv, write_poses_csv
 from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.replay import replay_log
 from sonarloc.maps.build import BuildConfig, MapBuilder, build_from_log
 from sonarloc.maps.geojson import load_map, map_from_geojson
 from sonarloc.world.rig import ring16
@@ -98,7 +100,10 @@ def room_run(tmp_path_factory):
                       np.zeros((n, 3, 3)))
     poses = d / "truth.csv"
     write_poses_csv(poses, track)
-    return d, log, poses
+    built = d / "built.geojson"
+    result = build_from_log(log, read_poses_csv(poses))
+    built.write_text(__import__("json").dumps(result.geojson()))
+    return d, log, poses, built
 
 
 def _line_distance(p, seg):
@@ -108,12 +113,8 @@ def _line_distance(p, seg):
     return abs((p - a) @ n)
 
 
-def test_built_map_recovers_the_room_within_2cm(run_cli, room_run):
-    d, log, poses = room_run
-    out = d / "built.geojson"
-    proc = run_cli("map", "build", str(log), "--poses", str(poses), "--out", str(out),
-                   check=True)
-    assert "landmarks fitted" in proc.stderr
+def test_built_map_recovers_the_room_within_2cm(room_run):
+    d, log, poses, out = room_run
     built_map = load_map(out)
     built = FeatureMap.from_map(built_map)
     true = FeatureMap.from_map(load_map(ROOM))
@@ -134,28 +135,34 @@ def test_built_map_recovers_the_room_within_2cm(run_cli, room_run):
         assert np.hypot(*(true.point_xy - p).T).min() < 0.02
 
 
-def test_built_map_works_in_localize(run_cli, room_run):
-    d, log, poses = room_run
-    out = d / "built2.geojson"
-    run_cli("map", "build", str(log), "--poses", str(poses), "--out", str(out), "--quiet",
-            check=True)
-    est = d / "est.csv"
-    run_cli("localize", str(log), "--map", str(out), "--out", str(est), check=True)
-    track = read_poses_csv(est)
+def test_built_map_works_in_localize(room_run):
+    d, log, poses, out = room_run
+    fmap = FeatureMap.from_map(load_map(out))
     truth = {r.t_s: r for r in iter_log(log) if isinstance(r, TruthRecord)}
-    err = np.array([math.hypot(x - truth[t].x_m, y - truth[t].y_m)
-                    for t, x, y in zip(track.t_s, track.x_m, track.y_m, strict=True)])
-    assert np.sqrt(np.mean(err[track.t_s > 5.0] ** 2)) < 0.02
+    head = io.StringIO("".join(line for line, _ in zip(open(log, encoding="utf-8"),
+                                                       range(9000), strict=False)))
+    errors = []
+
+    def check(rec, est):
+        if rec.t_s > 5.0:
+            t = truth[rec.t_s]
+            errors.append(math.hypot(est.x_m - t.x_m, est.y_m - t.y_m))
+
+    result = replay_log(head, fmap, on_estimate=check)
+    assert result.localizer.stats.accepted > 50
+    assert np.sqrt(np.mean(np.square(errors))) < 0.02
+    assert result.last is not None and result.last.status == "tracking"
 
 
-def test_build_from_odometry_and_bad_input(run_cli, room_run, tmp_path):
-    _, log, _ = room_run
+def test_build_cli_from_odometry_and_bad_input(run_cli, room_run, tmp_path):
+    _, log, _, _ = room_run
     lines = log.read_text().splitlines()[:3000]
     bad = tmp_path / "bad.jsonl"
     bad.write_text("\n".join(lines[:50] + ["garbage", '{"type": "sonar"}'] + lines[50:]) + "\n")
     out = tmp_path / "m.geojson"
     proc = run_cli("map", "build", str(bad), "--out", str(out), check=True)
     assert "line 51" in proc.stderr and "sonar" in proc.stderr
+    assert "landmarks fitted" in proc.stderr
     map_from_geojson(__import__("json").loads(out.read_text()))
     proc = run_cli("map", "build", str(bad), "--poses", str(tmp_path / "none.csv"), "--out",
                    str(out))
@@ -169,11 +176,5 @@ def test_builder_memory_is_bounded():
     for k in range(3000):
         b.add(point_lm([1.0, 1.0], kappa=0.5 + (k % 7) * 0.1), np.array([0.0, 1.0]))
     assert len(b.points) == 1 and len(b.points[0].log_kappas) <= 255
-    result = build_from_log(iter([]).__iter__() if False else _empty_log())
+    result = build_from_log(io.StringIO(""))
     assert result.readings == 0 and result.builder.features() == []
-
-
-def _empty_log():
-    import io
-
-    return io.StringIO("")
