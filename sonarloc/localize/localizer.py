@@ -1,0 +1,552 @@
+"""The Localizer: a thin shell that holds the current belief and routes messages.
+
+It takes the records of a log (or the same messages live: rig, init, odom, tof) and
+reports the pose of ``base_link`` in ``map`` with its covariance, the ``map → odom``
+transform (REP-105) and a status. It never reads ``truth`` records.
+
+Two observation methods:
+
+* ``"kuc"`` (default): every reading goes, with its transducer pose in ``odom``, to the
+  fitting stage's online segmenter and fitter; each fitted landmark (point or wall, in
+  ``odom``, with covariance and strength) is associated with the map and fused.
+* ``"conventional"``: each reading is a range along the beam axis with a beam-wide
+  bearing uncertainty (the classic sonar EKF), kept as the baseline to beat.
+
+Delayed observations: a fit completes some time after its reference reading. The
+Localizer keeps a short history of its beliefs (one entry per odom record and per fused
+observation, ``history_s`` long). An observation referring to time ``t_ref`` is fused
+into the belief at ``t_ref`` (rewound, the odometry interpolated to ``t_ref``), and the
+later odometry increments and observations are replayed on top: the same result as if
+the observation had arrived on time, whatever else was fused meanwhile.
+
+Readings are buffered until an odom record at or after their time has arrived, so the
+transducer pose is interpolated, never extrapolated.
+
+Embedding (e.g. a ROS node)::
+
+    loc = Localizer(FeatureMap.from_map(load_map("room.geojson")))
+    loc.set_rig(mounts, speed_of_sound_mps=343.0)        # or loc.handle(rig_record)
+    loc.set_prior(t, x, y, yaw_rad, sd_xy_m, sd_yaw_rad)   # or loc.handle(init_record)
+    est = loc.on_odom(t, x, y, yaw_rad)                    # wheel odometry, odom frame
+    loc.on_tof(t, sensor_id, tof_us_or_None, pan_rad=None)
+    est.state.mean, est.state.cov, est.map_to_odom, est.status, est.reason
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sonarloc.fit.result import Landmark
+from sonarloc.io.logfile import (
+    InitRecord,
+    OdomRecord,
+    Record,
+    RigRecord,
+    SensorMount,
+    TofRecord,
+    TruthRecord,
+)
+from sonarloc.localize import ekf, se2
+from sonarloc.localize.associate import Association, AssociationConfig, associate
+from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
+from sonarloc.localize.features import FeatureMap
+
+Array = NDArray[np.float64]
+Method = Literal["kuc", "conventional", "odometry"]
+Status = Literal["initializing", "tracking", "dead_reckoning", "lost"]
+
+
+class LandmarkSource(Protocol):
+    """What the Localizer needs from the fitting stage: readings in, landmarks out.
+
+    ``push`` takes one reading with its transducer pose in ``odom`` (``tof_us`` NaN = no
+    echo) and returns the landmarks it completed (often none); ``flush`` ends the stream.
+    """
+
+    def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
+             sensor: int) -> list[Landmark]: ...
+
+    def flush(self) -> list[Landmark]: ...
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Settings of the :class:`Localizer`.
+
+    Attributes
+    ----------
+    method : ``"kuc"`` (fitted landmarks), ``"conventional"`` (range along the axis) or
+        ``"odometry"`` (readings ignored: dead reckoning from the prior, for comparison).
+    odom_noise : odometry increment noise model of :func:`~sonarloc.localize.ekf.predict`.
+    association : gate and ambiguity settings.
+    history_s : how far back delayed observations can be fused.
+    fit_sd_floor_m, fit_sd_floor_deg : added in quadrature to fitted landmarks'
+        position/rho and bearing/alpha SDs (odometry error inside a segment, model error).
+    fit_cov_scale : multiplies the fit covariance before the floor is added.
+    conventional_range_sd_m, conventional_bearing_sd_deg : the conventional model.
+    max_range_m : readings (conventional) and candidates farther than this are ignored.
+    lost_after_rejections : this many observations in a row rejected (no candidate,
+        outside the gate, ambiguous) make the status ``lost``.
+    lost_sd_m : a position SD above this makes the status ``lost``.
+    dead_reckoning_after_s : no accepted observation for this long: ``dead_reckoning``.
+    """
+
+    method: Method = "kuc"
+    odom_noise: OdomNoise = field(default_factory=lambda: OdomNoise(
+        along_var_per_m=0.005**2, cross_var_per_m=0.003**2, xy_var_per_rad=0.002**2,
+        yaw_var_per_m=math.radians(1.0) ** 2, yaw_var_per_rad=math.radians(1.0) ** 2))
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    history_s: float = 10.0
+    fit_sd_floor_m: float = 0.002
+    fit_sd_floor_deg: float = 0.2
+    fit_cov_scale: float = 1.0
+    conventional_range_sd_m: float = 0.01
+    conventional_bearing_sd_deg: float = 10.0
+    max_range_m: float = 6.0
+    lost_after_rejections: int = 15
+    lost_sd_m: float = 0.5
+    dead_reckoning_after_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        if self.method not in ("kuc", "conventional", "odometry"):
+            raise ValueError(f"`method` must be 'kuc', 'conventional' or 'odometry', got "
+                             f"{self.method!r}")
+        for name in ("history_s", "conventional_range_sd_m", "conventional_bearing_sd_deg",
+                     "max_range_m", "lost_sd_m", "dead_reckoning_after_s", "fit_cov_scale"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"`{name}` must be positive, got {v!r}")
+        for name in ("fit_sd_floor_m", "fit_sd_floor_deg"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"`{name}` must be non-negative, got {v!r}")
+        if not (isinstance(self.lost_after_rejections, int) and self.lost_after_rejections >= 1):
+            raise ValueError(f"`lost_after_rejections` must be a positive integer, got "
+                             f"{self.lost_after_rejections!r}")
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The Localizer's report after an odom record.
+
+    ``state``: belief of ``base_link`` in ``map`` (mean (3,) m, m, rad; cov (3, 3)).
+    ``odom_pose``: the odometry pose of ``base_link`` in ``odom`` at ``t_s``.
+    ``map_to_odom``: pose of ``odom`` in ``map`` (x, y, yaw), so that ``map→base_link =
+    map_to_odom ⊕ odom_pose`` (the transform a ROS node broadcasts).
+    ``status``/``reason``: tracking, dead_reckoning or lost, and why.
+    """
+
+    t_s: float
+    state: Gaussian
+    odom_pose: Array
+    map_to_odom: Array
+    status: Status
+    reason: str
+
+    @property
+    def x_m(self) -> float:
+        return float(self.state.mean[0])
+
+    @property
+    def y_m(self) -> float:
+        return float(self.state.mean[1])
+
+    @property
+    def yaw_rad(self) -> float:
+        return float(self.state.mean[2])
+
+
+@dataclass
+class LocalizerStats:
+    """Counters: what came in and what became of it (bounded memory)."""
+
+    odom: int = 0
+    tof: int = 0
+    landmarks: int = 0
+    observations: int = 0
+    accepted: int = 0
+    outcomes: Counter[str] = field(default_factory=Counter)
+    skipped: Counter[str] = field(default_factory=Counter)
+    replayed_steps: int = 0
+
+    def summary(self) -> str:
+        parts = [f"{self.odom} odom", f"{self.tof} tof", f"{self.observations} observations",
+                 f"{self.accepted} fused"]
+        if self.landmarks:
+            parts.insert(2, f"{self.landmarks} landmarks fitted")
+        rej = {k: v for k, v in self.outcomes.items() if k != "matched"}
+        if rej:
+            parts.append("rejected: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())))
+        if self.skipped:
+            parts.append("skipped: " + ", ".join(f"{k} {v}" for k, v in
+                                                 sorted(self.skipped.items())))
+        return "; ".join(parts)
+
+
+@dataclass
+class _Entry:
+    """One step of the history: the belief right after it."""
+
+    t: float
+    odom: Array
+    state: Gaussian
+    obs: Observation | None = None
+    feature: Feature | None = None
+
+
+@dataclass(frozen=True)
+class FusionOutcome:
+    """What became of one observation: its association and whether it was fused."""
+
+    t_ref: float
+    association: Association | None
+    fused: bool
+    reason: str
+
+
+def default_landmark_source(speed_of_sound_mps: float = 343.0) -> LandmarkSource:
+    """The fitting stage's online segmenter + fitter (``sonarloc.fit``)."""
+    from sonarloc.fit.landmarks import OnlineFitter
+    from sonarloc.fit.lsq import FitConfig
+    from sonarloc.physics.tof import ModuleParams
+
+    src: LandmarkSource = OnlineFitter(FitConfig(module=ModuleParams(c_mps=speed_of_sound_mps)))
+    return src
+
+
+class Localizer:
+    """EKF localization against a landmark map (see the module docstring).
+
+    Parameters
+    ----------
+    fmap : the map's features.
+    config : settings.
+    landmark_source : factory ``(speed_of_sound_mps) -> LandmarkSource`` for the
+        ``kuc`` method (default: :func:`default_landmark_source`).
+    """
+
+    def __init__(self, fmap: FeatureMap, config: LocalizerConfig | None = None,
+                 landmark_source: Callable[[float], LandmarkSource] | None = None) -> None:
+        self.fmap = fmap
+        self.config = config or LocalizerConfig()
+        self.stats = LocalizerStats()
+        self._source_factory = landmark_source or default_landmark_source
+        self._source: LandmarkSource | None = None
+        self._mounts: dict[int, Array] = {}
+        self._c_mps = 343.0
+        self._prior: Gaussian | None = None
+        self._entries: list[_Entry] = []
+        self._times: list[float] = []
+        self._pending: list[TofRecord] = []
+        self._last_odom_t = -math.inf
+        self._consecutive_rejected = 0
+        self._last_accept_t = -math.inf
+        self._start_t = math.nan
+        self._estimate: PoseEstimate | None = None
+        c = self.config
+        self._conv_cov = np.diag([c.conventional_range_sd_m**2,
+                                  math.radians(c.conventional_bearing_sd_deg) ** 2])
+
+    # -- configuration messages -----------------------------------------------------
+
+    def set_rig(self, sensors: Sequence[SensorMount], speed_of_sound_mps: float = 343.0) -> None:
+        """Transducer mount poses in ``base_link`` and the speed of sound."""
+        if not (math.isfinite(speed_of_sound_mps) and speed_of_sound_mps > 0):
+            raise ValueError(f"`speed_of_sound_mps` must be positive, got {speed_of_sound_mps!r}")
+        self._mounts = {m.id: np.array([m.x_m, m.y_m, math.radians(m.yaw_deg)])
+                        for m in sensors}
+        self._c_mps = float(speed_of_sound_mps)
+        self._source = None
+
+    def set_prior(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, sd_xy_m: float,
+                  sd_yaw_rad: float) -> None:
+        """Prior of ``base_link`` in ``map``; (re)starts the filter at the next odom record."""
+        self._prior = Gaussian.from_pose(x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
+        self._entries.clear()
+        self._times.clear()
+        self._pending.clear()
+        self._consecutive_rejected = 0
+        self._last_accept_t = -math.inf
+        self._start_t = t_s
+
+    # -- message routing ------------------------------------------------------------
+
+    def handle(self, rec: Record) -> PoseEstimate | None:
+        """Route one log record; returns the new estimate after an ``odom`` record."""
+        if isinstance(rec, OdomRecord):
+            return self.on_odom(rec.t_s, rec.x_m, rec.y_m, math.radians(rec.yaw_deg))
+        if isinstance(rec, TofRecord):
+            self.on_tof(rec.t_s, rec.sensor, rec.tof_us,
+                        None if rec.pan_deg is None else math.radians(rec.pan_deg))
+        elif isinstance(rec, RigRecord):
+            self.set_rig(rec.sensors, rec.speed_of_sound_mps)
+        elif isinstance(rec, InitRecord):
+            self.set_prior(rec.t_s, rec.x_m, rec.y_m, math.radians(rec.yaw_deg), rec.sd_xy_m,
+                           math.radians(rec.sd_yaw_deg))
+        elif isinstance(rec, TruthRecord):
+            pass  # never read: localization must not see the truth
+        return None
+
+    def run(self, records: Iterable[Record]) -> Iterable[PoseEstimate]:
+        """Feed records; yield an estimate per odom record (then flush the fitter)."""
+        for rec in records:
+            est = self.handle(rec)
+            if est is not None:
+                yield est
+        self.finish()
+
+    def on_odom(self, t_s: float, x_m: float, y_m: float, yaw_rad: float
+                ) -> PoseEstimate | None:
+        """An odometry pose of ``base_link`` in ``odom``; returns the new estimate
+        (None before any prior)."""
+        self.stats.odom += 1
+        odom = np.array([x_m, y_m, se2.wrap_angle(yaw_rad)], dtype=float)
+        if not np.all(np.isfinite(odom)) or not math.isfinite(t_s):
+            self.stats.skipped["bad_odom"] += 1
+            return self._estimate
+        if self._prior is None:
+            self.stats.skipped["odom_before_init"] += 1
+            return None
+        t = max(t_s, self._last_odom_t)  # time going backwards: keep the history sorted
+        if not self._entries:
+            self._append(_Entry(t, odom, self._prior))
+            if not math.isfinite(self._start_t):
+                self._start_t = t
+        else:
+            last = self._entries[-1]
+            state = ekf.predict(last.state, se2.between(last.odom, odom), self.config.odom_noise)
+            self._append(_Entry(t, odom, state))
+        self._last_odom_t = t
+        self._trim()
+        self._drain_pending(t)
+        self._estimate = self._make_estimate(t_s)
+        return self._estimate
+
+    def on_tof(self, t_s: float, sensor: int, tof_us: float | None,
+               pan_rad: float | None = None) -> None:
+        """One reading; processed once odometry has reached its time."""
+        self.stats.tof += 1
+        if sensor not in self._mounts:
+            self.stats.skipped["unknown_sensor" if self._mounts else "tof_before_rig"] += 1
+            return
+        if not math.isfinite(t_s):
+            self.stats.skipped["bad_tof"] += 1
+            return
+        pan_deg = None if pan_rad is None else math.degrees(pan_rad)
+        self._pending.append(TofRecord(t_s, sensor, tof_us, pan_deg))
+        if len(self._pending) > 10_000:  # no odometry arriving: keep memory bounded
+            self._pending.pop(0)
+            self.stats.skipped["tof_without_odom"] += 1
+        if self._entries and t_s <= self._last_odom_t:
+            self._drain_pending(self._last_odom_t)
+
+    def add_landmark(self, lm: Landmark) -> FusionOutcome:
+        """Fuse a fitted landmark (in ``odom``; refers to the pose at ``lm.ref_t_s``)."""
+        self.stats.landmarks += 1
+        if not lm.ok:
+            self.stats.skipped[f"fit_{lm.status.value}"] += 1
+            return FusionOutcome(lm.ref_t_s, None, False, f"fit status {lm.status.value}")
+        if not self._entries:
+            self.stats.skipped["landmark_before_init"] += 1
+            return FusionOutcome(lm.ref_t_s, None, False, "no prior yet")
+        obs = self._landmark_observation(lm)
+        if obs is None:
+            self.stats.skipped["landmark_bad"] += 1
+            return FusionOutcome(lm.ref_t_s, None, False, "landmark not usable")
+        return self.add_observation(obs, lm.ref_t_s)
+
+    def add_observation(self, obs: Observation, t_ref: float) -> FusionOutcome:
+        """Associate and fuse an observation of the pose at ``t_ref`` (rewinding if needed)."""
+        self.stats.observations += 1
+        i = bisect.bisect_right(self._times, t_ref)
+        if i == 0 or t_ref < self._times[-1] - self.config.history_s:
+            self.stats.outcomes["too_old"] += 1
+            return FusionOutcome(t_ref, None, False, "older than the history")
+        base = self._entries[i - 1]
+        odom_ref = self._odom_at(t_ref, i)
+        state_ref = ekf.predict(base.state, se2.between(base.odom, odom_ref),
+                                self.config.odom_noise)
+        assoc = associate(state_ref, obs, self.fmap, self.config.association)
+        self.stats.outcomes[assoc.status] += 1
+        if not assoc.matched or assoc.feature is None:
+            self._consecutive_rejected += 1
+            return FusionOutcome(t_ref, assoc, False, assoc.status)
+        new_state, innov = ekf.update(state_ref, obs, assoc.feature, gate_probability=None)
+        if not bool(np.all(innov.accepted)):
+            self.stats.outcomes["singular"] += 1
+            self._consecutive_rejected += 1
+            return FusionOutcome(t_ref, assoc, False, "singular")
+        entry = _Entry(max(t_ref, base.t), odom_ref, new_state, obs, assoc.feature)
+        self._entries.insert(i, entry)
+        self._times.insert(i, entry.t)
+        self._replay(i + 1)
+        self.stats.accepted += 1
+        self._consecutive_rejected = 0
+        self._last_accept_t = max(self._last_accept_t, t_ref)
+        if self._estimate is not None:
+            self._estimate = self._make_estimate(self._estimate.t_s)
+        return FusionOutcome(t_ref, assoc, True, "fused")
+
+    def finish(self) -> list[FusionOutcome]:
+        """End of stream: fuse what the fitter still holds."""
+        out: list[FusionOutcome] = []
+        if self._entries:
+            self._drain_pending(self._last_odom_t)
+        if self._source is not None:
+            for lm in self._source.flush():
+                out.append(self.add_landmark(lm))
+        return out
+
+    # -- queries --------------------------------------------------------------------
+
+    @property
+    def estimate(self) -> PoseEstimate | None:
+        """The latest estimate (after the last odom record), or None before the prior."""
+        return self._estimate
+
+    @property
+    def history_len(self) -> int:
+        return len(self._entries)
+
+    # -- internals ------------------------------------------------------------------
+
+    def _append(self, e: _Entry) -> None:
+        self._entries.append(e)
+        self._times.append(e.t)
+
+    def _trim(self) -> None:
+        horizon = self._times[-1] - self.config.history_s
+        k = bisect.bisect_left(self._times, horizon)
+        k = min(k, len(self._entries) - 1)
+        if k > 64 or (k > 0 and len(self._entries) > 4096):
+            del self._entries[:k]
+            del self._times[:k]
+
+    def _odom_at(self, t: float, i: int) -> Array:
+        """Odometry pose at time t, given entries[i-1].t <= t < entries[i].t (or i = len)."""
+        a = self._entries[i - 1]
+        if i >= len(self._entries) or t <= a.t:
+            return a.odom
+        b = self._entries[i]
+        span = b.t - a.t
+        if span <= 0:
+            return a.odom
+        return se2.interpolate(a.odom, b.odom, (t - a.t) / span)
+
+    def _replay(self, start: int) -> None:
+        noise = self.config.odom_noise
+        for j in range(start, len(self._entries)):
+            prev, e = self._entries[j - 1], self._entries[j]
+            state = ekf.predict(prev.state, se2.between(prev.odom, e.odom), noise)
+            if e.obs is not None and e.feature is not None:
+                state, _ = ekf.update(state, e.obs, e.feature, gate_probability=None)
+            e.state = state
+            self.stats.replayed_steps += 1
+
+    def _drain_pending(self, t_odom: float) -> None:
+        if not self._pending:
+            return
+        ready = [r for r in self._pending if r.t_s <= t_odom]
+        if not ready:
+            return
+        self._pending = [r for r in self._pending if r.t_s > t_odom]
+        for r in ready:
+            self._process_tof(r)
+
+    def _transducer_pose(self, t: float, sensor: int, pan_deg: float | None
+                         ) -> tuple[Array, Array]:
+        """(base_link pose in odom at t, transducer pose in base_link)."""
+        i = bisect.bisect_right(self._times, t)
+        i = max(i, 1)
+        base = self._odom_at(t, i)
+        mount = self._mounts[sensor]
+        if pan_deg is not None:
+            mount = np.array([mount[0], mount[1], mount[2] + math.radians(pan_deg)])
+        return base, mount
+
+    def _process_tof(self, r: TofRecord) -> None:
+        if self.config.method == "odometry":
+            return
+        if r.t_s < self._times[0]:
+            self.stats.skipped["tof_older_than_history"] += 1
+            return
+        base, mount = self._transducer_pose(r.t_s, r.sensor, r.pan_deg)
+        if self.config.method == "conventional":
+            if r.tof_us is None or not (r.tof_us > 0):
+                return
+            rng = 0.5e-6 * self._c_mps * r.tof_us
+            if rng > self.config.max_range_m:
+                return
+            self.add_observation(Observation("range_bearing", np.array([rng, 0.0]),
+                                             self._conv_cov, mount, t_s=r.t_s), r.t_s)
+            return
+        if self._source is None:
+            self._source = self._source_factory(self._c_mps)
+        pose = se2.compose(base, mount)
+        tof = math.nan if r.tof_us is None else float(r.tof_us)
+        for lm in self._source.push(r.t_s, float(pose[0]), float(pose[1]), float(pose[2]),
+                                    tof, r.sensor):
+            self.add_landmark(lm)
+
+    def _landmark_observation(self, lm: Landmark) -> Observation | None:
+        """A fitted landmark (odom frame) as an observation relative to base_link at ref."""
+        p = np.asarray(lm.params, dtype=float)
+        cov = np.asarray(lm.cov, dtype=float)
+        if p.shape != (3,) or cov.shape != (3, 3) or not (np.all(np.isfinite(p))
+                                                          and np.all(np.isfinite(cov))):
+            return None
+        if lm.ref_t_s < self._times[0] - 1e-9:
+            return None
+        i = max(bisect.bisect_right(self._times, lm.ref_t_s), 1)
+        base = self._odom_at(lm.ref_t_s, i)
+        ref_pose = np.asarray(lm.ref_pose, dtype=float)
+        sensor = se2.between(base, ref_pose)
+        c = self.config
+        pos = cov[:2, :2] * c.fit_cov_scale
+        if lm.kind == "point":
+            z = se2.inverse_transform_points(base, p[:2])
+            ct, st = math.cos(base[2]), math.sin(base[2])
+            rot_t = np.array([[ct, st], [-st, ct]])
+            r = rot_t @ pos @ rot_t.T + np.eye(2) * c.fit_sd_floor_m**2
+            kind: Literal["point", "line"] = "point"
+        else:
+            z = se2.inverse_transform_line(base, p[:2])
+            alpha = p[1]
+            rho_b = p[0] - base[0] * math.cos(alpha) - base[1] * math.sin(alpha)
+            sign = -1.0 if rho_b < 0 else 1.0
+            j = np.array([[sign, sign * (base[0] * math.sin(alpha) - base[1] * math.cos(alpha))],
+                          [0.0, 1.0]])
+            r = j @ pos @ j.T + np.diag([c.fit_sd_floor_m**2,
+                                         math.radians(c.fit_sd_floor_deg) ** 2])
+            kind = "line"
+        r = 0.5 * (r + r.T)
+        return Observation(kind, z, r, sensor, float(p[2]), float(cov[2, 2]), lm.ref_t_s)
+
+    def _status(self, t: float, state: Gaussian) -> tuple[Status, str]:
+        c = self.config
+        sd = math.sqrt(max(state.cov[0, 0], state.cov[1, 1], 0.0))
+        if sd > c.lost_sd_m:
+            return "lost", f"position SD {sd:.2f} m exceeds {c.lost_sd_m:g} m"
+        if self._consecutive_rejected >= c.lost_after_rejections:
+            return "lost", (f"{self._consecutive_rejected} observations in a row rejected "
+                            f"by the map")
+        since = t - (self._last_accept_t if math.isfinite(self._last_accept_t)
+                     else self._start_t)
+        if since > c.dead_reckoning_after_s:
+            return "dead_reckoning", f"no landmark fused for {since:.1f} s"
+        return "tracking", "ok"
+
+    def _make_estimate(self, t_s: float) -> PoseEstimate:
+        last = self._entries[-1]
+        status, reason = self._status(last.t, last.state)
+        m2o = se2.compose(last.state.mean, se2.inverse(last.odom))
+        return PoseEstimate(t_s, last.state, last.odom, m2o, status, reason)
+

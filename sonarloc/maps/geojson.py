@@ -1,0 +1,481 @@
+"""Map GeoJSON (FORMATS.md section 3): load, validate, save, and a spatial index.
+
+A map is a GeoJSON FeatureCollection whose coordinates are metres in the ``map``
+frame. Each feature becomes one or more elementary *reflectors*:
+
+* Point ``pole`` / ``rod`` / ``point`` -> a cylinder of ``radius_m`` (0 = a point
+  scatterer);
+* Point ``corner`` / ``edge`` -> a vertex reflector (corner: plane strength; edge:
+  weak, seen only within about 0.5 m);
+* LineString ``wall`` / ``plane`` -> one specular plane per segment;
+* Polygon ``wall`` -> every ring is a closed wall, one plane per segment.
+
+Vertices where two wall segments meet become vertex reflectors (property
+``vertices``, default ``"auto"``): seen from inside the angle between the two walls
+(the concave side) the vertex is a ``corner``, seen from outside it is an ``edge``.
+The free ends of an open wall are edges. ``"corner"`` / ``"edge"`` keep only that
+half, ``"none"`` none. An explicit Point ``corner``/``edge`` feature within 1 cm of a
+wall vertex replaces the derived reflector of its kind there (and keeps its viewing
+side).
+Nearly straight vertices (turn below 10 deg) reflect nothing.
+
+Extension: a LineString with ``kind: "route"`` is a route for drives; the first one is
+the map's default route (``Map.route``). Routes do not reflect.
+
+Bad maps raise :class:`~sonarloc.errors.MapError` naming the feature index.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import shapely
+from numpy.typing import ArrayLike, NDArray
+from shapely.geometry import LineString, Point, Polygon, mapping, shape
+from shapely.geometry.base import BaseGeometry
+
+from sonarloc.errors import MapError
+from sonarloc.physics import constants
+
+POINT_KINDS = ("pole", "rod", "corner", "edge", "point")
+LINE_KINDS = ("wall", "plane", "route")
+POLYGON_KINDS = ("wall",)
+CYLINDER_KINDS = ("pole", "rod", "point")
+VERTEX_KINDS = ("corner", "edge")
+VERTEX_MODES = ("auto", "corner", "edge", "none")
+
+STRAIGHT_TURN_DEG = 10.0
+"""Wall vertices turning less than this are treated as straight (no vertex reflector)."""
+
+SNAP_M = 0.01
+"""An explicit corner/edge Point this close to a wall vertex replaces the derived one."""
+
+
+def default_kappa_us(kind: str, radius_m: float = 0.0) -> float:
+    """Default reflecting strength tau/A0 [us] of a reflector kind (physics constants)."""
+    return float(constants.KAPPA_US[kind])
+
+
+@dataclass(frozen=True)
+class MapFeature:
+    """One feature of a map as written in the file: geometry plus its properties.
+
+    ``properties`` always holds ``kind``; other keys are kept verbatim so that a map
+    round-trips through :func:`save_map` / :func:`load_map`.
+    """
+
+    geometry: BaseGeometry
+    properties: Mapping[str, Any]
+
+    @property
+    def kind(self) -> str:
+        return str(self.properties["kind"])
+
+
+@dataclass(frozen=True)
+class Reflector:
+    """One elementary reflector of a map.
+
+    Attributes
+    ----------
+    kind : ``wall``/``plane`` (a segment), ``pole``/``rod``/``point`` (a cylinder of
+        ``radius_m``, 0 = point), ``corner``/``edge`` (a vertex).
+    geometry : 2-point LineString for segments, Point (centre or vertex) otherwise.
+    kappa_us : reflecting strength tau/A0 (smaller = stronger).
+    radius_m : cylinder radius (0 for other kinds).
+    id : the feature's ``id`` property (None if absent).
+    feature : index of the source feature in the FeatureCollection.
+    part : segment index within the feature (vertex index for derived vertices).
+    cone_rad : for vertex reflectors at a wall vertex, the directions of the two walls
+        leaving the vertex; a corner is seen only from inside the (< 180 deg) angle
+        between them, an edge only from outside. None: seen from everywhere.
+    """
+
+    kind: str
+    geometry: BaseGeometry
+    kappa_us: float
+    radius_m: float = 0.0
+    id: str | int | None = None
+    feature: int = -1
+    part: int = 0
+    cone_rad: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Map:
+    """A validated map: its source features, reflectors, routes and a spatial index.
+
+    Build one with :func:`load_map`, :func:`map_from_geojson` or :func:`build_map`.
+    """
+
+    features: tuple[MapFeature, ...]
+    reflectors: tuple[Reflector, ...]
+    routes: tuple[LineString, ...] = ()
+    _tree_geoms: tuple[BaseGeometry, ...] = field(default=(), repr=False, compare=False)
+
+    @property
+    def route(self) -> LineString | None:
+        """The default route for drives (the first ``route`` feature), or None."""
+        return self.routes[0] if self.routes else None
+
+    @cached_property
+    def tree(self) -> shapely.STRtree:
+        """STRtree over the reflectors' shapes (segments, discs, vertices), by reflector index."""
+        return shapely.STRtree(list(self._tree_geoms))
+
+    @cached_property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(minx, miny, maxx, maxy) of all reflectors [m]."""
+        if not self._tree_geoms:
+            return (0.0, 0.0, 0.0, 0.0)
+        b = shapely.total_bounds(np.asarray(self._tree_geoms, dtype=object))
+        return (float(b[0]), float(b[1]), float(b[2]), float(b[3]))
+
+    def __len__(self) -> int:
+        return len(self.reflectors)
+
+    def query_bounds(self, bounds: ArrayLike) -> NDArray[np.int64]:
+        """Reflectors whose shape meets axis-aligned boxes (the coarse, fast query).
+
+        Parameters
+        ----------
+        bounds : (K, 4) boxes ``minx, miny, maxx, maxy`` [m].
+
+        Returns
+        -------
+        (2, n) int array of (box index, reflector index) pairs, sorted by box then
+        reflector.
+        """
+        b = np.atleast_2d(np.asarray(bounds, dtype=float))
+        if b.shape[-1] != 4:
+            raise ValueError(f"`bounds` must have shape (K, 4), got {b.shape}")
+        if not self.reflectors or b.shape[0] == 0:
+            return np.zeros((2, 0), dtype=np.int64)
+        boxes = shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3])
+        pairs = np.asarray(self.tree.query(boxes, predicate="intersects"), dtype=np.int64)
+        order = np.lexsort((pairs[1], pairs[0]))
+        return pairs[:, order]
+
+    def query_sector(self, x_m: float, y_m: float, yaw_rad: float, max_range_m: float,
+                     half_angle_rad: float) -> NDArray[np.int64]:
+        """Reflectors that have some part inside a transducer's beam sector.
+
+        The sector is centred on the transducer at (``x_m``, ``y_m``) with axis
+        ``yaw_rad``, radius ``max_range_m`` and half-angle ``half_angle_rad``. Cost grows
+        with what is near the beam, not with the map. This is a geometric query: which
+        of these actually echo (normal incidence inside a segment, occlusion, corner
+        side) is decided by :class:`sonarloc.world.scene.Scene`.
+
+        Returns
+        -------
+        Sorted reflector indices (into ``self.reflectors``).
+        """
+        if not (math.isfinite(max_range_m) and max_range_m > 0):
+            raise ValueError(f"`max_range_m` must be positive, got {max_range_m!r}")
+        if not (math.isfinite(half_angle_rad) and half_angle_rad > 0):
+            raise ValueError(f"`half_angle_rad` must be positive, got {half_angle_rad!r}")
+        if not self.reflectors:
+            return np.zeros(0, dtype=np.int64)
+        sector = sector_polygon(x_m, y_m, yaw_rad, max_range_m, half_angle_rad)
+        return np.sort(np.asarray(self.tree.query(sector, predicate="intersects"),
+                                  dtype=np.int64))
+
+
+def sector_polygon(x_m: float, y_m: float, yaw_rad: float, radius_m: float,
+                   half_angle_rad: float, n_arc: int = 32) -> Polygon:
+    """Polygon of a beam sector (a disc when the half-angle reaches pi).
+
+    The arc is approximated from outside, so the polygon contains the true sector.
+    """
+    h = min(half_angle_rad, math.pi)
+    n = max(2, int(math.ceil(n_arc * h / math.pi)))
+    step = 2 * h / n
+    r_out = radius_m / math.cos(step / 2)  # chords outside the arc
+    ang = yaw_rad + np.linspace(-h, h, n + 1)
+    mid = yaw_rad - h + step * (np.arange(n) + 0.5)
+    xs = np.empty(2 * n + 1)
+    ys = np.empty(2 * n + 1)
+    xs[0::2] = x_m + radius_m * np.cos(ang)
+    ys[0::2] = y_m + radius_m * np.sin(ang)
+    xs[1::2] = x_m + r_out * np.cos(mid)
+    ys[1::2] = y_m + r_out * np.sin(mid)
+    if h >= math.pi:
+        return Polygon(np.column_stack([xs, ys]))
+    return Polygon(np.column_stack([np.r_[x_m, xs], np.r_[y_m, ys]]))
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def _fail(index: int, problem: str) -> MapError:
+    return MapError(f"feature {index}: {problem}")
+
+
+def _finite_number(value: Any) -> bool:
+    return (not isinstance(value, bool) and isinstance(value, (int, float))
+            and math.isfinite(value))
+
+
+def _check_positions(index: int, coords: Any, depth: int) -> None:
+    """Check nested GeoJSON positions: depth 0 = one position."""
+    if depth == 0:
+        if not isinstance(coords, list) or len(coords) not in (2, 3):
+            raise _fail(index, f"a position must be [x, y], got {coords!r:.60}")
+        if not all(_finite_number(v) for v in coords):
+            raise _fail(index, f"coordinates must be finite numbers, got {coords!r:.60}")
+        return
+    if not isinstance(coords, list):
+        raise _fail(index, f"`coordinates` must be a list, got {coords!r:.60}")
+    for c in coords:
+        _check_positions(index, c, depth - 1)
+
+
+def _parse_feature(index: int, obj: Any) -> MapFeature:
+    if not isinstance(obj, dict) or obj.get("type") != "Feature":
+        got = obj.get("type") if isinstance(obj, dict) else type(obj).__name__
+        raise _fail(index, f"must be a GeoJSON Feature, got {got!r}")
+    props = obj.get("properties")
+    if props is None:
+        props = {}
+    if not isinstance(props, dict):
+        raise _fail(index, "`properties` must be an object")
+    geom = obj.get("geometry")
+    if not isinstance(geom, dict):
+        raise _fail(index, "has no geometry")
+    gtype = geom.get("type")
+    depth = {"Point": 0, "LineString": 1, "Polygon": 2}.get(str(gtype))
+    if depth is None:
+        raise _fail(index, f"geometry type {gtype!r} is not supported "
+                           "(Point, LineString or Polygon)")
+    _check_positions(index, geom.get("coordinates"), depth)
+    try:
+        geometry = shape({"type": gtype, "coordinates": geom["coordinates"]})
+    except Exception as err:  # shapely raises several types on bad coordinates
+        raise _fail(index, f"bad {gtype} coordinates: {err}") from err
+    if geometry.has_z:
+        geometry = shapely.force_2d(geometry)
+    return MapFeature(geometry, dict(props))
+
+
+def _validate(index: int, feat: MapFeature) -> None:
+    props = feat.properties
+    if "kind" not in props:
+        raise _fail(index, "missing property `kind`")
+    kind = props["kind"]
+    gtype = feat.geometry.geom_type
+    allowed = {"Point": POINT_KINDS, "LineString": LINE_KINDS, "Polygon": POLYGON_KINDS}[gtype]
+    if kind not in allowed:
+        raise _fail(index, f"unknown kind {kind!r} for a {gtype} "
+                           f"(expected one of {', '.join(allowed)})")
+    if "kappa_us" in props and props["kappa_us"] is not None:
+        k = props["kappa_us"]
+        if not _finite_number(k) or k <= 0:
+            raise _fail(index, f"`kappa_us` must be a positive number, got {k!r}")
+    if "id" in props and props["id"] is not None \
+            and (isinstance(props["id"], bool) or not isinstance(props["id"], (str, int))):
+        raise _fail(index, f"`id` must be a string or integer, got {props['id']!r}")
+    if gtype == "Point":
+        r = props.get("radius_m", 0.0)
+        if r is None:
+            r = 0.0
+        if not _finite_number(r) or r < 0:
+            raise _fail(index, f"`radius_m` must be a non-negative number, got {r!r}")
+        if kind in VERTEX_KINDS and r != 0:
+            raise _fail(index, f"a {kind} has no radius, got radius_m={r!r}")
+        return
+    if kind != "route" and "vertices" in props and props["vertices"] not in VERTEX_MODES:
+        raise _fail(index, f"`vertices` must be one of {', '.join(VERTEX_MODES)}, "
+                           f"got {props['vertices']!r}")
+    if gtype == "LineString":
+        coords = np.asarray(feat.geometry.coords)
+        seg = np.hypot(*np.diff(coords, axis=0).T)
+        if coords.shape[0] < 2 or np.any(seg < 1e-9):
+            j = int(np.argmax(seg < 1e-9)) if coords.shape[0] >= 2 else 0
+            raise _fail(index, f"zero-length segment at vertex {j} of the LineString")
+        if not feat.geometry.is_simple:
+            raise _fail(index, f"{kind} LineString intersects itself")
+        return
+    poly = feat.geometry
+    if poly.is_empty or not poly.is_valid:
+        reason = shapely.is_valid_reason(poly) if not poly.is_empty else "empty"
+        raise _fail(index, f"invalid Polygon ({reason})")
+
+
+def _ring_coords(geom: BaseGeometry) -> list[NDArray[np.float64]]:
+    """Vertex chains of a wall: one per ring (closed, last == first) or the line."""
+    if geom.geom_type == "Polygon":
+        rings = [geom.exterior, *geom.interiors]
+        return [np.asarray(r.coords, dtype=float) for r in rings]
+    return [np.asarray(geom.coords, dtype=float)]
+
+
+def _props_kappa(props: Mapping[str, Any], kind: str, radius_m: float = 0.0) -> float:
+    k = props.get("kappa_us")
+    return float(k) if k is not None else default_kappa_us(kind, radius_m)
+
+
+def build_map(features: Sequence[MapFeature]) -> Map:
+    """Validate features and derive the map's reflectors and routes.
+
+    Raises
+    ------
+    MapError
+        naming the feature index and the problem.
+    """
+    ids: dict[Any, int] = {}
+    for i, feat in enumerate(features):
+        _validate(i, feat)
+        fid = feat.properties.get("id")
+        if fid is not None:
+            if fid in ids:
+                raise _fail(i, f"duplicate id {fid!r} (also feature {ids[fid]})")
+            ids[fid] = i
+
+    reflectors: list[Reflector] = []
+    tree_geoms: list[BaseGeometry] = []
+    routes: list[LineString] = []
+    derived: list[tuple[float, float, str, float, Reflector]] = []
+    explicit_vertex: list[int] = []  # positions in `reflectors` of explicit corner/edge
+
+    for i, feat in enumerate(features):
+        props, kind, geom = feat.properties, feat.kind, feat.geometry
+        fid = props.get("id")
+        if kind == "route":
+            routes.append(geom)
+            continue
+        if geom.geom_type == "Point":
+            r = float(props.get("radius_m") or 0.0)
+            ref = Reflector(kind, geom, _props_kappa(props, kind, r), r, fid, i)
+            if kind in VERTEX_KINDS:
+                explicit_vertex.append(len(reflectors))
+            reflectors.append(ref)
+            tree_geoms.append(geom.buffer(r, quad_segs=4) if r > 0 else geom)
+            continue
+        kappa = _props_kappa(props, kind)
+        mode = props.get("vertices", "auto")
+        part = 0
+        for chain in _ring_coords(geom):
+            closed = bool(np.allclose(chain[0], chain[-1]))
+            for j in range(len(chain) - 1):
+                seg = LineString(chain[j:j + 2])
+                reflectors.append(Reflector(kind, seg, kappa, 0.0, fid, i, part))
+                tree_geoms.append(seg)
+                part += 1
+            if mode == "none":
+                continue
+            # vertex reflectors: interior vertices (all of them on a closed ring)
+            n = len(chain) - 1 if closed else len(chain)
+            for j in range(n):
+                v = chain[j]
+                if closed or 0 < j < n - 1:
+                    prev = chain[j - 1] if j > 0 else chain[-2]
+                    nxt = chain[j + 1]
+                    a1 = math.atan2(prev[1] - v[1], prev[0] - v[0])
+                    a2 = math.atan2(nxt[1] - v[1], nxt[0] - v[0])
+                    opening = abs((a2 - a1 + math.pi) % (2 * math.pi) - math.pi)
+                    if opening > math.pi - math.radians(STRAIGHT_TURN_DEG):
+                        continue
+                    cone: tuple[float, float] | None = (a1, a2)
+                    kinds: tuple[str, ...] = ("corner", "edge") if mode == "auto" else (mode,)
+                else:  # free end of an open wall
+                    cone = None
+                    kinds = ("edge",) if mode in ("auto", "edge") else ()
+                for vk in kinds:
+                    ref = Reflector(vk, Point(v), default_kappa_us(vk), 0.0, fid, i, j, cone)
+                    derived.append((float(v[0]), float(v[1]), vk, 0.0, ref))
+
+    # explicit corner/edge points at a wall vertex replace the derived ones there
+    for pos in explicit_vertex:
+        ex = reflectors[pos]
+        px, py = ex.geometry.x, ex.geometry.y
+        near = [d for d in derived
+                if d[2] == ex.kind and math.hypot(d[0] - px, d[1] - py) <= SNAP_M]
+        if not near:
+            continue
+        cones = [d[4].cone_rad for d in near if d[4].cone_rad is not None]
+        reflectors[pos] = Reflector(ex.kind, ex.geometry, ex.kappa_us, 0.0, ex.id, ex.feature,
+                                    ex.part, cones[0] if cones else None)
+        derived = [d for d in derived if d not in near]
+    for d in derived:
+        reflectors.append(d[4])
+        tree_geoms.append(d[4].geometry)
+    return Map(tuple(features), tuple(reflectors), tuple(routes), tuple(tree_geoms))
+
+
+def map_from_geojson(obj: Any) -> Map:
+    """A :class:`Map` from a parsed GeoJSON object (a FeatureCollection).
+
+    Raises
+    ------
+    MapError
+        if it is not a FeatureCollection or a feature is bad (names the feature index).
+    """
+    if not isinstance(obj, dict) or obj.get("type") != "FeatureCollection":
+        got = obj.get("type") if isinstance(obj, dict) else type(obj).__name__
+        raise MapError(f"a map must be a GeoJSON FeatureCollection, got {got!r}")
+    feats = obj.get("features")
+    if not isinstance(feats, list):
+        raise MapError("FeatureCollection needs a `features` list")
+    return build_map([_parse_feature(i, f) for i, f in enumerate(feats)])
+
+
+def load_map(path: str | Path) -> Map:
+    """Read and validate a map GeoJSON file.
+
+    Raises
+    ------
+    MapError
+        if the file cannot be read or parsed, or a feature is bad.
+    """
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as err:
+        raise MapError(f"cannot open map {path}: {err.strerror}") from err
+    except UnicodeDecodeError as err:
+        raise MapError(f"map {path} is not UTF-8 text") from err
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise MapError(f"map {path}: not JSON (line {err.lineno}: {err.msg})") from err
+    try:
+        return map_from_geojson(obj)
+    except MapError as err:
+        raise MapError(f"map {path}: {err}") from None
+
+
+def map_to_geojson(world_map: Map) -> dict[str, Any]:
+    """The FeatureCollection of a map's source features (derived reflectors are not written)."""
+    return {
+        "type": "FeatureCollection",
+        "features": [
+            {"type": "Feature", "properties": dict(f.properties),
+             "geometry": _geometry_json(f.geometry)}
+            for f in world_map.features
+        ],
+    }
+
+
+def _geometry_json(geom: BaseGeometry) -> dict[str, Any]:
+    obj = mapping(geom)
+
+    def lists(c: Any) -> Any:
+        return [lists(x) for x in c] if isinstance(c, (list, tuple)) and c \
+            and isinstance(c[0], (list, tuple)) else [float(v) for v in c]
+
+    return {"type": obj["type"], "coordinates": lists(obj["coordinates"])}
+
+
+def save_map(world_map: Map, path: str | Path) -> None:
+    """Write a map as GeoJSON (one feature per line, readable diffs)."""
+    obj = map_to_geojson(world_map)
+    lines = [json.dumps(f, separators=(", ", ": ")) for f in obj["features"]]
+    body = ",\n".join("  " + line for line in lines)
+    text = '{"type": "FeatureCollection", "features": [\n' + body + "\n]}\n"
+    Path(path).write_text(text, encoding="utf-8")

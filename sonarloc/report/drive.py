@@ -1,0 +1,264 @@
+"""The report and figure of a drive: numbers against truth, and one PNG that shows them.
+
+:class:`DriveReport` holds what ``sonarloc drive`` prints (and emits with ``--json``,
+FORMATS.md section 6: at least ``pose_rmse_m``, ``yaw_rmse_deg``, ``landmarks_fitted``,
+``wall_time_s``, ``plot``). :func:`drive_figure` draws the map, the true, odometry and
+estimated paths, the fitted landmarks with their uncertainty, and a panel of TOF curves
+with their fitted eq. 3 models.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sonarloc.fit.result import Landmark
+from sonarloc.physics.constants import GAUSS_SIGMA_DEG, SPEED_OF_SOUND_MPS
+
+
+@dataclass
+class DriveReport:
+    """Outcome of one simulated drive (times in seconds, errors against truth)."""
+
+    map: str
+    rig: str
+    device: str
+    seed: int
+    duration_s: float
+    readings: int = 0
+    echoes: int = 0
+    odom_records: int = 0
+    pose_rmse_m: float = math.nan
+    yaw_rmse_deg: float = math.nan
+    pose_max_m: float = math.nan
+    pose_final_m: float = math.nan
+    odom_pose_rmse_m: float = math.nan
+    odom_yaw_rmse_deg: float = math.nan
+    landmarks_fitted: int = 0
+    landmarks_ok: int = 0
+    landmarks_matched: int = 0
+    landmarks_rejected: int = 0
+    status: str = ""
+    compute_s: float = math.nan
+    compute_per_reading_us: float = math.nan
+    wall_time_s: float = math.nan
+    realtime_factor: float = math.nan
+    device_stats: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    plot: str | None = None
+
+    @property
+    def improvement(self) -> float:
+        """Odometry-only pose RMSE over the estimate's (how many times better)."""
+        if self.pose_rmse_m > 0:
+            return self.odom_pose_rmse_m / self.pose_rmse_m
+        return math.nan
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict (NaN becomes None)."""
+        out = asdict(self)
+        out["improvement_over_odometry"] = self.improvement
+
+        def clean(v: Any) -> Any:
+            if isinstance(v, float) and not math.isfinite(v):
+                return None
+            if isinstance(v, dict):
+                return {k: clean(x) for k, x in v.items()}
+            if isinstance(v, list):
+                return [clean(x) for x in v]
+            if isinstance(v, (np.floating, np.integer)):
+                return clean(v.item())
+            return v
+
+        return {k: clean(v) for k, v in out.items()}
+
+    def text(self) -> str:
+        """The short human-readable report."""
+        def f(v: float, fmt: str) -> str:
+            return format(v, fmt) if math.isfinite(v) else "n/a"
+
+        lines = [
+            f"sonarloc drive: {self.map}, rig {self.rig}, device {self.device}, seed {self.seed}, "
+            f"{f(self.duration_s, '.1f')} s simulated",
+            f"  readings        {self.readings} ({self.echoes} echoes), {self.odom_records} odom",
+            f"  pose RMSE       {f(self.pose_rmse_m * 100, '.1f')} cm, yaw "
+            f"{f(self.yaw_rmse_deg, '.2f')} deg   (max {f(self.pose_max_m * 100, '.1f')} cm, "
+            f"final {f(self.pose_final_m * 100, '.1f')} cm)",
+            f"  odometry only   {f(self.odom_pose_rmse_m * 100, '.1f')} cm, yaw "
+            f"{f(self.odom_yaw_rmse_deg, '.2f')} deg   (estimate "
+            f"{f(self.improvement, '.1f')}x better)",
+            f"  landmarks       {self.landmarks_fitted} fitted ({self.landmarks_ok} ok), "
+            f"{self.landmarks_matched} matched to the map, {self.landmarks_rejected} rejected",
+            f"  compute         {f(self.compute_per_reading_us, '.0f')} us per reading "
+            f"(fit + filter), wall {f(self.wall_time_s, '.1f')} s, "
+            f"{f(self.realtime_factor, '.1f')}x real time",
+        ]
+        if self.status:
+            lines.append(f"  status          {self.status}")
+        if self.device_stats:
+            lines.append("  device          " + ", ".join(
+                f"{k} {v}" for k, v in self.device_stats.items()))
+        lines += [f"  note: {n}" for n in self.notes]
+        if self.plot:
+            lines.append(f"  plot            {self.plot}")
+        return "\n".join(lines)
+
+
+def map_from_odom(est: NDArray[np.float64], odom: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``map -> odom`` transforms (..., 3) from matching estimate and odometry poses (..., 3)."""
+    e, o = np.asarray(est, dtype=float), np.asarray(odom, dtype=float)
+    th = e[..., 2] - o[..., 2]
+    c, s = np.cos(th), np.sin(th)
+    return np.stack([e[..., 0] - (c * o[..., 0] - s * o[..., 1]),
+                     e[..., 1] - (s * o[..., 0] + c * o[..., 1]), th], -1)
+
+
+def landmark_to_map(lm: Landmark, transform: Sequence[float]) -> Landmark:
+    """A landmark fitted in ``odom`` moved into ``map`` by ``transform`` (x_m, y_m, yaw_rad).
+
+    Parameters and covariance are rotated and shifted; the transform's own uncertainty
+    is not added (the figure shows the fit's uncertainty).
+    """
+    tx, ty, th = (float(v) for v in transform)
+    c, s = math.cos(th), math.sin(th)
+    p = np.array(lm.params, dtype=float)
+    cov = np.array(lm.cov, dtype=float)
+    if lm.kind == "point":
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        p = np.array([c * p[0] - s * p[1] + tx, s * p[0] + c * p[1] + ty, p[2]])
+        cov = R @ cov @ R.T
+    else:
+        alpha = p[1] + th
+        rho = p[0] + tx * math.cos(alpha) + ty * math.sin(alpha)
+        J = np.array([[1.0, -tx * math.sin(alpha) + ty * math.cos(alpha), 0.0],
+                      [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+        cov = J @ cov @ J.T
+        if rho < 0:
+            rho, alpha = -rho, alpha + math.pi
+        p = np.array([rho, math.atan2(math.sin(alpha), math.cos(alpha)), p[2]])
+    rx, ry, ryaw = lm.ref_pose
+    ref = (c * rx - s * ry + tx, s * rx + c * ry + ty, ryaw + th)
+    return replace(lm, params=p, cov=cov, ref_pose=ref,
+                   bearing_rad=math.atan2(math.sin(lm.bearing_rad + th),
+                                          math.cos(lm.bearing_rad + th)))
+
+
+@dataclass(frozen=True)
+class SegmentView:
+    """Readings of one fitted segment, for the TOF panel (poses in the fit's frame)."""
+
+    landmark: Landmark
+    x_m: NDArray[np.float64]
+    y_m: NDArray[np.float64]
+    yaw_rad: NDArray[np.float64]
+    tof_us: NDArray[np.float64]
+    label: str = ""
+
+
+def pick_segments(views: Sequence[SegmentView], n: int = 4) -> list[SegmentView]:
+    """Up to ``n`` segments to show: fitted OK, most readings, lines and points mixed."""
+    ok = [v for v in views if v.landmark.ok and np.isfinite(v.tof_us).sum() >= 5]
+    ok.sort(key=lambda v: -int(np.isfinite(v.tof_us).sum()))
+    points = [v for v in ok if v.landmark.kind == "point"]
+    lines = [v for v in ok if v.landmark.kind == "line"]
+    picked: list[SegmentView] = []
+    while len(picked) < n and (points or lines):
+        for pool in (points, points, lines):
+            if pool and len(picked) < n:
+                picked.append(pool.pop(0))
+    return picked
+
+
+def drive_figure(
+    out: str | Path,
+    *,
+    map_source: str | Path | Mapping[str, Any] | None,
+    tracks: Mapping[str, NDArray[np.float64]],
+    landmarks: Sequence[Landmark],
+    segments: Sequence[SegmentView],
+    report: DriveReport,
+    c_mps: float = SPEED_OF_SOUND_MPS,
+    sigma_deg: float = GAUSS_SIGMA_DEG,
+    n_sigma: float = 3.0,
+    dpi: int = 120,
+) -> Path:
+    """Write the drive PNG: map + paths + landmarks (left), TOF curves with fits (right).
+
+    ``tracks``: name -> (n, 4) poses (t_s, x_m, y_m, yaw_rad) in ``map`` (``truth``,
+    ``odometry``, ``estimate``); ``landmarks`` in ``map``; ``segments`` in the fit frame.
+    """
+    from sonarloc.report.plots import (
+        draw_excess_delay,
+        draw_landmarks,
+        draw_map,
+        draw_tracks,
+        finish_plane_axes,
+        landmark_model_us,
+        require_matplotlib,
+    )
+
+    plt = require_matplotlib()
+    fig = plt.figure(figsize=(14.5, 7.2))
+    gs = fig.add_gridspec(2, 3, width_ratios=[2.3, 1, 1], wspace=0.3, hspace=0.38)
+    ax = fig.add_subplot(gs[:, 0])
+    if map_source is not None:
+        draw_map(ax, map_source)
+    draw_tracks(ax, {k: (v[:, 1], v[:, 2]) for k, v in tracks.items()})
+    draw_landmarks(ax, [lm for lm in landmarks if lm.ok], n_sigma=n_sigma,
+                   label=f"fitted landmarks ({n_sigma:g}σ)")
+    bad = [lm for lm in landmarks if not lm.ok and lm.kind == "point"]
+    if bad:
+        ax.plot([lm.params[0] for lm in bad], [lm.params[1] for lm in bad], "x",
+                color="tab:red", alpha=0.35, ms=4, label="fits not trusted")
+
+    def f(v: float, scale: float = 1.0, fmt: str = ".1f") -> str:
+        return format(v * scale, fmt) if math.isfinite(v) else "n/a"
+
+    finish_plane_axes(ax, f"{report.map}: pose RMSE {f(report.pose_rmse_m, 100)} cm, "
+                          f"{f(report.yaw_rmse_deg, 1, '.2f')}° (odometry only "
+                          f"{f(report.odom_pose_rmse_m, 100)} cm, "
+                          f"{f(report.odom_yaw_rmse_deg, 1, '.2f')}°)", legend=False)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07), ncol=4,
+              frameon=False)
+    shown = pick_segments(segments, 4)
+    colors = ["tab:blue", "tab:green", "tab:purple", "tab:brown"]
+    for i in range(4):
+        sub = fig.add_subplot(gs[i // 2, 1 + i % 2])
+        if i >= len(shown):
+            sub.axis("off")
+            continue
+        v = shown[i]
+        lm = v.landmark
+        model, theta = landmark_model_us(lm, v.x_m, v.y_m, v.yaw_rad, c_mps, sigma_deg)
+        kappa_term = lm.kappa_us * np.exp(theta ** 2 / (2 * math.radians(sigma_deg) ** 2))
+        delay = v.tof_us - (model - kappa_term)
+        ok = np.isfinite(delay)
+        what = v.label or lm.kind
+        draw_excess_delay(sub, theta[ok], delay[ok], lm.kappa_us, sigma_deg,
+                          label="eq. 3 fit", color=colors[i])
+        sub.set_title(f"{what}: κ={lm.kappa_us:.2f} µs, {int(ok.sum())} echoes\n"
+                      f"{len(set(lm.sensors)) or '?'} transducers, r={lm.range_m:.2f} m",
+                      fontsize=8)
+        sub.set_xlabel("angle off the transducer axis (deg)", fontsize=8)
+        sub.set_ylabel("TOF − 2r/c (µs)", fontsize=8)
+        sub.tick_params(labelsize=7)
+        sub.grid(True, alpha=0.3)
+        sub.legend(fontsize=7, loc="upper center")
+        lo = float(np.nanmin(delay[ok])) if ok.any() else 0.0
+        hi = float(np.nanmax(delay[ok])) if ok.any() else 1.0
+        pad = max(5.0, 0.1 * (hi - lo))
+        sub.set_ylim(lo - pad, hi + pad)
+    fig.suptitle(f"sonarloc drive — rig {report.rig}, device {report.device}, "
+                 f"{f(report.duration_s)} s simulated, {report.landmarks_fitted} landmarks "
+                 f"fitted, {report.landmarks_matched} matched", fontsize=11)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return out

@@ -1,0 +1,109 @@
+import json
+import math
+
+import numpy as np
+import pytest
+
+from sonarloc.io.logfile import LogWriter, OdomRecord, TruthRecord, iter_log
+from sonarloc.io.posescsv import COLUMNS, read_poses_csv
+from sonarloc.localize.features import FeatureMap
+from sonarloc.maps.geojson import load_map
+from sonarloc.world.rig import ring16
+from sonarloc.world.simulate import simulate_records
+
+ROOM = "maps/room.geojson"
+
+
+@pytest.fixture(scope="module")
+def room_log(tmp_path_factory):
+    path = tmp_path_factory.mktemp("loc") / "drive.jsonl"
+    with LogWriter(path) as w:
+        w.write_all(simulate_records(load_map(ROOM), ring16(), duration_s=12.0, seed=3))
+    return path
+
+
+def _truth(path):
+    return {r.t_s: (r.x_m, r.y_m, math.radians(r.yaw_deg))
+            for r in iter_log(path) if isinstance(r, TruthRecord)}
+
+
+def test_feature_map_from_room():
+    fm = FeatureMap.from_map(load_map(ROOM))
+    assert fm.n_walls == 8  # 6 room segments + 2 partition segments
+    assert {"pole", "rod", "corner", "edge"} <= set(fm.point_kind)
+    assert np.all(fm.wall_line[:, 0] >= 0)
+
+
+def test_localize_conventional_writes_one_row_per_odom(run_cli, room_log, tmp_path):
+    out = tmp_path / "poses.csv"
+    proc = run_cli("localize", str(room_log), "--map", ROOM, "--out", str(out),
+                   "--method", "conventional", check=True)
+    header = out.read_text().splitlines()[0]
+    assert header == ",".join(COLUMNS)
+    track = read_poses_csv(out)
+    n_odom = sum(isinstance(r, OdomRecord) for r in iter_log(room_log))
+    assert len(track) == n_odom
+    truth = _truth(room_log)
+    err = [math.hypot(x - truth[t][0], y - truth[t][1])
+           for t, x, y in zip(track.t_s, track.x_m, track.y_m, strict=True)]
+    assert np.sqrt(np.mean(np.square(err))) < 0.05
+    assert np.all(np.linalg.eigvalsh(track.cov) > 0)
+    assert "fused" in proc.stderr
+
+
+def test_localize_odometry_only_to_stdout_with_status(run_cli, room_log):
+    proc = run_cli("localize", str(room_log), "--map", ROOM, "--method", "odometry",
+                   "--status", check=True)
+    lines = proc.stdout.splitlines()
+    assert lines[0] == ",".join(COLUMNS) + ",status"
+    assert lines[1].endswith(",tracking")
+
+
+def test_bad_log_is_reported_not_fatal(run_cli, room_log, tmp_path):
+    lines = room_log.read_text().splitlines()
+    bad = lines[:40] + ["{not json", '{"type": "odom", "t_s": "x"}',
+                        '{"type": "weather", "t_s": 1.0}'] + lines[40:60] + \
+        [json.dumps({"type": "odom", "t_s": 0.0, "x_m": 0, "y_m": 0, "yaw_deg": 0})] + \
+        lines[60:200]
+    log = tmp_path / "bad.jsonl"
+    log.write_text("\n".join(bad) + "\n")
+    out = tmp_path / "p.csv"
+    proc = run_cli("localize", str(log), "--map", ROOM, "--out", str(out), "--method",
+                   "conventional")
+    assert proc.returncode == 0, proc.stderr
+    assert "line 41" in proc.stderr and "line 42" in proc.stderr
+    assert "weather" in proc.stderr
+    assert "backwards" in proc.stderr
+    n_odom = sum('"odom"' in ln and '"x"' not in ln for ln in bad)
+    assert len(read_poses_csv(out)) == n_odom
+
+
+def test_no_init_needs_init_flag(run_cli, room_log, tmp_path):
+    lines = [ln for ln in room_log.read_text().splitlines()[:300] if '"init"' not in ln]
+    log = tmp_path / "noinit.jsonl"
+    log.write_text("\n".join(lines) + "\n")
+    proc = run_cli("localize", str(log), "--map", ROOM, "--method", "odometry")
+    assert proc.returncode == 2 and "--init" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    out = tmp_path / "p.csv"
+    ok = run_cli("localize", str(log), "--map", ROOM, "--method", "odometry", "--init",
+                 "-1.0,1.0,-90", "--out", str(out), check=True)
+    assert ok.returncode == 0
+    track = read_poses_csv(out)
+    assert track.x_m[0] == pytest.approx(-1.0) and math.degrees(track.yaw_rad[0]) == \
+        pytest.approx(-90.0)
+
+
+@pytest.mark.parametrize("bad", ["1,2", "a,b,c", "1,2,nan"])
+def test_bad_init_value(run_cli, room_log, bad):
+    proc = run_cli("localize", str(room_log), "--map", ROOM, "--init", bad)
+    assert proc.returncode == 2 and "--init" in proc.stderr
+
+
+def test_bad_map_and_missing_log(run_cli, room_log, tmp_path):
+    bad_map = tmp_path / "m.geojson"
+    bad_map.write_text('{"type": "FeatureCollection", "features": [{"type": "Feature"}]}')
+    proc = run_cli("localize", str(room_log), "--map", str(bad_map))
+    assert proc.returncode == 2 and "feature 0" in proc.stderr
+    proc = run_cli("localize", str(tmp_path / "nope.jsonl"), "--map", ROOM)
+    assert proc.returncode == 2 and "nope.jsonl" in proc.stderr

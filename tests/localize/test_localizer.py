@@ -1,0 +1,118 @@
+import math
+
+import numpy as np
+import pytest
+from loc_synth import feed, make_drive, room_map
+
+from sonarloc.io.logfile import TruthRecord
+from sonarloc.localize import ekf, se2
+from sonarloc.localize.localizer import Localizer, LocalizerConfig
+
+
+def no_source(c):
+    raise AssertionError("the kuc source must not be needed in these tests")
+
+
+def loc(**cfg):
+    return Localizer(room_map(), LocalizerConfig(**cfg), landmark_source=no_source)
+
+
+def errors(ests, drive):
+    mean = np.array([e.state.mean for e in ests])
+    d = mean - drive.truth
+    d[:, 2] = se2.wrap_angle(d[:, 2])
+    return d
+
+
+def test_delayed_landmarks_equal_on_time_fusion():
+    """Rewind-and-replay gives exactly what on-time fusion gives."""
+    drive = make_drive(delay_steps=6, every=1)
+    la, lb = loc(), loc()
+    feed(la, drive)
+    feed(lb, drive, deliver=lambda idx, lm: idx - 6)
+    assert la.stats.accepted == lb.stats.accepted == len(drive.landmarks)
+    assert la.stats.replayed_steps > lb.stats.replayed_steps
+    a, b = la.estimate.state, lb.estimate.state
+    assert np.allclose(a.mean, b.mean, atol=1e-12, rtol=0)
+    assert np.allclose(a.cov, b.cov, atol=1e-15, rtol=1e-10)
+
+
+def test_tracks_better_than_odometry():
+    drive = make_drive(seed=3, n=600)
+    ests = feed(loc(), drive)
+    d = errors(ests, drive)
+    rmse = math.sqrt(np.mean(d[:, 0] ** 2 + d[:, 1] ** 2))
+    # odometry alone, anchored at the same prior
+    odo_only = feed(loc(), make_drive(seed=3, n=600), deliver=lambda i, lm: 10**9)
+    d0 = errors(odo_only, drive)
+    rmse0 = math.sqrt(np.mean(d0[:, 0] ** 2 + d0[:, 1] ** 2))
+    assert rmse < 0.01
+    assert rmse0 > 3 * rmse
+    assert all(e.status == "tracking" for e in ests[20:])
+    nees = np.array([ekf.nees(e.state, t) for e, t in zip(ests, drive.truth, strict=True)])
+    assert 1.0 < nees[50:].mean() < 6.0
+
+
+def test_map_to_odom_composes_to_pose():
+    drive = make_drive(n=100)
+    ests = feed(loc(), drive)
+    for e in ests[::10]:
+        assert np.allclose(se2.compose(e.map_to_odom, e.odom_pose), e.state.mean, atol=1e-12)
+
+
+def test_truth_records_are_never_read():
+    drive = make_drive(n=120)
+    ests = feed(loc(), drive)
+    garbled = make_drive(n=120)
+    garbled.records = [TruthRecord(r.t_s, 1e6, -1e6, 123.0) if isinstance(r, TruthRecord)
+                       else r for r in garbled.records]
+    ests2 = feed(loc(), garbled)
+    assert np.array_equal(ests[-1].state.mean, ests2[-1].state.mean)
+
+
+def test_lost_when_updates_keep_being_rejected():
+    drive = make_drive(n=300)
+    # the prior is confidently 1 m off: every landmark fails the gate
+    drive.records[1] = type(drive.records[1])(0.0, drive.records[1].x_m + 1.0,
+                                              drive.records[1].y_m - 0.6,
+                                              drive.records[1].yaw_deg, 0.01, 0.2)
+    ests = feed(loc(lost_after_rejections=10), drive)
+    assert ests[-1].status == "lost"
+    assert "rejected" in ests[-1].reason
+
+
+def test_dead_reckoning_without_landmarks():
+    drive = make_drive(n=200)
+    ests = feed(loc(dead_reckoning_after_s=2.0), drive, deliver=lambda i, lm: 10**9)
+    assert ests[10].status == "tracking"
+    assert ests[-1].status == "dead_reckoning"
+    # covariance grows without updates
+    assert np.trace(ests[-1].state.cov) > np.trace(ests[10].state.cov)
+
+
+def test_too_old_landmark_is_counted():
+    drive = make_drive(n=400)
+    lc = loc(history_s=2.0)
+    feed(lc, drive, deliver=lambda idx, lm: idx + 80 if idx < 50 else idx)
+    assert lc.stats.outcomes["too_old"] > 0
+    assert lc.stats.accepted > 50
+
+
+def test_history_is_bounded():
+    drive = make_drive(n=1200)
+    lc = loc(history_s=2.0)
+    feed(lc, drive)
+    assert lc.history_len < (2.0 / 0.05) * 2 + 200
+
+
+def test_odom_before_init_gives_no_estimate():
+    lc = loc()
+    assert lc.on_odom(0.0, 0, 0, 0) is None
+    assert lc.stats.skipped["odom_before_init"] == 1
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="method"):
+        LocalizerConfig(method="magic")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="history_s"):
+        LocalizerConfig(history_s=0.0)
