@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sonarloc.physics.beam import gaussian_echo, piston_echo
+from sonarloc.physics.beam import gaussian_echo, piston_echo, piston_one_way
 from sonarloc.physics.tof import ModuleParams
 from sonarloc.physics.waveform import crossing_delay_us, eq3_agreement_limit_us
 
@@ -82,36 +82,45 @@ WAVEFORM_TOLERANCE_US = 0.5
 """Largest difference [us] between waveform and eq. 3 delays that ``auto`` ignores."""
 
 _THETA_STEP_RAD = np.deg2rad(0.01)
+_SIN_STEP = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
 class AutoTables:
-    """Precomputed decision tables of the ``auto`` tier for one :class:`ModuleParams`.
+    """Precomputed tables of the tiers for one :class:`ModuleParams`.
 
-    Both tables live on the grid theta_i = i * theta_step_rad, 0 <= theta_i <= pi/2.
+    ``mismatch`` and ``envelope`` live on the grid theta_i = i * theta_step_rad,
+    0 <= theta_i <= pi/2; ``piston_one_way`` on the grid sin(theta) = j * sin_step.
 
     Attributes
     ----------
-    mismatch : (n,) largest |1/a_gauss - 1/a_piston| at any angle up to theta_i
+    mismatch : (n,) largest |1/a_gauss - 1/a_piston| at any angle up to theta_(i+1)
         (non-decreasing; infinite from the piston's first null on). A reflector of
-        strength s may use the Gaussian up to theta_i if s * mismatch[i] <= tol.
+        strength s may use the Gaussian at |theta| <= theta_i if s * mismatch[i] <= tol.
     envelope : (n,) largest echo amplitude (piston or Gaussian) at theta_i or any
         larger angle (non-increasing): nothing weaker than ``limit * envelope`` is
         detectable there.
+    piston_one_way : (m + 1,) one-way piston pattern 2 J1(x)/x at sin(theta) = j *
+        sin_step; linear interpolation of it, squared, gives the echo pattern within
+        2e-7 (faster than evaluating J1).
+    piston_slope : (m + 1,) increment of ``piston_one_way`` to the next node.
     waveform_from_us : u_w, eq. 3 delay beyond which the waveform tier is used.
-    theta_step_rad : grid spacing.
+    theta_step_rad, sin_step : grid spacings.
     """
 
     mismatch: NDArray[np.float64]
     envelope: NDArray[np.float64]
+    piston_one_way: NDArray[np.float64]
+    piston_slope: NDArray[np.float64]
     waveform_from_us: float
     theta_step_rad: float
+    sin_step: float
 
 
 @functools.lru_cache(maxsize=16)
 def auto_tables(params: ModuleParams = ModuleParams(),
                 waveform_tolerance_us: float = WAVEFORM_TOLERANCE_US) -> AutoTables:
-    """Build (once per argument set) the tables behind the ``auto`` decisions."""
+    """Build (once per argument set) the tables behind the tiers and the auto decisions."""
     if not (np.isfinite(waveform_tolerance_us) and waveform_tolerance_us > 0):
         raise ValueError(
             f"`waveform_tolerance_us` must be positive, got {waveform_tolerance_us!r}")
@@ -121,12 +130,38 @@ def auto_tables(params: ModuleParams = ModuleParams(),
     tiny = 1e-300
     inv_g = 1.0 / np.maximum(a_g, tiny)
     inv_p = np.where(a_p > tiny, 1.0 / np.maximum(a_p, tiny), np.inf)
-    mismatch = np.maximum.accumulate(np.abs(inv_g - inv_p))
+    worst = np.maximum.accumulate(np.abs(inv_g - inv_p))
+    mismatch = np.append(worst[1:], np.inf)  # next node up: safe for |theta| in a cell
     envelope = np.maximum.accumulate(np.maximum(a_p, a_g)[::-1])[::-1]
-    for arr in (mismatch, envelope):
+    n_sin = int(round(1.0 / _SIN_STEP))
+    sin_grid = np.minimum(np.arange(n_sin + 1) * _SIN_STEP, 1.0)
+    one_way = piston_one_way(np.arcsin(sin_grid), params.diameter_m, params.carrier_hz,
+                             params.c_mps)
+    slope = np.append(np.diff(one_way), 0.0)
+    for arr in (mismatch, envelope, one_way, slope):
         arr.setflags(write=False)
-    return AutoTables(mismatch, envelope,
-                      eq3_agreement_limit_us(params, waveform_tolerance_us), _THETA_STEP_RAD)
+    return AutoTables(mismatch, envelope, one_way, slope,
+                      eq3_agreement_limit_us(params, waveform_tolerance_us),
+                      _THETA_STEP_RAD, _SIN_STEP)
+
+
+def tabulated_piston_echo(theta_rad: ArrayLike,
+                          params: ModuleParams = ModuleParams()) -> NDArray[np.float64]:
+    """The piston echo pattern from the table the tiers use (within 2e-7 of
+    :func:`~sonarloc.physics.beam.piston_echo`). Shape of ``theta_rad``."""
+    return _piston_fast(np.asarray(theta_rad, dtype=float), auto_tables(params))
+
+
+def _piston_fast(theta: NDArray[np.float64], tables: AutoTables) -> NDArray[np.float64]:
+    x = np.sin(theta, out=np.empty_like(theta))
+    np.abs(x, out=x)
+    x *= 1.0 / tables.sin_step  # at most the last node, whose slope is 0
+    j = x.astype(np.intp)
+    x -= j
+    x *= tables.piston_slope[j]
+    x += tables.piston_one_way[j]
+    x *= x
+    return x
 
 
 def gauss_valid_rad(kappa_us: ArrayLike, params: ModuleParams = ModuleParams(),
@@ -202,8 +237,10 @@ def echo_delays_us(
         where = tuple(int(i) for i in np.unravel_index(int(np.argmax(bad)), shape))
         raise ValueError(f"`theta_rad` must not be NaN, got nan at index {where}")
     kap = _check_kappa(kap_b).reshape(-1)
-    gain = np.exp(params.amplitude_fluctuation * rng.standard_normal(theta.size))
-    s = kap / gain
+    gain = rng.standard_normal(theta.size)
+    gain *= params.amplitude_fluctuation
+    s = np.exp(gain, out=gain)
+    np.divide(kap, s, out=s)  # s = kappa / gain: this echo's threshold delay on the axis
     limit = params.detection_limit_us
     if t is Tier.GAUSS:
         delay = _eq3(s / gaussian_echo(theta, params.sigma_deg), limit)
@@ -212,7 +249,7 @@ def echo_delays_us(
         return delay.reshape(shape), used.reshape(shape)
     else:
         with np.errstate(divide="ignore"):
-            u = s / piston_echo(theta, params.diameter_m, params.carrier_hz, params.c_mps)
+            u = s / _piston_fast(theta, auto_tables(params))
         delay = _eq3(u, limit) if t is Tier.PISTON else crossing_delay_us(u, params)
     return delay.reshape(shape), np.full(shape, int(t), dtype=np.int8)
 
@@ -239,24 +276,30 @@ def _auto(theta: NDArray[np.float64], s: NDArray[np.float64],
     tables = auto_tables(params)
     limit = params.detection_limit_us
     u_w = tables.waveform_from_us
-    n = tables.mismatch.size
-    # Grid node at or below |theta| for the (non-increasing) envelope, the next one up
-    # for the (non-decreasing) mismatch: both err on the safe side.
-    i = np.minimum(np.abs(theta) / tables.theta_step_rad, n - 2).astype(np.intp)
+    # One grid index per echo serves both decision tables: the node at or below |theta|
+    # for the non-increasing envelope, the next one up (built into `mismatch`) for the
+    # non-decreasing mismatch, so both err on the safe side.
+    i = np.abs(theta)
+    i *= 1.0 / tables.theta_step_rad
+    i = np.minimum(i, tables.envelope.size - 1).astype(np.intp)
     dead = s > limit * tables.envelope[i]
-    gz = (s * tables.mismatch[i + 1] <= GAUSS_TOLERANCE_US) & ~dead
     u = s / gaussian_echo(theta, params.sigma_deg)
-    need_p = ~dead & (~gz | (u > u_w - GAUSS_TOLERANCE_US))
-    if need_p.any():
-        with np.errstate(divide="ignore"):
-            u[need_p] = s[need_p] / piston_echo(theta[need_p], params.diameter_m,
-                                                params.carrier_hz, params.c_mps)
+    need_p = s * tables.mismatch[i] > GAUSS_TOLERANCE_US
+    need_p |= u > u_w - GAUSS_TOLERANCE_US
+    need_p &= ~dead
     u[dead] = np.inf
-    wave = need_p & (u > u_w)
-    delay = _eq3(u, limit)
-    if wave.any():
-        delay[wave] = crossing_delay_us(u[wave], params)
+    idx_p = np.flatnonzero(need_p)
     used = np.zeros(theta.shape, dtype=np.int8)
-    used[need_p] = Tier.PISTON
-    used[wave] = Tier.WAVEFORM
+    if idx_p.size:
+        with np.errstate(divide="ignore"):
+            u_p = s[idx_p] / _piston_fast(theta[idx_p], tables)
+        u[idx_p] = u_p
+        used[idx_p] = Tier.PISTON
+        idx_w = idx_p[u_p > u_w]
+    else:
+        idx_w = idx_p
+    delay = _eq3(u, limit)
+    if idx_w.size:
+        delay[idx_w] = crossing_delay_us(u[idx_w], params)
+        used[idx_w] = Tier.WAVEFORM
     return delay, used

@@ -68,8 +68,9 @@ class WaveformTemplate:
     half_period_us : half the carrier period, the ripple period [us].
     u_step_us : spacing of the threshold grid of ``crossing_table`` [us].
     crossing_table : (m + 1,) exact crossing time at thresholds j * u_step_us [us].
-    exact_cells : (m,) True for grid cells across which the crossing jumps (a ripple
-        plateau) or moves fast; there the crossing is searched in the template
+    crossing_slope : (m + 1,) its increment to the next node (0 at the last) [us].
+    exact_cells : (m + 1,) True for grid cells across which the crossing jumps (a
+        ripple plateau) or moves fast; there the crossing is searched in the template
         instead of interpolated in ``crossing_table``.
     """
 
@@ -81,6 +82,7 @@ class WaveformTemplate:
     half_period_us: float
     u_step_us: float
     crossing_table: NDArray[np.float64]
+    crossing_slope: NDArray[np.float64]
     exact_cells: NDArray[np.bool_]
 
     @property
@@ -140,11 +142,12 @@ def _template(carrier_hz: float, burst_cycles: int, q: float, b: float,
     table = _search_crossing(np.arange(_TABLE_CELLS + 1, dtype=float) * u_step, w, m, dt_us)
     # Linear interpolation inside a cell is good to well below dt_us unless the crossing
     # moves by more than a few samples across it (a plateau of the running maximum).
-    exact = np.diff(table) > 4.0 * dt_us
-    for arr in (w, m, table, exact):
+    slope = np.append(np.diff(table), 0.0)
+    exact = slope > 4.0 * dt_us
+    for arr in (w, m, table, slope, exact):
         arr.setflags(write=False)
     return WaveformTemplate(dt_us, w, m, tau, burst_cycles * 1e6 / carrier_hz,
-                            0.5e6 / carrier_hz, u_step, table, exact)
+                            0.5e6 / carrier_hz, u_step, table, slope, exact)
 
 
 _TABLE_CELLS = 1 << 17
@@ -208,16 +211,19 @@ def crossing_delay_us(
     """
     tpl = waveform_template(params)
     u = np.asarray(u_us, dtype=float)
-    ok = u <= tpl.running_max[-1]  # False for NaN too
-    x = np.where(ok, np.maximum(u, 0.0), 0.0) / tpl.u_step_us
-    j = np.minimum(x.astype(np.intp), _TABLE_CELLS - 1)
-    frac = x - j
-    t0 = tpl.crossing_table[j]
-    t = t0 + frac * (tpl.crossing_table[j + 1] - t0)
-    hard = tpl.exact_cells[j] & ok
+    x = np.multiply(u, 1.0 / tpl.u_step_us, out=np.empty_like(u))
+    np.fmin(x, _TABLE_CELLS, out=x)  # fmin/fmax also turn NaN into a valid index
+    np.fmax(x, 0.0, out=x)
+    j = x.astype(np.intp)
+    x -= j
+    x *= tpl.crossing_slope[j]
+    x += tpl.crossing_table[j]
+    hard = tpl.exact_cells[j]
     if hard.any():
-        t[hard] = _search_crossing(u[hard], tpl.processed, tpl.running_max, tpl.dt_us)
-    return np.where(ok, t, np.nan)
+        x[hard] = _search_crossing(np.clip(u[hard], 0.0, tpl.peak_us), tpl.processed,
+                                   tpl.running_max, tpl.dt_us)
+    x[~(u <= tpl.running_max[-1])] = np.nan  # not detected (or NaN)
+    return x
 
 
 def waveform_delay_us(

@@ -170,3 +170,12 @@ def test_bad_arguments_name_the_value(kwargs: dict, needle: str) -> None:
         gauss_valid_rad(-1.0)
     with pytest.raises(ValueError, match="gain_sd"):
         max_detection_angle_rad(0.67, gain_sd=-1.0)
+
+
+def test_tabulated_piston_matches_exact() -> None:
+    from sonarloc.physics.tiers import tabulated_piston_echo
+
+    theta = np.random.default_rng(6).uniform(-np.pi, np.pi, 200_000)
+    np.testing.assert_allclose(tabulated_piston_echo(theta), piston_echo(theta), atol=2e-7)
+    assert float(tabulated_piston_echo(0.0)) == 1.0
+    assert tabulated_piston_echo(np.zeros((2, 3))).shape == (2, 3)
