@@ -179,3 +179,35 @@ def test_tabulated_piston_matches_exact() -> None:
     np.testing.assert_allclose(tabulated_piston_echo(theta), piston_echo(theta), atol=2e-7)
     assert float(tabulated_piston_echo(0.0)) == 1.0
     assert tabulated_piston_echo(np.zeros((2, 3))).shape == (2, 3)
+
+
+@pytest.mark.parametrize("tier", ["gauss", "piston", "waveform", "auto"])
+def test_delay_moments_match_monte_carlo(tier: str) -> None:
+    from sonarloc.physics.tiers import delay_moments_us
+
+    theta = np.deg2rad(np.array([0.0, 4.0, 8.0, 9.0, 10.5, 18.5]))
+    kappa = np.array([2.68, 0.67, 0.67, 2.68, 0.67, 0.15])
+    m = delay_moments_us(theta, kappa, tier)
+    n = 40_000
+    d, _ = echo_delays_us(np.repeat(theta[:, None], n, 1), kappa[:, None], tier,
+                          np.random.default_rng(8))
+    det = ~np.isnan(d)
+    p_mc = det.mean(axis=1)
+    np.testing.assert_allclose(m.p_detect, p_mc, atol=0.01)
+    for j in np.flatnonzero(p_mc > 0.05):
+        x = d[j][det[j]]
+        se = x.std() / np.sqrt(x.size)
+        assert m.mean_us[j] == pytest.approx(x.mean(), abs=5 * se + 0.05)
+        assert m.sd_us[j] == pytest.approx(x.std(), rel=0.05, abs=0.05)
+
+
+def test_delay_moments_noise_free_and_errors() -> None:
+    from sonarloc.physics.tiers import delay_moments_us
+
+    params = ModuleParams(amplitude_fluctuation=0.0)
+    m = delay_moments_us(np.deg2rad([0.0, 30.0]), 0.67, "piston", params)
+    np.testing.assert_allclose(m.p_detect, [1.0, 0.0])
+    assert m.mean_us[0] == pytest.approx(0.67, abs=1e-6) and m.sd_us[0] == 0.0
+    assert np.isnan(m.mean_us[1])
+    with pytest.raises(ValueError, match="`n_nodes` must be an integer >= 3, got 2"):
+        delay_moments_us(0.0, 0.67, n_nodes=2)
