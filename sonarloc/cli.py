@@ -17,6 +17,7 @@ from sonarloc.errors import SonarlocError
 
 # name -> (module, one-line help). Keep in the order of FORMATS.md section 6.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "fit": ("sonarloc.commands.fit", "landmarks from TOF readings of a scan CSV"),
     "simulate": ("sonarloc.commands.simulate", "simulated log (and scan CSV) from a map"),
     "localize": ("sonarloc.commands.localize", "EKF localization of a log against a map"),
     "plot": ("sonarloc.commands.plot", "plot a scan with model curves, a sonar map, a trajectory"),

@@ -10,7 +10,8 @@
 The specification is docs/PROTOCOL.md.
 """
 
-from sonarloc.io.protocol.canbus import CanDecoder, CanEncoder, load_dbc
+from typing import Any
+
 from sonarloc.io.protocol.framing import SerialDecoder, SerialEncoder, crc16, encode_packet
 from sonarloc.io.protocol.messages import (
     Ack,
@@ -27,6 +28,17 @@ from sonarloc.io.protocol.messages import (
     Stop,
 )
 from sonarloc.io.protocol.records import RecordAssembler, messages_from_record
+
+_LAZY = {"CanDecoder", "CanEncoder", "load_dbc"}  # cantools is imported only when needed
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        from sonarloc.io.protocol import canbus
+
+        return getattr(canbus, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "Ack", "CanDecoder", "CanEncoder", "DecoderStats", "Echo", "Firing", "Message", "Odom",

@@ -25,9 +25,11 @@ or 0x2B (string).
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
+from sonarloc.io.logfile import OdomRecord, Record, RigRecord, SensorMount, TofRecord
 from sonarloc.io.protocol.messages import DecoderStats
 
 SYNC = b"\xfa\xfb"
@@ -206,4 +208,72 @@ class ArcosDecoder:
         stats.bytes_skipped += skipped
         if pos:
             del buf[:pos]
+        return out
+
+
+# ---------------------------------------------------------------------------------------
+# standard SIP -> log records
+# ---------------------------------------------------------------------------------------
+P3DX_SONAR_MM_DEG: tuple[tuple[int, int, int, int], ...] = (
+    (0, 69, 136, 90), (1, 114, 119, 50), (2, 148, 78, 30), (3, 166, 27, 10),
+    (4, 166, -27, -10), (5, 148, -78, -30), (6, 114, -119, -50), (7, 69, -136, -90),
+    (8, -157, -136, -90), (9, -203, -119, -130), (10, -237, -78, -150), (11, -255, -27, -170),
+    (12, -255, 27, 170), (13, -237, 78, 150), (14, -203, 119, 130), (15, -157, 136, 90),
+)
+"""Sonar of a Pioneer 3-DX (front and rear rings): id, x mm, y mm, heading deg
+(the robot parameter file ``p3dx.p`` of ARIA)."""
+
+
+def p3dx_rig(speed_of_sound_mps: float = 343.0) -> RigRecord:
+    """The rig record of a Pioneer 3-DX's 16 sonar."""
+    return RigRecord(tuple(SensorMount(i, x / 1000.0, y / 1000.0, float(h))
+                           for i, x, y, h in P3DX_SONAR_MM_DEG), speed_of_sound_mps)
+
+
+def _signed15(v: int) -> int:
+    v &= 0x7FFF
+    return v - 0x8000 if v >= 0x4000 else v
+
+
+class SipConverter:
+    """Standard SIPs -> OdomRecord + TofRecords (pure; keeps the position unwrap state).
+
+    Parameters
+    ----------
+    dist_conv : mm per XPOS/YPOS unit (DistConvFactor; 1.0 on a P3-DX).
+    angle_conv_rad : rad per THPOS unit (AngleConvFactor; 2 pi / 4096).
+    range_conv : mm per sonar RANGE unit (RangeConvFactor; 1.0 on a P3-DX).
+    max_range_mm : a range at or beyond this is no echo.
+    speed_of_sound_mps : to turn ranges into times of flight.
+    """
+
+    def __init__(self, *, dist_conv: float = 1.0, angle_conv_rad: float = 2 * math.pi / 4096,
+                 range_conv: float = 1.0, max_range_mm: float = 5000.0,
+                 speed_of_sound_mps: float = 343.0):
+        for name, v in (("dist_conv", dist_conv), ("angle_conv_rad", angle_conv_rad),
+                        ("range_conv", range_conv), ("max_range_mm", max_range_mm),
+                        ("speed_of_sound_mps", speed_of_sound_mps)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"`{name}` must be positive, got {v!r}")
+        self.dist_conv, self.angle_conv_rad, self.range_conv = dist_conv, angle_conv_rad, range_conv
+        self.max_range_mm, self.c = max_range_mm, speed_of_sound_mps
+        self._raw: tuple[int, int] | None = None
+        self._xy = (0, 0)  # unwrapped encoder units
+
+    def records(self, sip: StandardSip, t_s: float) -> list[Record]:
+        raw = (sip.xpos & 0x7FFF, sip.ypos & 0x7FFF)
+        if self._raw is None:
+            self._xy = (_signed15(raw[0]), _signed15(raw[1]))
+        else:
+            self._xy = (self._xy[0] + _signed15(raw[0] - self._raw[0]),
+                        self._xy[1] + _signed15(raw[1] - self._raw[1]))
+        self._raw = raw
+        yaw = math.degrees(sip.thpos * self.angle_conv_rad)
+        yaw = (yaw + 180.0) % 360.0 - 180.0
+        out: list[Record] = [OdomRecord(t_s, self._xy[0] * self.dist_conv / 1000.0,
+                                        self._xy[1] * self.dist_conv / 1000.0, yaw)]
+        for number, rng in sip.sonars:
+            r_mm = rng * self.range_conv
+            tof = None if r_mm >= self.max_range_mm else 2.0 * r_mm / 1000.0 / self.c * 1e6
+            out.append(TofRecord(t_s, number, tof))
         return out

@@ -1,0 +1,586 @@
+"""Separable least squares (variable projection) for many segments at once.
+
+For a fixed bearing ``phi`` the TOF model ``Tm_i = To + 2 (R_i - r)/c + kappa g_i`` is
+linear in ``(To, kappa)``: the fit profiles out that pair with a 2x2 weighted solve on
+a global grid of bearings spanning the segment's arc (plus a margin for partial U's),
+adds the detection likelihood of the no-echo readings, takes the best node, and then
+polishes all three parameters by Fisher scoring with Levenberg-Marquardt damping and
+step acceptance only on decrease. The objective can only go down from the grid's
+best node, so a fit cannot diverge; every array op runs over the whole batch.
+
+The objective (half of it is minimised) is the negative log-likelihood
+
+    sum_echo ((y_i - mean_i) / s_i)^2 - 2 log P(echo_i) - 2 sum_no-echo log P(no echo_j)
+
+with ``y`` the readings less the counting bias (half a count), ``mean_i`` the mean TOF
+of a detected echo (geometry + truncated log-normal delay), ``s_i`` the jitter model
+(:func:`sonarloc.physics.jitter_sd_us`) plus counting variance, held fixed within a
+reweighting round, and the detection probabilities of :mod:`sonarloc.fit.model`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sonarloc.fit import model as M
+from sonarloc.physics.tof import ModuleParams
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Settings of the fitter.
+
+    Attributes
+    ----------
+    module : the ranging module (speed of sound ``c_mps``, beam, detection limit,
+        jitter, counting period). Change ``c_mps`` for another air temperature.
+    detection : use the detection model (no-echo readings bound the arc; detected
+        echoes' delays are truncated at the detection limit).
+    grid_step_deg : largest spacing of the global bearing grid.
+    margin_deg : how far beyond the arc covered by echoes a minimum may lie.
+    rounds, iterations : reweighting rounds and damped Fisher-scoring steps per round.
+    outlier_sigma : standardised residual beyond which an echo is dropped as a spike
+        (at most ``max_outlier_fraction`` of a segment's echoes).
+    flat_bearing_sd_deg : a fit whose bearing SD exceeds this is ``FLAT``.
+    kappa_min_us : lower bound of kappa.
+    kappa_guess_us : kappa of the conventional fallback result.
+    second_start_dcost : a second local minimum of the grid profile within this much
+        (-2 log-likelihood) of the best is refined too, and the better result kept.
+    chunk : segments fitted together (keeps the arrays in cache).
+    """
+
+    module: ModuleParams = field(default_factory=ModuleParams)
+    detection: bool = True
+    grid_step_deg: float = 1.5
+    margin_deg: float = 12.0
+    rounds: int = 2
+    iterations: int = 3
+    outlier_sigma: float = 4.5
+    max_outlier_fraction: float = 0.2
+    flat_bearing_sd_deg: float = 3.0
+    kappa_min_us: float = 1e-3
+    kappa_guess_us: float = 1.0
+    second_start_dcost: float = 6.0
+    chunk: int = 256
+
+    def __post_init__(self) -> None:
+        for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
+                     "kappa_min_us", "kappa_guess_us"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"`{name}` must be positive, got {v!r}")
+        for name in ("rounds", "iterations", "chunk"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise ValueError(f"`{name}` must be a positive integer, got {v!r}")
+        if not (0.0 <= self.max_outlier_fraction < 1.0):
+            raise ValueError(
+                f"`max_outlier_fraction` must be in [0, 1), got {self.max_outlier_fraction!r}")
+
+    def with_speed_of_sound(self, c_mps: float) -> FitConfig:
+        """The same settings with another speed of sound [m/s]."""
+        return replace(self, module=replace(self.module, c_mps=float(c_mps)))
+
+
+@dataclass(frozen=True)
+class SegmentBatch:
+    """Readings of ``B`` segments, padded, relative to each segment's reference pose.
+
+    Echo arrays have shape (B, Nd), no-echo arrays (B, Nn); ``*_valid`` marks real
+    entries. Positions are metres relative to ``ref_xy`` (B, 2) (the transducer
+    position of each segment's last echo), angles are frame radians, ``tof_us`` is the
+    raw reading in microseconds.
+    """
+
+    px: Array
+    py: Array
+    yaw: Array
+    tof_us: Array
+    valid: NDArray[np.bool_]
+    ne_px: Array
+    ne_py: Array
+    ne_yaw: Array
+    ne_valid: NDArray[np.bool_]
+    ref_xy: Array
+    ref_yaw: Array
+    ref_t_s: Array
+
+    @property
+    def size(self) -> int:
+        return int(self.px.shape[0])
+
+    @property
+    def n_echo(self) -> NDArray[np.int64]:
+        return self.valid.sum(axis=1)
+
+    @property
+    def n_noecho(self) -> NDArray[np.int64]:
+        return self.ne_valid.sum(axis=1)
+
+
+def pack_segments(
+    segments: Sequence[tuple[Array, Array, Array, Array, Array]],
+) -> SegmentBatch:
+    """Pad segments given as ``(t_s, x_m, y_m, yaw_rad, tof_us)`` arrays into a batch.
+
+    The reference of each segment is its last reading with a finite echo (its last
+    reading if it has none). Non-finite TOFs (NaN, inf) are no-echo readings.
+    """
+    B = len(segments)
+    n_det = np.zeros(B, dtype=np.int64)
+    n_ne = np.zeros(B, dtype=np.int64)
+    det_masks = []
+    for b, seg in enumerate(segments):
+        t, x, y, yaw, tof = (np.asarray(a, dtype=float) for a in seg)
+        n = len(t)
+        if not (len(x) == len(y) == len(yaw) == len(tof) == n):
+            raise ValueError(f"segment {b}: arrays of unequal length")
+        det = np.isfinite(tof)
+        det_masks.append(det)
+        n_det[b] = int(det.sum())
+        n_ne[b] = n - n_det[b]
+    Nd = max(int(n_det.max(initial=0)), 1)
+    Nn = max(int(n_ne.max(initial=0)), 1)
+    px = np.zeros((B, Nd))
+    py = np.zeros((B, Nd))
+    yw = np.zeros((B, Nd))
+    tof = np.full((B, Nd), np.nan)
+    valid = np.zeros((B, Nd), dtype=bool)
+    npx = np.zeros((B, Nn))
+    npy = np.zeros((B, Nn))
+    nyw = np.zeros((B, Nn))
+    nvalid = np.zeros((B, Nn), dtype=bool)
+    ref_xy = np.zeros((B, 2))
+    ref_yaw = np.zeros(B)
+    ref_t = np.zeros(B)
+    for b, seg in enumerate(segments):
+        t, x, y, yaw, tofs = (np.asarray(a, dtype=float) for a in seg)
+        det = det_masks[b]
+        if len(t) == 0:
+            continue
+        ref = int(np.flatnonzero(det)[-1]) if det.any() else len(t) - 1
+        ref_xy[b] = (x[ref], y[ref])
+        ref_yaw[b] = yaw[ref]
+        ref_t[b] = t[ref]
+        k = n_det[b]
+        px[b, :k] = x[det] - x[ref]
+        py[b, :k] = y[det] - y[ref]
+        yw[b, :k] = yaw[det]
+        tof[b, :k] = tofs[det]
+        valid[b, :k] = True
+        m = n_ne[b]
+        npx[b, :m] = x[~det] - x[ref]
+        npy[b, :m] = y[~det] - y[ref]
+        nyw[b, :m] = yaw[~det]
+        nvalid[b, :m] = True
+    return SegmentBatch(px, py, yw, tof, valid, npx, npy, nyw, nvalid, ref_xy, ref_yaw, ref_t)
+
+
+@dataclass(frozen=True)
+class BatchFit:
+    """Result of :func:`fit_batch` for ``B`` segments (local parameters).
+
+    ``local``: (B, 3) ``(r [m], phi [rad], kappa [us])`` seen from each reference pose;
+    ``cov``: (B, 3, 3); ``cost``: (B,) -2 log-likelihood at the fit (TOF Gaussian
+    terms with their variances' log-determinant, plus detection terms); ``chi2``: (B,)
+    sum of squared standardised TOF residuals;
+    ``n_used``: (B,) echoes used; ``used``: (B, Nd) echoes kept (not spikes);
+    ``resid``: (B, Nd) standardised TOF residuals (0 where unused);
+    ``arc``: (B, 2) bearing interval (lo, hi) [rad] covered by the echoes' beam axes,
+    as seen from the reference (``hi - lo`` may exceed pi only for a full turn);
+    ``converged``: (B,) last step below tolerance; ``robust_cost``: (B,) ``cost`` plus
+    ``outlier_sigma^2`` per dropped echo (comparable between models fitted to the same
+    readings).
+    """
+
+    kind: str
+    tier: str
+    local: Array
+    cov: Array
+    cost: Array
+    chi2: Array
+    n_used: NDArray[np.int64]
+    used: NDArray[np.bool_]
+    resid: Array
+    arc: Array
+    converged: NDArray[np.bool_]
+    robust_cost: Array
+
+    def take(self, idx: NDArray[np.int64]) -> BatchFit:
+        """The results of segments ``idx``."""
+        return BatchFit(self.kind, self.tier, *(getattr(self, f)[idx] for f in (
+            "local", "cov", "cost", "chi2", "n_used", "used", "resid", "arc", "converged",
+            "robust_cost")))
+
+
+def _solve_2x2_profile(w: Array, g: Array, y: Array, kmin: float | Array,
+                       kmax: float | Array = np.inf) -> tuple[Array, Array, Array]:
+    """Weighted LS of y = T + K g over the last axis, kmin <= K <= kmax -> T, K, cost."""
+    S0 = w.sum(-1)
+    S1 = (w * g).sum(-1)
+    S2 = (w * g * g).sum(-1)
+    wy = w * y
+    Sy = wy.sum(-1)
+    Sgy = (wy * g).sum(-1)
+    Syy = (wy * y).sum(-1)
+    det = S0 * S2 - S1 * S1
+    good = det > 1e-12 * np.maximum(S0 * S2, 1e-300)
+    K = np.where(good, (S0 * Sgy - S1 * Sy) / np.where(good, det, 1.0), kmin)
+    K = np.clip(K, kmin, np.maximum(kmax, kmin))
+    S0s = np.maximum(S0, 1e-300)
+    T = (Sy - K * S1) / S0s
+    cost = Syy - 2 * T * Sy - 2 * K * Sgy + T * T * S0 + 2 * T * K * S1 + K * K * S2
+    return T, K, np.maximum(cost, 0.0)
+
+
+def _axis_bearings(batch: SegmentBatch, y: Array, tau: float) -> tuple[Array, Array]:
+    """Bearing (from the reference) of each echo's beam-axis point, and its wrap centre."""
+    R = np.where(batch.valid, y / tau, 0.0)
+    ax = batch.px + R * np.cos(batch.yaw)
+    ay = batch.py + R * np.sin(batch.yaw)
+    bear = np.arctan2(ay, ax)
+    # centre: the axis bearing of the earliest-minimum echo (robust to wrap)
+    ymin_idx = np.argmin(np.where(batch.valid, y, np.inf), axis=1)
+    centre = np.take_along_axis(bear, ymin_idx[:, None], axis=1)[:, 0]
+    return bear, centre
+
+
+def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
+              s2: Array, cfg: FitConfig, want_derivs: bool = True
+              ) -> tuple[Array, Array, Array, Array]:
+    """Objective F (B,), gradient of F/2 (B,3), Fisher matrix (B,3,3), resid (B,Nd).
+
+    ``s2`` (B, Nd): fixed TOF variances; ``use`` (B, Nd) echoes taken into account.
+    """
+    mod = cfg.module
+    tau = M.us_per_m(mod)
+    r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
+    geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw)
+    g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=want_derivs)
+    z = M.detection_z(K, lng, mod) if cfg.detection else None
+    delay, ddu = M.mean_delay(K, g, mod, z)
+    mean = tau * geo.R + delay
+    s = np.sqrt(s2)
+    e = np.where(use, (y - mean) / s, 0.0)
+    F = (e * e).sum(-1)
+    B = p.shape[0]
+    grad = np.zeros((B, 3))
+    H = np.zeros((B, 3, 3))
+    if want_derivs:
+        du_dr = K * dg * geo.dtheta_dr
+        du_dphi = K * dg * geo.dtheta_dphi
+        Jw = np.stack([tau * geo.dR_dr + ddu * du_dr, tau * geo.dR_dphi + ddu * du_dphi,
+                       ddu * g], axis=-1) / s[..., None]  # (B, Nd, 3)
+        Jw = np.where(use[..., None], Jw, 0.0)
+        grad -= np.matmul(e[:, None, :], Jw)[:, 0, :]
+        H += np.matmul(np.swapaxes(Jw, 1, 2), Jw)
+    if z is None:
+        return F, grad, H, e
+    sa = M.sigma_a(mod)
+    # detected echoes: event probability Phi(-z)
+    lp, mills, info = M.probit_terms(-z, want_info=want_derivs)
+    F = F - 2.0 * np.where(use, lp, 0.0).sum(-1)
+    if want_derivs:
+        dlng = np.where(g < 1e11, dg / g, 0.0)
+        dz = np.stack([dlng * geo.dtheta_dr, dlng * geo.dtheta_dphi,
+                       np.broadcast_to(1.0 / K, g.shape)], axis=-1) * (1.0 / sa)
+        dz = np.where(use[..., None], dz, 0.0)
+        grad += np.matmul(np.where(use, mills, 0.0)[:, None, :], dz)[:, 0, :]
+        H += np.matmul(np.swapaxes(dz * np.where(use, info, 0.0)[..., None], 1, 2), dz)
+    if batch.ne_valid.any():
+        ng = M.geometry(kind, r, phi, batch.ne_px, batch.ne_py, batch.ne_yaw)
+        gn, dgn, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=want_derivs)
+        zn = M.detection_z(K, lgn, mod)
+        lpn, millsn, infon = M.probit_terms(zn, want_info=want_derivs)
+        nv = batch.ne_valid
+        F = F - 2.0 * np.where(nv, lpn, 0.0).sum(-1)
+        if want_derivs:
+            dlgn = np.where(gn < 1e11, dgn / gn, 0.0)
+            dzn = np.stack([dlgn * ng.dtheta_dr, dlgn * ng.dtheta_dphi,
+                            np.broadcast_to(1.0 / K, gn.shape)], axis=-1) * (1.0 / sa)
+            dzn = np.where(nv[..., None], dzn, 0.0)
+            grad -= np.matmul(np.where(nv, millsn, 0.0)[:, None, :], dzn)[:, 0, :]
+            H += np.matmul(np.swapaxes(dzn * np.where(nv, infon, 0.0)[..., None], 1, 2), dzn)
+    return F, grad, H, e
+
+
+def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConfig) -> Array:
+    """TOF variances (B, Nd) [us^2] of the echoes at parameters ``p``."""
+    mod = cfg.module
+    geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], batch.px, batch.py, batch.yaw)
+    g, _, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
+    z = M.detection_z(p[:, 2:3], lng, mod) if cfg.detection else None
+    delay, _ = M.mean_delay(p[:, 2:3], g, mod, z)
+    return M.tof_variance_us2(delay, mod)
+
+
+def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray,
+                cfg: FitConfig) -> tuple[Array, Array, NDArray[np.bool_], Array]:
+    """Global bracket on a bearing grid: the best (r, phi, kappa) node, the best other
+    local minimum and whether it is close enough to be refined too; the arc (lo, hi)."""
+    mod = cfg.module
+    tau = M.us_per_m(mod)
+    B = batch.size
+    ymask = np.where(use, y, np.nan)
+    with np.errstate(invalid="ignore"):
+        y0 = np.nanmin(np.where(use, y, np.inf), axis=1)
+    y0 = np.where(np.isfinite(y0), y0, 0.0)
+    bear, centre = _axis_bearings(batch, np.where(use, y, y0[:, None]), tau)
+    rel = M.wrap_angle(bear - centre[:, None])
+    lo = np.min(np.where(use, rel, np.inf), axis=1)
+    hi = np.max(np.where(use, rel, -np.inf), axis=1)
+    lo = np.where(np.isfinite(lo), lo, 0.0)
+    hi = np.where(np.isfinite(hi), hi, 0.0)
+    # nodes: uniform over the covered arc, coarser over the margins (partial U's); each
+    # segment has its own count (the rest padded at the end), so that a segment's fit
+    # does not depend on the other segments of the batch
+    step = np.deg2rad(cfg.grid_step_deg)
+    n_in = np.clip(np.ceil((hi - lo) / step).astype(np.int64) + 1, 3, 721)     # (B,)
+    n_out = int(np.ceil(cfg.margin_deg / (2.0 * cfg.grid_step_deg)))
+    margin = np.deg2rad(cfg.margin_deg)
+    n_grid = int(n_in.max(initial=3)) + 2 * n_out
+    j = np.arange(n_grid)[None, :]
+    n_in_c = n_in[:, None]
+    inner = lo[:, None] + (hi - lo)[:, None] * (j - n_out) / np.maximum(n_in_c - 1, 1)
+    left = lo[:, None] - margin * (n_out - j) / max(n_out, 1)
+    right = hi[:, None] + margin * (j - n_out - n_in_c + 1) / max(n_out, 1)
+    pad = j >= n_in_c + 2 * n_out
+    offs = np.where(j < n_out, left, np.where(j < n_out + n_in_c, inner, right))
+    offs = np.where(pad, hi[:, None] + margin, offs)                          # (B, G)
+    phis = centre[:, None] + offs
+    r0 = y0 / tau
+    geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
+                     batch.py[:, None, :], batch.yaw[:, None, :])
+    g, _, _ = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
+    scale = np.exp(0.5 * M.sigma_a(mod) ** 2)
+    geff = g * scale
+    # bearing-independent weights (the on-axis variance), so that the profile costs of
+    # the nodes compare (weights from the model at each node would discount far-off
+    # readings) and weigh against the detection terms as a likelihood does
+    w = np.where(use[:, None, :], 1.0 / float(M.tof_variance_us2(0.0, mod)), 0.0)
+    yc = (ymask - y0[:, None])[:, None, :] - tau * (geo.R - r0[:, None, None])
+    yc = np.where(use[:, None, :], yc, 0.0)
+    if cfg.detection:
+        # echoes were detected: the one nearest the axis must be detectable (z < 2)
+        g_min = np.min(np.where(use[:, None, :], g, np.inf), axis=-1)
+        kmax = (mod.detection_limit_us * np.exp(2.0 * M.sigma_a(mod)) * scale
+                / np.where(np.isfinite(g_min), g_min, 1.0))
+    else:
+        kmax = np.full(phis.shape, np.inf)
+    T, Keff, cost = _solve_2x2_profile(w, np.where(use[:, None, :], geff, 0.0), yc,
+                                       cfg.kappa_min_us * scale, kmax)
+    K = Keff / scale
+    if cfg.detection:
+        _, _, lg = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
+        lpd, _, _ = M.probit_terms(-M.detection_z(K[..., None], lg, mod), want_info=False)
+        cost = cost - 2.0 * np.where(use[:, None, :], lpd, 0.0).sum(-1)
+    if cfg.detection and batch.ne_valid.any():
+        ng = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.ne_px[:, None, :],
+                        batch.ne_py[:, None, :], batch.ne_yaw[:, None, :])
+        _, _, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=False)
+        zn = M.detection_z(K[..., None], lgn, mod)
+        lpn, _, _ = M.probit_terms(zn, want_info=False)
+        cost = cost - 2.0 * np.where(batch.ne_valid[:, None, :], lpn, 0.0).sum(-1)
+    cost = np.where(np.isfinite(cost) & ~pad, cost, np.inf)
+    rows = np.arange(B)
+    arc = np.stack([centre + lo, centre + hi], axis=-1)
+    k1 = np.argmin(cost, axis=1)
+    # the best other local minimum (at least two nodes away) for a second start
+    left = np.concatenate([np.full((B, 1), np.inf), cost[:, :-1]], axis=1)
+    right = np.concatenate([cost[:, 1:], np.full((B, 1), np.inf)], axis=1)
+    local_min = (cost <= left) & (cost <= right) & np.isfinite(cost)
+    far = np.abs(np.arange(n_grid)[None, :] - k1[:, None]) >= 2
+    c2 = np.where(local_min & far, cost, np.inf)
+    k2 = np.argmin(c2, axis=1)
+    second = np.isfinite(c2[rows, k2]) & (c2[rows, k2] - cost[rows, k1] < cfg.second_start_dcost)
+    starts = []
+    for k in (k1, k2):
+        best_phi = phis[rows, k]
+        # parabolic refinement through the node and its neighbours
+        kl = np.clip(k - 1, 0, n_grid - 1)
+        kr = np.clip(k + 1, 0, n_grid - 1)
+        cl, c0, cr = cost[rows, kl], cost[rows, k], cost[rows, kr]
+        interior = (k > 0) & (k < n_grid - 1) & np.isfinite(cl) & np.isfinite(cr)
+        denom = cl - 2 * c0 + cr
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shift = np.where(interior & (denom > 0), 0.5 * (cl - cr) / denom, 0.0)
+        shift = np.clip(shift, -0.5, 0.5)
+        dphi = np.where(shift > 0, phis[rows, kr] - phis[rows, k],
+                        phis[rows, k] - phis[rows, kl])
+        best_phi = best_phi + shift * dphi
+        to = T[rows, k] + y0
+        starts.append(np.stack([to / tau, best_phi, np.maximum(K[rows, k], cfg.kappa_min_us)],
+                               axis=-1))
+    return starts[0], starts[1], second, arc
+
+
+def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
+            cfg: FitConfig, rounds: int) -> tuple[Array, NDArray[np.bool_]]:
+    """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective."""
+    B = p.shape[0]
+    lam = np.full(B, 1e-3)
+    converged = np.zeros(B, dtype=bool)
+    step_scale = np.array([1e-6, 1e-7, 1e-5])  # m, rad, us: "no longer moving"
+    for _ in range(rounds):
+        # variances from the current delays, fixed for this round
+        s2 = _variances(kind, tier, p, batch, cfg)
+        F, grad, H, _ = _evaluate(kind, tier, p, batch, y, use, s2, cfg)
+        done = np.zeros(B, dtype=bool)
+        for _ in range(cfg.iterations):
+            diag = np.maximum(np.einsum("bkk->bk", H), 1e-12)
+            A = H + (lam[:, None] * diag)[:, :, None] * np.eye(3)[None]
+            try:
+                delta = np.linalg.solve(A, -grad[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                delta = np.zeros_like(p)
+                for b in range(B):
+                    delta[b] = np.linalg.lstsq(A[b], -grad[b], rcond=None)[0]
+            delta = np.where(np.isfinite(delta), delta, 0.0)
+            # keep steps physical: bearing moves at most 10 deg per step
+            delta[:, 1] = np.clip(delta[:, 1], -0.17, 0.17)
+            q = p + delta
+            q[:, 0] = np.maximum(q[:, 0], 1e-3)
+            q[:, 2] = np.maximum(q[:, 2], cfg.kappa_min_us)
+            Fq, gq, Hq, _ = _evaluate(kind, tier, q, batch, y, use, s2, cfg)
+            ok = np.isfinite(Fq) & (Fq <= F) & ~done
+            p = np.where(ok[:, None], q, p)
+            F = np.where(ok, Fq, F)
+            grad = np.where(ok[:, None], gq, grad)
+            H = np.where(ok[:, None, None], Hq, H)
+            lam = np.where(ok, np.maximum(lam / 4.0, 1e-9), np.minimum(lam * 8.0, 1e9))
+            # a segment that stopped moving is frozen for the rest of the round, so
+            # its result does not depend on the other segments of the batch
+            done |= ok & np.all(np.abs(delta) < step_scale, axis=1)
+            if done.all():
+                break
+        converged = done
+    return p, converged
+
+
+def _full_cost(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
+               cfg: FitConfig) -> Array:
+    """-2 log-likelihood (B,) at ``p``, with the TOF variances' log-determinant."""
+    s2 = _variances(kind, tier, p, batch, cfg)
+    F, _, _, _ = _evaluate(kind, tier, p, batch, y, use, s2, cfg, want_derivs=False)
+    return F + np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
+
+
+def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig
+           ) -> tuple[Array, NDArray[np.bool_], Array]:
+    """Grid bracket + refinement (from a second start where the grid is ambiguous)."""
+    start, start2, second, arc = _grid_start(kind, tier, batch, y, use, cfg)
+    p, conv = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
+    idx = np.flatnonzero(second)
+    if idx.size:
+        sub = _take(batch, idx)
+        p2, conv2 = _refine(kind, tier, start2[idx], sub, y[idx], use[idx], cfg, cfg.rounds)
+        f1 = _full_cost(kind, tier, p[idx], sub, y[idx], use[idx], cfg)
+        f2 = _full_cost(kind, tier, p2, sub, y[idx], use[idx], cfg)
+        better = f2 < f1
+        p[idx[better]] = p2[better]
+        conv[idx[better]] = conv2[better]
+    return p, conv, arc
+
+
+def _covariance(H: Array) -> Array:
+    """Inverse of Fisher matrices (B, 3, 3), finite even when singular (huge variance)."""
+    Hs = 0.5 * (H + np.swapaxes(H, -1, -2))
+    Hs = np.where(np.isfinite(Hs), Hs, 0.0)
+    w, V = np.linalg.eigh(Hs)
+    floor = np.maximum(w.max(axis=-1, keepdims=True) * 1e-14, 1e-30)
+    inv = 1.0 / np.maximum(w, floor)
+    inv = np.minimum(inv, 1e30)
+    return np.einsum("bij,bj,bkj->bik", V, inv, V)
+
+
+def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
+              config: FitConfig | None = None, offsets_us: Array | None = None,
+              use: NDArray[np.bool_] | None = None) -> BatchFit:
+    """Fit one landmark model to each of ``B`` segments.
+
+    Parameters
+    ----------
+    batch : padded readings (see :func:`pack_segments`).
+    kind : ``"point"`` (x, y, kappa) or ``"line"`` (rho, alpha, kappa).
+    tier : beam model ``"gauss"`` or ``"piston"``.
+    config : fitter settings (speed of sound, detection model, ...).
+    offsets_us : (B, Nd) known additive offsets of readings (ripple jumps), subtracted.
+    use : (B, Nd) echoes to use (default: all valid).
+
+    Returns
+    -------
+    BatchFit with local parameters and covariance; segments with fewer than 3 echoes
+    are returned as fitted on what they have (their status is decided by the caller).
+    """
+    if kind not in M.KINDS:
+        raise ValueError(f"`kind` must be 'point' or 'line', got {kind!r}")
+    if tier not in M.TIERS:
+        raise ValueError(f"`tier` must be one of {', '.join(M.TIERS)}; got {tier!r}")
+    cfg = config or FitConfig()
+    B = batch.size
+    if B > cfg.chunk:   # stay in cache: fit in chunks
+        parts = []
+        for i in range(0, B, cfg.chunk):
+            idx = np.arange(i, min(i + cfg.chunk, B))
+            parts.append(fit_batch(
+                _take(batch, idx), kind, tier, cfg,
+                None if offsets_us is None else offsets_us[idx],
+                None if use is None else use[idx]))
+        return BatchFit(kind, tier, *(np.concatenate([getattr(f, name) for f in parts])
+                                      for name in ("local", "cov", "cost", "chi2", "n_used",
+                                                   "used", "resid", "arc", "converged",
+                                                   "robust_cost")))
+    mod = cfg.module
+    y = batch.tof_us - 0.5 * mod.count_period_us
+    if offsets_us is not None:
+        y = y - np.where(batch.valid, offsets_us, 0.0)
+    use0 = batch.valid & np.isfinite(y)
+    if use is not None:
+        use0 = use0 & use
+    n_avail = use0.sum(1)
+    y = np.where(use0, y, 0.0)
+    p, conv, arc = _solve(kind, tier, batch, y, use0, cfg)
+    # spikes: drop the worst echoes beyond outlier_sigma, then polish again
+    s2 = _variances(kind, tier, p, batch, cfg)
+    _, _, _, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg, want_derivs=False)
+    n_use = use0.sum(1)
+    bad = use0 & (np.abs(e) > cfg.outlier_sigma)
+    max_drop = np.floor(cfg.max_outlier_fraction * n_use).astype(int)
+    if bad.any():
+        order = np.argsort(-np.abs(np.where(bad, e, 0.0)), axis=1)
+        rank = np.empty_like(order)
+        np.put_along_axis(rank, order, np.arange(order.shape[1])[None, :].repeat(
+            order.shape[0], 0), axis=1)
+        drop = bad & (rank < max_drop[:, None])
+        if drop.any():
+            use1 = use0 & ~drop
+            redo = drop.any(1)
+            idx = np.flatnonzero(redo)
+            sub = _take(batch, idx)
+            p2, c2, _ = _solve(kind, tier, sub, y[idx], use1[idx], cfg)
+            p[idx] = p2
+            conv[idx] = c2
+            use0 = use1
+    s2 = _variances(kind, tier, p, batch, cfg)
+    F, _, H, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg)
+    chi2 = (e * e).sum(1)
+    # full -2 log-likelihood (with the variances' log-determinant) to compare models
+    F = F + np.where(use0, np.log(2.0 * np.pi * s2), 0.0).sum(1)
+    n_used = use0.sum(1)
+    dof = np.maximum(n_used - 3, 1)
+    inflate = np.maximum(chi2 / dof, 1.0)
+    cov = _covariance(H) * inflate[:, None, None]
+    robust = F + cfg.outlier_sigma ** 2 * (n_avail - n_used)
+    return BatchFit(kind, tier, p, cov, F, chi2, n_used, use0, e, arc, conv, robust)
+
+
+def _take(batch: SegmentBatch, idx: NDArray[np.int64]) -> SegmentBatch:
+    return SegmentBatch(*(getattr(batch, f)[idx] for f in (
+        "px", "py", "yaw", "tof_us", "valid", "ne_px", "ne_py", "ne_yaw", "ne_valid",
+        "ref_xy", "ref_yaw", "ref_t_s")))

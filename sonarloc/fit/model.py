@@ -1,0 +1,306 @@
+"""The fitter's forward model: geometry, beam delay and detection, with derivatives.
+
+A landmark is parametrised *locally*, as seen from the segment's reference pose
+(the transducer position of its last echo): ``r`` [m] the distance to the reflecting
+point (point) or to the wall (line), ``phi`` [rad] the frame angle of the direction
+to the reflecting point or of the wall normal, ``kappa`` [us] the reflector strength
+tau/A0. Reading ``i`` of the transducer at ``(px_i, py_i)`` (relative to the reference
+position, metres) with axis direction ``yaw_i`` (frame angle, radians) then sees
+
+* point: ``R_i = |r u(phi) - p_i|``, off-axis ``theta_i = angle(r u(phi) - p_i) - yaw_i``;
+* line:  ``R_i = r - p_i . u(phi)``, off-axis ``theta_i = phi - yaw_i``;
+
+and reports ``Tm_i = 2 R_i / c + delay(kappa, theta_i)`` plus jitter and counting.
+The delay is ``kappa * g(theta)`` with ``g = 1 / rel_amp`` (Gaussian or piston beam;
+paper eq. 3). The echo is detected while ``kappa * g / G <= L`` for a log-normal
+amplitude gain ``G`` (SD ``sigma_a`` of log G); this gives the detection probability
+used for no-echo readings and the mean delay of detected echoes (a truncated
+log-normal mean). A stationary pan (all ``p_i = 0``) is the special case where point
+and line coincide.
+
+All functions broadcast over leading batch axes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.special import j1, jv, log_ndtr
+
+from sonarloc.physics.tof import ModuleParams
+
+Array = NDArray[np.float64]
+
+TIERS = ("gauss", "piston")
+"""Beam tiers the fitter can use (``gauss``: eq. 3; ``piston``: nulls and side lobes)."""
+
+KINDS = ("point", "line")
+
+_LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
+_TWO_PI = 2.0 * np.pi
+_G_MAX = 1e12
+"""Largest beam delay factor 1/rel_amp (nulls, the back of the transducer)."""
+
+
+def wrap_angle(a: ArrayLike) -> Array:
+    """Angle(s) wrapped to (-pi, pi]."""
+    a = np.asarray(a, dtype=float)
+    w = np.remainder(a + np.pi, 2.0 * np.pi) - np.pi
+    return np.where(w == -np.pi, np.pi, w)
+
+
+def _wrap_fast(a: Array) -> Array:
+    """Angle(s) wrapped to [-pi, pi] (hot paths; -pi and pi both allowed)."""
+    return a - _TWO_PI * np.rint(a * (1.0 / _TWO_PI))
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Range and off-axis angle of each reading with their derivatives by (r, phi).
+
+    Every field has the broadcast shape of the inputs, (..., n).
+    """
+
+    R: Array
+    theta: Array
+    dR_dr: Array
+    dR_dphi: Array
+    dtheta_dr: Array
+    dtheta_dphi: Array
+
+
+def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLike,
+             yaw: ArrayLike) -> Geometry:
+    """Range [m] and off-axis angle [rad] of readings for a local landmark (r, phi).
+
+    Parameters
+    ----------
+    kind : ``"point"`` or ``"line"``.
+    r, phi : (..., 1) local landmark parameters (broadcast against the readings).
+    px, py, yaw : (..., n) transducer positions relative to the reference position [m]
+        and axis directions [rad, frame].
+    """
+    r = np.asarray(r, dtype=float)
+    phi = np.asarray(phi, dtype=float)
+    px = np.asarray(px, dtype=float)
+    py = np.asarray(py, dtype=float)
+    yaw = np.asarray(yaw, dtype=float)
+    if kind not in KINDS:
+        raise ValueError(f"`kind` must be 'point' or 'line', got {kind!r}")
+    if kind == "line" or not (px.any() or py.any()):
+        # walls, and points seen from one spot (stationary pan): theta = phi - yaw
+        theta = _wrap_fast(phi - yaw)
+        if px.any() or py.any():
+            c, s = np.cos(phi), np.sin(phi)
+            R = r - (px * c + py * s)
+            dR_dphi = px * s - py * c
+        else:
+            R = np.broadcast_to(r, theta.shape)
+            dR_dphi = np.zeros(())
+        shape = np.broadcast_shapes(np.shape(R), theta.shape)
+        one, zero = np.ones(()), np.zeros(())
+        return Geometry(*(np.broadcast_to(a, shape) for a in
+                          (R, theta, one, dR_dphi, zero, one)))
+    c, s = np.cos(phi), np.sin(phi)
+    qx = r * c - px
+    qy = r * s - py
+    R2 = qx * qx + qy * qy
+    R = np.sqrt(R2)
+    safe = np.maximum(R, 1e-9)
+    bearing = np.arctan2(qy, qx)
+    # dq/dr = u, dq/dphi = r u_perp
+    dR_dr = (qx * c + qy * s) / safe
+    dR_dphi = r * (-qx * s + qy * c) / safe
+    inv = 1.0 / np.maximum(R2, 1e-18)
+    dtheta_dr = (qx * s - qy * c) * inv
+    dtheta_dphi = r * (qx * c + qy * s) * inv
+    theta = _wrap_fast(bearing - yaw)
+    shape = np.broadcast_shapes(R.shape, theta.shape)
+    return Geometry(*(np.broadcast_to(a, shape) for a in
+                      (R, theta, dR_dr, dR_dphi, dtheta_dr, dtheta_dphi)))
+
+
+def beam_delay_factor(theta: ArrayLike, tier: str, params: ModuleParams,
+                      derivative: bool = True) -> tuple[Array, Array, Array]:
+    """Delay factor g(theta) = 1 / rel_amp(theta), dg/dtheta [1/rad] and ln g.
+
+    ``gauss``: exp(theta^2 / 2 sigma^2); ``piston``: 1 / (2 J1(x) / x)^2 with
+    x = pi d sin(theta) / lambda. Capped at 1e12 (nulls, |theta| > 90 deg).
+    Without ``derivative`` the second array is ``g`` again.
+    """
+    t = np.asarray(theta, dtype=float)
+    if tier == "gauss":
+        inv_s2 = 1.0 / np.deg2rad(params.sigma_deg) ** 2
+        e = np.minimum(0.5 * t * t * inv_s2, np.log(_G_MAX))
+        g = np.exp(e)
+        dg = np.where(e < np.log(_G_MAX), g * t * inv_s2, 0.0) if derivative else g
+        return g, dg, e
+    if tier == "piston":
+        k = np.pi * params.diameter_m * params.carrier_hz / params.c_mps
+        x = k * np.sin(t)
+        small = np.abs(x) < 1e-4
+        xs = np.where(small, 1.0, x)
+        d = np.where(small, 1.0 - x * x / 8.0, 2.0 * j1(xs) / xs)
+        a = d * d
+        front = np.abs(t) < 0.5 * np.pi
+        ok = front & (a > 1.0 / _G_MAX)
+        g = np.where(ok, 1.0 / np.where(ok, a, 1.0), _G_MAX)
+        lng = np.log(g)
+        if not derivative:
+            return g, g, lng
+        dd_dx = np.where(small, -x / 4.0, -2.0 * jv(2, xs) / xs)
+        da = 2.0 * d * dd_dx * k * np.cos(t)
+        dg = np.where(ok, -da * g * g, 0.0)
+        return g, dg, lng
+    raise ValueError(f"`tier` must be one of {', '.join(TIERS)}; got {tier!r}")
+
+
+def sigma_a(params: ModuleParams) -> float:
+    """SD of the log echo amplitude used by the detection model (at least 0.05)."""
+    return max(float(params.amplitude_fluctuation), 0.05)
+
+
+def detection_z(kappa: ArrayLike, log_g: ArrayLike, params: ModuleParams) -> Array:
+    """Standardised log delay margin z = ln(kappa g / L) / sigma_a, from ln g.
+
+    P(no echo) = Phi(z), P(echo) = Phi(-z).
+    """
+    lk = np.log(np.maximum(np.asarray(kappa, float), 1e-300))
+    return (lk + np.asarray(log_g, float) - np.log(params.detection_limit_us)) / sigma_a(params)
+
+
+_Z_HIGH = 7.0
+_Z_LOW = -10.0
+
+
+def probit_terms(v: ArrayLike, want_info: bool = True) -> tuple[Array, Array, Array]:
+    """log Phi(v), its derivative phi(v)/Phi(v), and the Bernoulli Fisher information.
+
+    The information of an event of probability Phi(v) per unit v^2 is
+    phi(v)^2 / (Phi(v) Phi(-v)). Exact (``scipy.special.log_ndtr``) for -10 < v < 7;
+    beyond, Phi(v) = 1 to 2e-12, or the asymptotic series of the Mills ratio (relative
+    error < 1e-9), which keeps the cost of batch fits low.
+    """
+    v = np.asarray(v, dtype=float)
+    logp = np.zeros(v.shape)
+    mills = np.zeros(v.shape)
+    info = np.zeros(v.shape)
+    mid = (v > _Z_LOW) & (v < _Z_HIGH)
+    low = v <= _Z_LOW
+    if low.any():
+        vl = v[low]
+        inv2 = 1.0 / (vl * vl)
+        # Phi(v) ~ phi(v)/|v| * sum_k (-1)^k (2k-1)!! / v^2k
+        series = np.ones_like(vl)
+        term = np.ones_like(vl)
+        for k in range(1, 9):
+            term = -term * (2 * k - 1) * inv2
+            series = series + term
+        logp[low] = -0.5 * vl * vl - np.log(-vl) - _LOG_SQRT_2PI + np.log(series)
+        mills[low] = -vl / series
+    if mid.any():
+        vm = v[mid]
+        lp = log_ndtr(vm)
+        lpdf = -0.5 * vm * vm - _LOG_SQRT_2PI
+        logp[mid] = lp
+        mills[mid] = np.exp(lpdf - lp)
+        if want_info:
+            info[mid] = np.exp(2.0 * lpdf - lp - log_ndtr(-vm))
+    return logp, mills, info
+
+
+def bernoulli_info(z: ArrayLike) -> Array:
+    """Fisher information phi(z)^2 / (Phi(z) Phi(-z)) of a probit event per unit z^2."""
+    return probit_terms(z)[2]
+
+
+def mean_delay(kappa: ArrayLike, g: ArrayLike, params: ModuleParams,
+               z: ArrayLike | None = None) -> tuple[Array, Array]:
+    """Mean threshold delay [us] of a *detected* echo and its derivative by u = kappa g.
+
+    With a log-normal gain the delay is u / G; its mean is u exp(s^2/2) and, given
+    detection (delay <= L, pass the detection margin ``z``), the truncated mean
+    u exp(s^2/2) Phi(-z - s) / Phi(-z).
+    """
+    s = sigma_a(params)
+    u = np.asarray(kappa, float) * np.asarray(g, float)
+    scale = np.exp(0.5 * s * s)
+    if z is None:
+        return u * scale, np.full(u.shape, scale)
+    z = np.asarray(z, dtype=float)
+    ratio = np.ones(u.shape)
+    dratio = np.zeros(u.shape)
+    act = z > -_Z_HIGH
+    if act.any():
+        za = z[act]
+        l0 = log_ndtr(-za)
+        ra = np.exp(log_ndtr(-za - s) - l0)
+        # R'(z) = -phi(z+s)/Phi(-z) + R phi(z)/Phi(-z)
+        m1 = np.exp(-0.5 * (za + s) ** 2 - _LOG_SQRT_2PI - l0)
+        m0 = np.exp(-0.5 * za * za - _LOG_SQRT_2PI - l0)
+        ratio[act] = ra
+        dratio[act] = -m1 + ra * m0
+    return u * scale * ratio, scale * (ratio + dratio / s)
+
+
+def tof_variance_us2(delay_us: ArrayLike, params: ModuleParams) -> Array:
+    """Variance [us^2] of a reading with mean delay ``delay_us``: jitter model + counting.
+
+    ``jitter_sd_us(delay)^2 + period^2 / 12`` with :func:`sonarloc.physics.jitter_sd_us`
+    written out (no square root) because it runs in the fitter's inner loop.
+    """
+    d = np.asarray(delay_us, dtype=float)
+    a = params.amplitude_fluctuation
+    return (params.jitter_sd_us ** 2 + params.count_period_us ** 2 / 12.0) + (a * a) * (d * d)
+
+
+def us_per_m(params: ModuleParams) -> float:
+    """Round-trip microseconds per metre of range, 2e6 / c."""
+    return 2e6 / params.c_mps
+
+
+def to_frame(kind: str, local: ArrayLike, local_cov: ArrayLike, ref_xy: ArrayLike
+             ) -> tuple[Array, Array, Array]:
+    """Frame parameters and covariance from local (r, phi, kappa).
+
+    Parameters
+    ----------
+    kind : ``"point"`` or ``"line"``.
+    local : (..., 3) ``(r [m], phi [rad], kappa [us])`` seen from ``ref_xy``.
+    local_cov : (..., 3, 3) their covariance.
+    ref_xy : (..., 2) reference transducer position in the frame [m].
+
+    Returns
+    -------
+    params : (..., 3) ``(x_m, y_m, kappa_us)`` (point) or ``(rho_m, alpha_rad, kappa_us)``
+        (line, ``rho >= 0``, alpha in (-pi, pi]).
+    cov : (..., 3, 3) covariance of ``params``.
+    jac : (..., 3, 3) d params / d local.
+    """
+    p = np.asarray(local, dtype=float)
+    C = np.asarray(local_cov, dtype=float)
+    ref = np.asarray(ref_xy, dtype=float)
+    r, phi, kap = p[..., 0], p[..., 1], p[..., 2]
+    c, s = np.cos(phi), np.sin(phi)
+    J = np.zeros(p.shape[:-1] + (3, 3))
+    J[..., 2, 2] = 1.0
+    if kind == "point":
+        out = np.stack([ref[..., 0] + r * c, ref[..., 1] + r * s, kap], axis=-1)
+        J[..., 0, 0], J[..., 0, 1] = c, -r * s
+        J[..., 1, 0], J[..., 1, 1] = s, r * c
+    elif kind == "line":
+        rho = r + ref[..., 0] * c + ref[..., 1] * s
+        flip = rho < 0
+        sign = np.where(flip, -1.0, 1.0)
+        alpha = wrap_angle(np.where(flip, phi + np.pi, phi))
+        out = np.stack([np.abs(rho), alpha, kap], axis=-1)
+        J[..., 0, 0] = sign
+        J[..., 0, 1] = sign * (-ref[..., 0] * s + ref[..., 1] * c)
+        J[..., 1, 1] = 1.0
+    else:
+        raise ValueError(f"`kind` must be 'point' or 'line', got {kind!r}")
+    cov = J @ C @ np.swapaxes(J, -1, -2)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    return out, cov, J

@@ -1,0 +1,343 @@
+"""Online segmentation: readings in, one segment per landmark pass out.
+
+Readings arrive one at a time with the pose of the transducer that took them (any
+fixed 2-D frame: ``odom`` for a robot, the scan frame for a pan). The segmenter
+keeps only its *open* segments (plus a few recent no-echo readings per sensor) and
+returns each segment as soon as its landmark has left the beam, so its memory is
+bounded whatever the length of the stream.
+
+Association of an echo with an open segment (the one that explains it best):
+
+* **time**: at most ``max_gap_s`` after the segment's last echo;
+* **direction**: the landmark of the segment lies, as seen from its last echo, on the
+  arc of radius R_last within +-``beam_half_width_deg`` of that echo's beam axis; some
+  point of that arc must also lie within +-``beam_half_width_deg`` of the new beam
+  axis (this joins ring transducers seeing the same landmark and survives bearing
+  wrap at +-180 deg, since only wrapped differences are used);
+* **range**: the new range must match the distance from the new transducer position
+  to one of those arc points within ``gate_us`` (jitter, threshold delay growth,
+  ripple jumps). Motion of the transducer is accounted for by that distance.
+
+A reading that covers a segment's last seen landmark direction (within
+``miss_half_width_deg``) without being associated with it is a *miss*; ``miss_limit``
+consecutive misses close the segment (the landmark has left the beam or is hidden).
+Isolated readings (spikes, cross-talk) open segments that never reach ``min_echoes``
+and are dropped, counted in :class:`SegmenterStats`. Readings next to a segment (same
+sensor, up to ``censor_window`` on each side) that show its landmark was *not*
+detected are attached to it with a NaN TOF: no-echo readings, and echoes from farther
+away (the module reports the first crossing, so a farther echo wins only if the
+nearer landmark stayed below threshold). They bound the arc in the fit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sonarloc.io.scancsv import ScanReadings
+from sonarloc.physics.tof import ModuleParams
+
+_TWO_PI = 2.0 * math.pi
+
+
+def _wrap(a: float) -> float:
+    return a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)
+
+
+@dataclass(frozen=True)
+class SegmenterConfig:
+    """Settings of :class:`Segmenter` (angles in degrees, times in seconds).
+
+    Attributes
+    ----------
+    gate_us : TOF mismatch allowed for an echo of the same landmark, beyond what the
+        transducer's motion explains (jitter, delay growth towards the arc edges,
+        half-period ripple jumps).
+    beam_half_width_deg : off-axis angle within which a landmark may echo.
+    miss_half_width_deg : a reading whose axis points within this angle of a segment's
+        last seen landmark, and does not echo from it, counts as a miss.
+    miss_limit : consecutive misses that close a segment.
+    max_gap_s : longest time without an echo inside one segment.
+    min_echoes : segments with fewer echoes are dropped as spikes.
+    max_readings : a segment is closed (and fitted) when it holds this many readings.
+    censor_window : no-echo readings kept on each side of a segment.
+    max_open : most segments open at once (the oldest is closed beyond).
+    """
+
+    gate_us: float = 40.0
+    beam_half_width_deg: float = 25.0
+    miss_half_width_deg: float = 10.0
+    miss_limit: int = 4
+    max_gap_s: float = 2.0
+    min_echoes: int = 3
+    max_readings: int = 400
+    censor_window: int = 8
+    max_open: int = 64
+
+    def __post_init__(self) -> None:
+        for name in ("gate_us", "beam_half_width_deg", "miss_half_width_deg", "max_gap_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"`{name}` must be positive, got {v!r}")
+        for name in ("miss_limit", "min_echoes", "max_readings", "max_open"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise ValueError(f"`{name}` must be a positive integer, got {v!r}")
+        if not (isinstance(self.censor_window, int) and self.censor_window >= 0):
+            raise ValueError(f"`censor_window` must be a non-negative integer, "
+                             f"got {self.censor_window!r}")
+        if self.max_readings < self.min_echoes:
+            raise ValueError(f"`max_readings` ({self.max_readings}) must be at least "
+                             f"`min_echoes` ({self.min_echoes})")
+
+
+@dataclass(frozen=True)
+class Segment:
+    """The readings of one landmark pass, in arrival order.
+
+    ``readings`` holds its echoes and the no-echo readings that bound it (NaN TOF).
+    ``closed_by``: ``"misses"`` (left the beam or hidden), ``"gap"`` (time gap),
+    ``"full"`` (``max_readings``), ``"crowded"`` (``max_open``) or ``"flush"`` (end of
+    stream). ``seg_id`` counts segments from 0 in the order they were opened.
+    """
+
+    readings: ScanReadings
+    seg_id: int
+    closed_by: str
+
+    @property
+    def n_echo(self) -> int:
+        return int(np.isfinite(self.readings.tof_us).sum())
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(t_s, x_m, y_m, yaw_rad, tof_us)``, the form :func:`pack_segments` takes."""
+        r = self.readings
+        return r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us
+
+
+@dataclass
+class SegmenterStats:
+    """Counters of what the segmenter saw and dropped."""
+
+    readings: int = 0
+    echoes: int = 0
+    no_echo: int = 0
+    bad: int = 0            # non-finite pose, inf/negative TOF
+    out_of_order: int = 0   # time went backwards
+    spikes: int = 0         # echoes in segments dropped for having < min_echoes
+    segments: int = 0       # segments returned
+
+
+@dataclass
+class _Open:
+    seg_id: int
+    rows: list[tuple[float, float, float, float, float, int]]
+    n_echo: int
+    last: tuple[float, float, float, float, float, int]  # last echo (t, x, y, yaw, R, sensor)
+    misses: int = 0
+    trailing: int = 0       # no-echo readings attached after the last echo
+    sensors: set[int] = field(default_factory=set)
+
+
+class Segmenter:
+    """Online segmenter (the only stateful object of ``sonarloc.fit``).
+
+    Examples
+    --------
+    >>> seg = Segmenter()
+    >>> closed = []
+    >>> for i in range(40):                      # a pan over a pole at 0 deg, 1.5 m
+    ...     yaw = np.deg2rad(-20 + i)
+    ...     tof = 8746.0 + 0.67 * np.exp(yaw**2 / (2 * np.deg2rad(5.25)**2))
+    ...     closed += seg.push(0.03 * i, 0.0, 0.0, yaw, tof if tof < 8758 else np.nan)
+    >>> closed += seg.flush()
+    >>> [s.n_echo for s in closed]
+    [25]
+    """
+
+    def __init__(self, config: SegmenterConfig | None = None,
+                 module: ModuleParams | None = None) -> None:
+        self.config = config or SegmenterConfig()
+        self.module = module or ModuleParams()
+        self.stats = SegmenterStats()
+        self._open: list[_Open] = []
+        self._recent: dict[int, deque[tuple[tuple[float, float, float, float, float, int],
+                                            float]]] = {}
+        self._next_id = 0
+        self._last_t = -math.inf
+        cfg = self.config
+        self._m_per_us = self.module.c_mps * 0.5e-6
+        self._gate_m = cfg.gate_us * self._m_per_us
+        self._beam = math.radians(cfg.beam_half_width_deg)
+        self._miss = math.radians(cfg.miss_half_width_deg)
+        self._arc = [self._beam * k / 3.0 for k in range(-3, 4)]
+
+    @property
+    def open_segments(self) -> int:
+        """Number of segments currently open (the segmenter's memory)."""
+        return len(self._open)
+
+    def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
+             sensor: int = 0) -> list[Segment]:
+        """Add one reading; returns the segments this reading closed (often none).
+
+        ``tof_us`` NaN means no echo; inf, zero or negative TOFs and non-finite poses are
+        counted as bad and ignored, as are readings older than the previous one.
+        """
+        st = self.stats
+        st.readings += 1
+        t, x, y, yaw, tof = float(t_s), float(x_m), float(y_m), float(yaw_rad), float(tof_us)
+        sensor = int(sensor)
+        if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)
+                and math.isfinite(yaw)) or math.isinf(tof) or tof <= 0.0:
+            st.bad += 1
+            return []
+        if t < self._last_t:
+            st.out_of_order += 1
+            return []
+        self._last_t = t
+        yaw = _wrap(yaw)
+        closed: list[Segment] = []
+        # time gaps close segments first
+        for s in [s for s in self._open if t - s.last[0] > self.config.max_gap_s]:
+            closed += self._close(s, "gap")
+        echo = not math.isnan(tof)
+        row = (t, x, y, yaw, tof, sensor)
+        if echo:
+            st.echoes += 1
+            R = (tof - 0.5 * self.module.count_period_us) * self._m_per_us
+            best, best_score = None, math.inf
+            for s in self._open:
+                score = self._match(s, x, y, yaw, R)
+                if score < best_score:
+                    best, best_score = s, score
+            for s in list(self._open):
+                if s is best:
+                    continue
+                if self._covers(s, x, y, yaw):
+                    # a farther echo won: this landmark was not detected (censor)
+                    if (R > s.last[4] + self._gate_m and sensor in s.sensors
+                            and s.trailing < self.config.censor_window):
+                        s.rows.append((t, x, y, yaw, math.nan, sensor))
+                        s.trailing += 1
+                    s.misses += 1
+                    if s.misses >= self.config.miss_limit:
+                        closed += self._close(s, "misses")
+            if self.config.censor_window:
+                self._remember(row, R)
+            if best is not None:
+                best.rows.append(row)
+                best.n_echo += 1
+                best.last = (t, x, y, yaw, R, sensor)
+                best.misses = 0
+                best.trailing = 0
+                best.sensors.add(sensor)
+                if len(best.rows) >= self.config.max_readings:
+                    closed += self._close(best, "full")
+            else:
+                closed += self._start(row, R)
+        else:
+            st.no_echo += 1
+            for s in list(self._open):
+                if self._covers(s, x, y, yaw):
+                    if sensor in s.sensors and s.trailing < self.config.censor_window:
+                        s.rows.append(row)
+                        s.trailing += 1
+                    s.misses += 1
+                    if s.misses >= self.config.miss_limit:
+                        closed += self._close(s, "misses")
+            if self.config.censor_window:
+                self._remember(row, math.inf)
+        return closed
+
+    def flush(self) -> list[Segment]:
+        """Close every open segment (end of stream)."""
+        closed: list[Segment] = []
+        for s in list(self._open):
+            closed += self._close(s, "flush")
+        return closed
+
+    def feed(self, scan: ScanReadings) -> Iterator[Segment]:
+        """Push every reading of ``scan`` in order, then flush; yields closed segments."""
+        cols = (scan.t_s.tolist(), scan.x_m.tolist(), scan.y_m.tolist(),
+                scan.yaw_rad.tolist(), scan.tof_us.tolist(), scan.sensor.tolist())
+        for t, x, y, yaw, tof, sensor in zip(*cols, strict=True):
+            yield from self.push(t, x, y, yaw, tof, sensor)
+        yield from self.flush()
+
+    # -- internals -------------------------------------------------------------------
+
+    def _remember(self, row: tuple[float, float, float, float, float, int], R: float) -> None:
+        sensor = row[5]
+        dq = self._recent.get(sensor)
+        if dq is None:
+            dq = self._recent[sensor] = deque(maxlen=self.config.censor_window)
+        dq.append((row, R))
+
+    def _arc_points(self, s: _Open) -> list[tuple[float, float]]:
+        _, lx, ly, lyaw, lR, _ = s.last
+        return [(lx + lR * math.cos(lyaw + a), ly + lR * math.sin(lyaw + a)) for a in self._arc]
+
+    def _match(self, s: _Open, x: float, y: float, yaw: float, R: float) -> float:
+        """Normalised range mismatch of an echo with segment ``s`` (inf: no match)."""
+        _, lx, ly, lyaw, lR, _ = s.last
+        if x == lx and y == ly:   # same spot (pan): the landmark stays at range lR
+            if abs(_wrap(yaw - lyaw)) > 2.0 * self._beam:
+                return math.inf
+            d = abs(R - lR)
+            return d / self._gate_m if d <= self._gate_m else math.inf
+        best = math.inf
+        for px, py in self._arc_points(s):
+            dx, dy = px - x, py - y
+            if abs(_wrap(math.atan2(dy, dx) - yaw)) > self._beam:
+                continue
+            d = abs(math.hypot(dx, dy) - R)
+            if d < best:
+                best = d
+        return best / self._gate_m if best <= self._gate_m else math.inf
+
+    def _covers(self, s: _Open, x: float, y: float, yaw: float) -> bool:
+        """Whether a reading at (x, y, yaw) points at ``s``'s last seen landmark."""
+        _, lx, ly, lyaw, lR, _ = s.last
+        px, py = lx + lR * math.cos(lyaw), ly + lR * math.sin(lyaw)
+        return abs(_wrap(math.atan2(py - y, px - x) - yaw)) <= self._miss
+
+    def _start(self, row: tuple[float, float, float, float, float, int], R: float
+               ) -> list[Segment]:
+        t, x, y, yaw, _, sensor = row
+        closed: list[Segment] = []
+        if len(self._open) >= self.config.max_open:
+            closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
+        lead: list[tuple[float, float, float, float, float, int]] = []
+        dq = self._recent.get(sensor)
+        if dq:
+            # earlier readings of this sensor that saw nothing here: no echo, or a
+            # farther echo won (the first crossing would have been this landmark's)
+            for r, r_range in dq:
+                if (r is not row and t - r[0] <= self.config.max_gap_s
+                        and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
+                        and r_range > R + self._gate_m):
+                    lead.append((r[0], r[1], r[2], r[3], math.nan, r[5]))
+        s = _Open(self._next_id, lead + [row], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
+        self._next_id += 1
+        self._open.append(s)
+        return closed
+
+    def _close(self, s: _Open, why: str) -> list[Segment]:
+        if s not in self._open:
+            return []
+        self._open.remove(s)
+        if s.n_echo < self.config.min_echoes:
+            self.stats.spikes += s.n_echo
+            return []
+        cols = list(zip(*s.rows, strict=True))
+        readings = ScanReadings(
+            np.asarray(cols[0], dtype=float), np.asarray(cols[1], dtype=float),
+            np.asarray(cols[2], dtype=float), np.asarray(cols[3], dtype=float),
+            np.asarray(cols[4], dtype=float), np.asarray(cols[5], dtype=np.int64))
+        self.stats.segments += 1
+        return [Segment(readings, s.seg_id, why)]

@@ -1,0 +1,214 @@
+"""What every driver is: a source of log records from a device, a bus or a file.
+
+A driver turns what a device sends into :mod:`sonarloc.io.logfile` records
+(``RigRecord``, ``OdomRecord``, ``TofRecord``) and hands them to the caller, either
+through :meth:`Driver.read` / :meth:`Driver.records` (pull) or through an
+``on_record`` callback run on the driver's reader thread (push). Decoder counters
+(good frames, CRC failures, skipped bytes, sequence gaps, ...) and driver counters
+(reconnects, dropped records) are in :meth:`Driver.counters`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, fields
+from types import TracebackType
+from typing import ClassVar
+
+from sonarloc.errors import DeviceError, DeviceTimeoutError
+from sonarloc.io.logfile import Record
+from sonarloc.io.protocol.messages import DecoderStats, Message
+
+RecordCallback = Callable[[Record], None]
+
+
+@dataclass
+class DriverStats:
+    """Counters of a driver beyond its decoder's."""
+
+    records: int = 0
+    reconnects: int = 0
+    disconnects: int = 0
+    dropped: int = 0  # records lost because the caller did not read them fast enough
+    malformed_lines: int = 0  # text logs: lines no reader could parse
+
+
+class Driver(ABC):
+    """Base of all drivers. Use as a context manager, or call :meth:`open`/:meth:`close`.
+
+    Parameters
+    ----------
+    on_record : if given, called with every record (on the driver's thread for
+        threaded drivers) instead of queueing it for :meth:`read`.
+    queue_size : records kept for :meth:`read` before the oldest are dropped
+        (and counted in ``dropped``).
+    """
+
+    scheme: ClassVar[str] = ""
+
+    def __init__(self, *, on_record: RecordCallback | None = None, queue_size: int = 100_000):
+        if queue_size < 1:
+            raise ValueError(f"`queue_size` must be positive, got {queue_size}")
+        self.stats = DriverStats()
+        self._on_record = on_record
+        self._queue: deque[Record] = deque()
+        self._queue_size = queue_size
+        self._cond = threading.Condition()
+        self._ended = False
+        self._error: BaseException | None = None
+        self._opened = False
+
+    # -- to implement -----------------------------------------------------------------
+    @property
+    @abstractmethod
+    def source(self) -> str:
+        """What this driver reads, as it would be written on the command line."""
+
+    @property
+    @abstractmethod
+    def decoder_stats(self) -> DecoderStats:
+        """Counters of the wire decoder."""
+
+    @abstractmethod
+    def _open(self) -> None:
+        """Open the device and start delivering (called once by :meth:`open`)."""
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Stop delivering and release everything (called once by :meth:`close`)."""
+
+    def _pull(self, timeout: float | None) -> None:
+        """Pull-style drivers (``pulls = True``): deliver records or end the stream,
+        waiting at most ``timeout`` seconds. Threaded drivers deliver from their thread."""
+        raise NotImplementedError
+
+    pulls: ClassVar[bool] = False
+
+    # -- public -----------------------------------------------------------------------
+    def open(self) -> Driver:
+        if not self._opened:
+            self._opened = True
+            self._open()
+        return self
+
+    def close(self) -> None:
+        if self._opened:
+            self._opened = False
+            try:
+                self._close()
+            finally:
+                self._end()
+
+    def __enter__(self) -> Driver:
+        return self.open()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def send(self, msg: Message) -> None:
+        """Send a command to the device (Start, Stop, RequestRig, Firing, Settings)."""
+        raise DeviceError(f"{self.source}: this source does not take commands")
+
+    def read(self, timeout: float | None = 1.0) -> Record | None:
+        """The next record; None once the stream has ended (end of file, closed).
+
+        Raises
+        ------
+        DeviceTimeoutError
+            if no record arrived within ``timeout`` seconds (None waits forever).
+        DeviceError
+            if the device failed for good.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            with self._cond:
+                if self._queue:
+                    return self._queue.popleft()
+                if self._error is not None:
+                    err, self._error = self._error, None
+                    raise DeviceError(f"{self.source}: {err}") from err
+                if self._ended:
+                    return None
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    raise DeviceTimeoutError(
+                        f"{self.source}: no record within {timeout:g} s ({self.summary()})")
+                if not self.pulls:
+                    self._cond.wait(left)
+                    continue
+            self._pull(left)
+
+    def records(self, timeout: float | None = 1.0,
+                duration_s: float | None = None) -> Iterator[Record]:
+        """Iterate records until the stream ends or ``duration_s`` of wall time passes.
+
+        ``timeout`` is the longest silence allowed (DeviceTimeoutError after it).
+        """
+        end = None if duration_s is None else time.monotonic() + duration_s
+        while True:
+            wait = timeout
+            if end is not None:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return
+                if wait is None or left < wait:
+                    wait = left
+            try:
+                rec = self.read(wait)
+            except DeviceTimeoutError:
+                if end is not None and time.monotonic() >= end:
+                    return
+                raise
+            if rec is None:
+                return
+            yield rec
+
+    def counters(self) -> dict[str, int]:
+        """Decoder and driver counters in one flat dict."""
+        out = self.decoder_stats.as_dict()
+        out.update({f.name: getattr(self.stats, f.name) for f in fields(self.stats)})
+        return out
+
+    def summary(self) -> str:
+        """One line of counters: good/CRC/skipped/gaps first."""
+        s = self.stats
+        extra = [f"{s.records} records"]
+        for name in ("reconnects", "dropped", "malformed_lines"):
+            if getattr(s, name):
+                extra.append(f"{name.replace('_', ' ')} {getattr(s, name)}")
+        return f"{self.decoder_stats.summary()}; {', '.join(extra)}"
+
+    # -- for subclasses ---------------------------------------------------------------
+    def _deliver(self, recs: list[Record]) -> None:
+        if not recs:
+            return
+        self.stats.records += len(recs)
+        if self._on_record is not None:
+            for rec in recs:
+                self._on_record(rec)
+            return
+        with self._cond:
+            self._queue.extend(recs)
+            over = len(self._queue) - self._queue_size
+            for _ in range(max(over, 0)):
+                self._queue.popleft()
+            if over > 0:
+                self.stats.dropped += over
+            self._cond.notify_all()
+
+    def _end(self) -> None:
+        """No more records will come (end of file, or closed)."""
+        with self._cond:
+            self._ended = True
+            self._cond.notify_all()
+
+    def _fail(self, err: BaseException) -> None:
+        """A fatal device error: the next :meth:`read` raises it as a DeviceError."""
+        with self._cond:
+            self._error = err
+            self._cond.notify_all()

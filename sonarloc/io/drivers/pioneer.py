@@ -1,0 +1,139 @@
+"""Pioneer robots (ARCOS/P2OS firmware): sonar and odometry from standard SIPs.
+
+``pioneer:/dev/ttyS0`` (or ``pioneer:socket://127.0.0.1:8101`` for a simulator that
+serves the robot over TCP). On every (re)connect the driver runs the ARCOS
+handshake (SYNC0, SYNC1, SYNC2 echoed by the robot), sends OPEN and SONAR 1 to
+start the server information packets, and then keeps the robot's watchdog fed
+with PULSE. Each standard SIP becomes an ``odom`` record and one ``tof`` record
+per new sonar reading (:class:`~sonarloc.io.protocol.sip.SipConverter`), stamped
+with the host's clock since the driver opened. The rig defaults to the 16 sonar of
+a Pioneer 3-DX.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from sonarloc.errors import DeviceError
+from sonarloc.io.drivers.port import PortDriver
+from sonarloc.io.logfile import RigRecord
+from sonarloc.io.protocol.messages import DecoderStats
+from sonarloc.io.protocol.sip import (
+    CLOSE,
+    OPEN,
+    PULSE,
+    SONAR,
+    SYNC0,
+    SYNC1,
+    SYNC2,
+    ArcosDecoder,
+    ArcosPacket,
+    SipConverter,
+    StandardSip,
+    client_command,
+    p3dx_rig,
+)
+
+
+class PioneerDriver(PortDriver):
+    """Reads a Pioneer robot's SIPs.
+
+    Parameters
+    ----------
+    url : serial device or pyserial URL of the robot.
+    rig : the sonar mounts (default :func:`~sonarloc.io.protocol.sip.p3dx_rig`).
+    handshake : run SYNC0/1/2 + OPEN on connect (False: the robot already streams).
+    handshake_timeout_s : per SYNC step.
+    pulse_s : watchdog keep-alive period (ARCOS stops the robot after ~2 s of silence).
+    converter : :class:`SipConverter` options (``dist_conv``, ``range_conv``,
+        ``max_range_mm``, ``speed_of_sound_mps``, ``angle_conv_rad``).
+    """
+
+    scheme = "pioneer"
+    default_baudrate = 9600
+
+    def __init__(self, url: str, *, rig: RigRecord | None = None, handshake: bool = True,
+                 handshake_timeout_s: float = 1.0, pulse_s: float = 1.0,
+                 converter: dict[str, Any] | None = None, **kwargs: Any):
+        super().__init__(url, **kwargs)
+        self.converter = SipConverter(**(converter or {}))
+        self.rig = rig if rig is not None else p3dx_rig(self.converter.c)
+        self.handshake = handshake
+        self.handshake_timeout_s = handshake_timeout_s
+        self.pulse_s = pulse_s
+        self.decoder = ArcosDecoder()
+        self.robot_info: tuple[str, ...] = ()
+        self.other_packets = 0
+        self._t0 = time.monotonic()
+        self._last_pulse = 0.0
+        self._rig_sent = False
+
+    @property
+    def decoder_stats(self) -> DecoderStats:
+        return self.decoder.stats
+
+    def _on_connect(self) -> None:
+        if self.handshake:
+            self._sync()
+        self.write(client_command(OPEN))
+        self.write(client_command(SONAR, 1))
+        self._last_pulse = time.monotonic()
+        if not self._rig_sent:
+            self._rig_sent = True
+            self._deliver([self.rig])
+
+    def _sync(self) -> None:
+        port = self._port
+        if port is None:
+            raise DeviceError(f"{self.source}: not connected")
+        dec = ArcosDecoder()
+        for step in (SYNC0, SYNC1, SYNC2):
+            self.write(client_command(step))
+            deadline = time.monotonic() + self.handshake_timeout_s
+            while True:
+                if time.monotonic() > deadline:
+                    raise DeviceError(f"{self.source}: no answer to SYNC{step} "
+                                      f"(is it a Pioneer, at {self.baudrate} baud?)")
+                packets = dec.feed(port.read(port.in_waiting or 1))
+                if any(isinstance(p, StandardSip) for p in packets):
+                    return  # already open: the robot streams SIPs
+                reply = next((p for p in packets if isinstance(p, ArcosPacket)
+                              and p.type == step), None)
+                if reply is not None:
+                    if step == SYNC2:
+                        self.robot_info = tuple(s.decode("ascii", "replace") for s in
+                                                reply.data.split(b"\0") if s)
+                    break
+
+    def _on_idle(self) -> None:
+        now = time.monotonic()
+        if now - self._last_pulse >= self.pulse_s:
+            self._last_pulse = now
+            self.write(client_command(PULSE))
+
+    def _on_bytes(self, data: bytes) -> None:
+        t = time.monotonic() - self._t0
+        out = []
+        for p in self.decoder.feed(data):
+            if isinstance(p, StandardSip):
+                out.extend(self.converter.records(p, t))
+            else:
+                self.other_packets += 1
+        self._deliver(out)
+
+    def _on_stream_end(self) -> None:
+        t = time.monotonic() - self._t0
+        out = []
+        for p in self.decoder.flush():
+            if isinstance(p, StandardSip):
+                out.extend(self.converter.records(p, t))
+        self._deliver(out)
+
+    def _close(self) -> None:
+        if self._port is not None:
+            try:
+                self.write(client_command(CLOSE))
+            except DeviceError:
+                pass
+        super()._close()

@@ -1,0 +1,169 @@
+"""A pyserial port with a reader thread and reconnect-with-back-off (base of byte drivers).
+
+Any pyserial port or URL works: device paths (``/dev/ttyUSB0``, a pseudo-terminal),
+``socket://HOST:PORT``, ``loop://``, ``rfc2217://``. The reader thread feeds the bytes
+to a pure decoder (subclass); when the port fails (cable pulled, TCP peer gone,
+pty closed) the decoder is flushed so no good packet is lost, the port is closed
+and reopened with exponential back-off until :meth:`close`.
+"""
+
+from __future__ import annotations
+
+import threading
+from abc import abstractmethod
+from typing import Any
+
+import serial
+
+from sonarloc.errors import DeviceError
+from sonarloc.io.drivers.base import Driver, RecordCallback
+
+_PORT_ERRORS = (serial.SerialException, OSError, ValueError, TypeError)
+
+
+class PortDriver(Driver):
+    """Base of drivers that read bytes from a pyserial port.
+
+    Parameters
+    ----------
+    url : device path or pyserial URL.
+    baudrate : line speed (ignored by socket:// and loop://).
+    reconnect : reopen the port after a failure (with back-off) instead of failing.
+    backoff_s : (first, longest) wait between reopen attempts, seconds.
+    read_timeout_s : longest a single port read blocks (how fast close() returns).
+    """
+
+    default_baudrate = 115200
+
+    def __init__(self, url: str, *, baudrate: int | None = None, reconnect: bool = True,
+                 backoff_s: tuple[float, float] = (0.05, 2.0), read_timeout_s: float = 0.05,
+                 on_record: RecordCallback | None = None, queue_size: int = 100_000,
+                 **port_options: Any):
+        super().__init__(on_record=on_record, queue_size=queue_size)
+        if not url:
+            raise ValueError("`url` must name a serial device or pyserial URL")
+        if not (0 < backoff_s[0] <= backoff_s[1]):
+            raise ValueError(f"`backoff_s` must be (first, longest) with 0 < first <= longest, "
+                             f"got {backoff_s!r}")
+        self.url = url
+        self.baudrate = baudrate or self.default_baudrate
+        self.reconnect = reconnect
+        self.backoff_s = backoff_s
+        self.read_timeout_s = read_timeout_s
+        self._port_options = port_options
+        self._port: serial.SerialBase | None = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def source(self) -> str:
+        plain = not self.scheme or self.scheme == "serial"
+        return self.url if plain else f"{self.scheme}:{self.url}"
+
+    # -- subclass hooks ---------------------------------------------------------------
+    @abstractmethod
+    def _on_bytes(self, data: bytes) -> None:
+        """Decode bytes and deliver records (reader thread)."""
+
+    def _on_connect(self) -> None:
+        """After every (re)open, before reading: handshakes, start commands."""
+
+    def _on_stream_end(self) -> None:
+        """The byte stream broke or ended: flush the decoder."""
+
+    def _on_idle(self) -> None:
+        """Called by the reader thread after every read (keep-alives)."""
+
+    # -- port handling ------------------------------------------------------------------
+    def _connect(self) -> serial.SerialBase:
+        try:
+            return serial.serial_for_url(self.url, baudrate=self.baudrate,
+                                         timeout=self.read_timeout_s, **self._port_options)
+        except _PORT_ERRORS as err:
+            raise DeviceError(f"cannot open {self.source}: {err}") from err
+
+    def _open(self) -> None:
+        self._port = self._connect()
+        try:
+            self._on_connect()
+        except BaseException:
+            self._drop_port()
+            raise
+        self._thread = threading.Thread(target=self._run, name=f"sonarloc {self.source}",
+                                        daemon=True)
+        self._thread.start()
+
+    def _close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        self._drop_port()
+        self._on_stream_end()
+
+    def _drop_port(self) -> None:
+        with self._lock:
+            port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except _PORT_ERRORS:
+                pass
+
+    def write(self, data: bytes) -> None:
+        """Write raw bytes to the port (DeviceError while disconnected)."""
+        with self._lock:
+            port = self._port
+            if port is None:
+                raise DeviceError(f"{self.source}: not connected")
+            try:
+                port.write(data)
+                port.flush()
+            except _PORT_ERRORS as err:
+                raise DeviceError(f"{self.source}: write failed: {err}") from err
+
+    def _read(self) -> bytes:
+        port = self._port
+        if port is None:
+            raise serial.SerialException("port closed")
+        return bytes(port.read(port.in_waiting or 1))
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._read()
+                self._on_idle()
+            except _PORT_ERRORS + (DeviceError,) as err:
+                if self._stop.is_set():
+                    break
+                self.stats.disconnects += 1
+                self._drop_port()
+                self._on_stream_end()
+                if not self.reconnect:
+                    self._fail(err)
+                    self._end()
+                    return
+                self._reopen()
+                continue
+            if data:
+                self._on_bytes(data)
+
+    def _reopen(self) -> None:
+        delay = self.backoff_s[0]
+        while not self._stop.wait(delay):
+            try:
+                port = self._connect()
+            except DeviceError:
+                delay = min(2 * delay, self.backoff_s[1])
+                continue
+            with self._lock:
+                self._port = port
+            try:
+                self._on_connect()
+            except (DeviceError,) + _PORT_ERRORS:
+                self._drop_port()
+                delay = min(2 * delay, self.backoff_s[1])
+                continue
+            self.stats.reconnects += 1
+            return

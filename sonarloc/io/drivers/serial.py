@@ -1,0 +1,67 @@
+"""The sonarloc module over a serial line (docs/PROTOCOL.md section 2), on pyserial.
+
+>>> from sonarloc.io.drivers import open_driver
+>>> with open_driver("loop://") as drv:          # doctest: +SKIP
+...     rec = drv.read(timeout=1.0)
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from sonarloc.io.drivers.port import PortDriver
+from sonarloc.io.protocol.framing import SerialDecoder, SerialEncoder, SerialFrame
+from sonarloc.io.protocol.messages import Ack, DecoderStats, Message, RequestRig, Start
+from sonarloc.io.protocol.records import RecordAssembler
+
+
+class SerialDriver(PortDriver):
+    """Reads the module protocol from a serial device or pyserial URL.
+
+    Parameters
+    ----------
+    url : ``/dev/ttyUSB0``, a pty path, ``socket://127.0.0.1:PORT``, ``loop://``, ...
+    start : send Start and RequestRig after every (re)connect, so a module that waits
+        for a host begins streaming and a host that joins late learns the rig.
+    Other parameters: :class:`~sonarloc.io.drivers.port.PortDriver`.
+    """
+
+    scheme = "serial"
+
+    def __init__(self, url: str, *, start: bool = True, **kwargs: Any):
+        super().__init__(url, **kwargs)
+        self.start_on_connect = start
+        self.decoder = SerialDecoder()
+        self.assembler = RecordAssembler()
+        self._encoder = SerialEncoder()
+        self._send_lock = threading.Lock()
+        self.acks: list[Ack] = []  # the last few acknowledgements, newest last
+
+    @property
+    def decoder_stats(self) -> DecoderStats:
+        return self.decoder.stats
+
+    def send(self, msg: Message) -> None:
+        """Frame ``msg`` with this host's sequence number and write it."""
+        with self._send_lock:
+            self.write(self._encoder.encode(msg))
+
+    def _on_connect(self) -> None:
+        if self.start_on_connect:
+            self.send(Start())
+            self.send(RequestRig())
+
+    def _on_bytes(self, data: bytes) -> None:
+        self._handle(self.decoder.feed_frames(data))
+
+    def _on_stream_end(self) -> None:
+        self._handle(self.decoder.flush())
+
+    def _handle(self, frames: list[SerialFrame]) -> None:
+        out = []
+        for f in frames:
+            if isinstance(f.message, Ack):
+                self.acks = (self.acks + [f.message])[-16:]
+            out.extend(self.assembler.push(f.message))
+        self._deliver(out)

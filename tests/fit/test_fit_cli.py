@@ -1,0 +1,78 @@
+"""`sonarloc fit SCAN.csv [--json]` against FORMATS.md sections 1-2."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from sonarloc.fit.synth import Reflector, pan_scan
+from sonarloc.io.scancsv import write_scan_csv
+
+
+def _fig5_csv(tmp_path, rng):
+    scan = pan_scan([Reflector.polar(1.46, -17, 0.67), Reflector.polar(1.50, 4, 0.15),
+                     Reflector.polar(1.47, 22, 2.68)], rng, -40, 40, 0.3)
+    path = tmp_path / "scan.csv"
+    write_scan_csv(path, scan)
+    return path
+
+
+def test_fit_json_follows_formats(tmp_path, rng, run_cli):
+    path = _fig5_csv(tmp_path, rng)
+    proc = run_cli("fit", str(path), "--json", check=True)
+    out = json.loads(proc.stdout)
+    lms = out["landmarks"]
+    assert len(lms) == 3
+    for lm in lms:
+        assert lm["kind"] in ("point", "line")
+        keys = ("x_m", "y_m") if lm["kind"] == "point" else ("rho_m", "alpha_deg")
+        for k in (*keys, "range_m", "bearing_deg", "kappa_us", "n_readings", "cov", "status"):
+            assert k in lm
+        cov = np.array(lm["cov"], dtype=float)
+        assert cov.shape == (3, 3)
+        np.testing.assert_allclose(cov, cov.T, rtol=1e-9, atol=1e-15)
+        assert -180.0 < lm["bearing_deg"] <= 180.0
+        if lm["kind"] == "point":
+            # the point is range_m along bearing_deg from the reference transducer position
+            ref = lm["ref_pose"]
+            b = math.radians(lm["bearing_deg"])
+            assert lm["x_m"] == pytest.approx(ref["x_m"] + lm["range_m"] * math.cos(b), abs=1e-9)
+            assert lm["y_m"] == pytest.approx(ref["y_m"] + lm["range_m"] * math.sin(b), abs=1e-9)
+        else:
+            assert lm["rho_m"] >= 0
+    pole, plane, rod = lms
+    assert pole["status"] == "ok" and abs(pole["bearing_deg"] + 17) < 1.0
+    assert rod["status"] == "ok" and abs(rod["bearing_deg"] - 22) < 1.5
+    assert plane["kind"] == "line"
+    assert pole["kappa_us"] < rod["kappa_us"]
+    assert out["readings"]["total"] == 267
+
+
+def test_fit_table_and_speed_of_sound(tmp_path, rng, run_cli):
+    path = _fig5_csv(tmp_path, rng)
+    proc = run_cli("fit", str(path), check=True)
+    assert "3 landmark(s)" in proc.stdout and "ok" in proc.stdout
+    a = json.loads(run_cli("fit", str(path), "--json", check=True).stdout)["landmarks"][0]
+    b = json.loads(run_cli("fit", str(path), "--json", "--temperature", "30",
+                           check=True).stdout)["landmarks"][0]
+    assert b["range_m"] / a["range_m"] == pytest.approx((331.3 + 0.606 * 30) / 343.0, rel=1e-4)
+
+
+def test_fit_bad_input_one_line_error(tmp_path, run_cli):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,8000\n0.1,0,zero,0,8000\n")
+    proc = run_cli("fit", str(bad), "--json")
+    assert proc.returncode == 2
+    assert "line 3" in proc.stderr and proc.stderr.count("\n") == 1
+    missing = run_cli("fit", str(tmp_path / "nope.csv"))
+    assert missing.returncode == 2 and "nope.csv" in missing.stderr
+
+
+def test_fit_all_no_echo_gives_empty_list(tmp_path, run_cli):
+    p = tmp_path / "quiet.csv"
+    p.write_text("t_s,x_m,y_m,yaw_deg,tof_us\n" + "".join(f"{i*0.1},0,0,{i},\n" for i in range(20)))
+    out = json.loads(run_cli("fit", str(p), "--json", check=True).stdout)
+    assert out["landmarks"] == []

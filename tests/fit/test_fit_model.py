@@ -1,0 +1,136 @@
+"""The fitter's forward model: derivatives against finite differences, special cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import log_ndtr
+
+from sonarloc.fit import model as M
+from sonarloc.physics import ModuleParams, jitter_sd_us
+
+MOD = ModuleParams()
+
+
+@pytest.mark.parametrize("kind", ["point", "line"])
+def test_geometry_derivatives_match_finite_differences(kind, rng):
+    px, py = rng.normal(0, 0.3, 20), rng.normal(0, 0.3, 20)
+    yaw = rng.uniform(-np.pi, np.pi, 20)
+    r, phi = 1.7, 0.4
+    geo = M.geometry(kind, r, phi, px, py, yaw)
+    h = 1e-6
+    for name, dr, dp in (("r", h, 0.0), ("phi", 0.0, h)):
+        up = M.geometry(kind, r + dr, phi + dp, px, py, yaw)
+        dn = M.geometry(kind, r - dr, phi - dp, px, py, yaw)
+        num_R = (up.R - dn.R) / (2 * h)
+        num_t = M.wrap_angle(up.theta - dn.theta) / (2 * h)
+        np.testing.assert_allclose(geo.dR_dr if name == "r" else geo.dR_dphi, num_R,
+                                   atol=1e-6, rtol=1e-6)
+        np.testing.assert_allclose(geo.dtheta_dr if name == "r" else geo.dtheta_dphi, num_t,
+                                   atol=1e-6, rtol=1e-6)
+
+
+def test_stationary_point_equals_line_and_pan_angle():
+    yaw = np.deg2rad(np.linspace(-30, 30, 7))
+    z = np.zeros(7)
+    a = M.geometry("point", 1.5, 0.2, z, z, yaw)
+    b = M.geometry("line", 1.5, 0.2, z, z, yaw)
+    np.testing.assert_allclose(a.R, 1.5)
+    np.testing.assert_allclose(a.theta, b.theta)
+    np.testing.assert_allclose(a.theta, 0.2 - yaw)
+
+
+def test_geometry_wraps_bearing():
+    g = M.geometry("point", 2.0, np.deg2rad(179.0), np.zeros(1), np.zeros(1),
+                   np.array([np.deg2rad(-179.0)]))
+    assert np.rad2deg(g.theta[0]) == pytest.approx(-2.0)
+
+
+@pytest.mark.parametrize("tier", ["gauss", "piston"])
+def test_beam_delay_derivative_and_log(tier):
+    th = np.deg2rad(np.linspace(-12, 12, 49))
+    g, dg, lng = M.beam_delay_factor(th, tier, MOD)
+    h = 1e-7
+    num = (M.beam_delay_factor(th + h, tier, MOD)[0] - M.beam_delay_factor(th - h, tier, MOD)[0])
+    np.testing.assert_allclose(dg, num / (2 * h), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(lng, np.log(g), rtol=1e-12, atol=1e-12)
+    assert g.min() == pytest.approx(1.0)
+
+
+def test_gauss_delay_is_paper_eq3():
+    th = np.deg2rad(np.array([0.0, 5.25, 10.0]))
+    g, _, _ = M.beam_delay_factor(th, "gauss", MOD)
+    np.testing.assert_allclose(g, np.exp(th**2 / (2 * np.deg2rad(5.25) ** 2)))
+
+
+def test_piston_behind_and_at_null_is_capped_not_infinite():
+    null = np.arcsin(3.8317 * (MOD.c_mps / MOD.carrier_hz) / (np.pi * MOD.diameter_m))
+    g, dg, lng = M.beam_delay_factor(np.array([null, np.pi, -2.0]), "piston", MOD)
+    assert np.all(np.isfinite(g)) and np.all(np.isfinite(dg)) and np.all(np.isfinite(lng))
+    assert np.all(g > 1e6)
+
+
+def test_probit_terms_match_scipy_everywhere():
+    v = np.linspace(-40, 40, 801)
+    lp, mills, info = M.probit_terms(v)
+    np.testing.assert_allclose(lp, log_ndtr(v), rtol=1e-8, atol=1e-11)
+    exact_mills = np.exp(-0.5 * v * v - 0.5 * np.log(2 * np.pi) - log_ndtr(v))
+    np.testing.assert_allclose(mills, exact_mills, rtol=1e-6, atol=1e-10)
+    exact_info = np.exp(-v * v - np.log(2 * np.pi) - log_ndtr(v) - log_ndtr(-v))
+    np.testing.assert_allclose(info, exact_info, rtol=1e-6, atol=1e-10)
+
+
+def test_truncated_mean_delay_and_derivative():
+    kap = 0.67
+    g = np.exp(np.linspace(0, 4, 41))
+    lng = np.log(g)
+    z = M.detection_z(kap, lng, MOD)
+    mean, d = M.mean_delay(kap, g, MOD, z)
+    # far inside the arc: the untruncated log-normal mean u exp(s^2/2)
+    s = MOD.amplitude_fluctuation
+    assert mean[0] == pytest.approx(kap * np.exp(s * s / 2), rel=1e-9)
+    # never above the detection limit: it is the mean of delays <= L
+    assert np.all(mean <= MOD.detection_limit_us)
+    # Monte Carlo check at the arc edge
+    rng = np.random.default_rng(5)
+    u = 11.0
+    delays = u / np.exp(s * rng.standard_normal(400_000))
+    delays = delays[delays <= MOD.detection_limit_us]
+    m_edge, _ = M.mean_delay(u, 1.0, MOD, M.detection_z(u, 0.0, MOD))
+    assert float(m_edge) == pytest.approx(delays.mean(), rel=2e-3)
+    # derivative by u = kappa g against finite differences
+    h = 1e-6
+    up, _ = M.mean_delay(kap, g * (1 + h), MOD, M.detection_z(kap, lng + np.log1p(h), MOD))
+    dn, _ = M.mean_delay(kap, g * (1 - h), MOD, M.detection_z(kap, lng + np.log1p(-h), MOD))
+    np.testing.assert_allclose(d, (up - dn) / (2 * h * kap * g), rtol=1e-4)
+
+
+def test_variance_is_physics_jitter_plus_counting():
+    d = np.linspace(0, 12, 13)
+    np.testing.assert_allclose(M.tof_variance_us2(d, MOD),
+                               jitter_sd_us(d, MOD) ** 2 + MOD.count_period_us**2 / 12)
+
+
+@pytest.mark.parametrize("kind", ["point", "line"])
+def test_to_frame_jacobian_and_line_sign(kind):
+    local = np.array([1.2, 2.5, 0.7])
+    ref = np.array([0.4, -2.0])
+    out, cov, J = M.to_frame(kind, local, np.eye(3), ref)
+    h = 1e-7
+    num = np.zeros((3, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        a = M.to_frame(kind, local + d, np.eye(3), ref)[0]
+        b = M.to_frame(kind, local - d, np.eye(3), ref)[0]
+        diff = a - b
+        if kind == "line":
+            diff[1] = M.wrap_angle(diff[1])
+        num[:, k] = diff / (2 * h)
+    np.testing.assert_allclose(J, num, atol=1e-6)
+    np.testing.assert_allclose(cov, J @ J.T)
+    if kind == "line":
+        assert out[0] >= 0
+        # the wall contains the reflecting point seen from ref
+        foot = ref + local[0] * np.array([np.cos(local[1]), np.sin(local[1])])
+        assert foot @ np.array([np.cos(out[1]), np.sin(out[1])]) == pytest.approx(out[0])

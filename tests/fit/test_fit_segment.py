@@ -1,0 +1,125 @@
+"""Online segmentation: one segment per landmark pass, bounded memory, robust input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sonarloc.fit.segment import Segmenter, SegmenterConfig
+from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings
+from sonarloc.io.scancsv import ScanReadings
+
+FIG5 = [Reflector.polar(1.46, -17, 0.67), Reflector.polar(1.50, 4, 0.15),
+        Reflector.polar(1.47, 22, 2.68)]
+
+
+def _segments(scan, config=None):
+    seg = Segmenter(config)
+    return list(seg.feed(scan)), seg
+
+
+def test_fig5_pan_gives_three_segments_in_order(rng):
+    scan = pan_scan(FIG5, rng, -40, 40, 0.3)
+    segs, seg = _segments(scan)
+    assert len(segs) == 3
+    ranges = [np.nanmedian(s.readings.tof_us) * 343e-6 / 2 for s in segs]
+    np.testing.assert_allclose(ranges, [1.46, 1.50, 1.47], atol=3e-3)
+    assert seg.stats.spikes == 0 and seg.open_segments == 0
+    # pole and rod get no-echo (or farther-echo) readings on both sides
+    for s in (segs[0], segs[2]):
+        nan = np.isnan(s.readings.tof_us)
+        first, last = np.flatnonzero(~nan)[[0, -1]]
+        assert nan[:first].any() and nan[last:].any()
+
+
+def test_segments_close_as_soon_as_the_landmark_leaves(rng):
+    scan = pan_scan([Reflector.polar(1.5, -20, 0.67), Reflector.polar(2.5, 36, 0.67)], rng,
+                    -40, 40, 0.5)
+    seg = Segmenter()
+    closed_at = []
+    for i in range(len(scan)):
+        out = seg.push(scan.t_s[i], scan.x_m[i], scan.y_m[i], scan.yaw_rad[i], scan.tof_us[i])
+        closed_at += [(i, s) for s in out]
+    assert len(closed_at) == 1                 # the first pole, before the end of the scan
+    i, s = closed_at[0]
+    last_echo_yaw = s.readings.yaw_rad[np.isfinite(s.readings.tof_us)][-1]
+    assert scan.yaw_rad[i] - last_echo_yaw <= np.deg2rad(0.5 * seg.config.miss_limit) + 1e-9
+    assert len(seg.flush()) == 1
+
+
+def test_spikes_and_crosstalk_rejected_and_counted(rng):
+    scan = pan_scan([Reflector.polar(1.5, 0, 0.67)], rng, -30, 30, 0.3)
+    tof = scan.tof_us.copy()
+    idx = rng.choice(len(tof), 12, replace=False)
+    tof[idx] = rng.uniform(2000, 15000, 12)          # isolated random echoes
+    noisy = ScanReadings(scan.t_s, scan.x_m, scan.y_m, scan.yaw_rad, tof, scan.sensor)
+    segs, seg = _segments(noisy)
+    assert len(segs) == 1
+    assert seg.stats.spikes >= 10
+    assert segs[0].n_echo >= np.isfinite(scan.tof_us).sum() - 12
+
+
+def test_bad_input_is_counted_not_raised():
+    seg = Segmenter()
+    assert seg.push(0.0, 0.0, 0.0, 0.0, math.inf) == []
+    assert seg.push(0.1, math.nan, 0.0, 0.0, 9000.0) == []
+    assert seg.push(0.2, 0.0, 0.0, 0.0, -5.0) == []
+    seg.push(0.3, 0.0, 0.0, 0.0, 9000.0)
+    assert seg.push(0.1, 0.0, 0.0, 0.0, 9000.0) == []          # older than the last one
+    assert seg.stats.bad == 3 and seg.stats.out_of_order == 1
+    seg.push(0.3, 0.0, 0.0, 0.0, 9000.0)                        # duplicate time is fine
+    assert seg.stats.echoes == 2
+
+
+def test_memory_bounded_over_a_long_rotating_stream(rng):
+    # continuous rotation for 30 turns over 4 landmarks; bearing wraps every turn
+    n = 30 * 360
+    yaw = np.deg2rad(np.arange(n) * 1.0 + 0.5)
+    refl = [Reflector.polar(r, b, 0.67)
+            for r, b in ((1.5, 180.0), (2.0, -60.0), (2.5, 45.0), (3.0, 150.0))]
+    scan = simulate_readings(np.arange(n) * 0.01, 0.0, 0.0, yaw, refl, rng)
+    seg = Segmenter()
+    peak = 0
+    count = 0
+    for i in range(n):
+        count += len(seg.push(scan.t_s[i], 0.0, 0.0, scan.yaw_rad[i], scan.tof_us[i]))
+        peak = max(peak, seg.open_segments)
+    count += len(seg.flush())
+    assert peak <= 2
+    assert count == 4 * 30          # one segment per landmark and turn, across the wrap
+
+
+def test_ring_transducers_seeing_one_landmark_are_joined(rng):
+    # two transducers 22.5 deg apart on a 0.2 m ring, robot still; a strong wall between
+    angles = np.deg2rad([0.0, 22.5])
+    t = np.arange(40) * 0.03
+    sensor = np.arange(40) % 2
+    yaw = angles[sensor] + np.deg2rad(np.repeat(np.arange(20), 2) * 0.5 - 5.0)
+    x, y = 0.2 * np.cos(angles[sensor]), 0.2 * np.sin(angles[sensor])
+    wall = Reflector.line(1.8, np.deg2rad(11.0), 0.15)
+    scan = simulate_readings(t, x, y, yaw, [wall], rng, sensor=sensor)
+    segs, _ = _segments(scan)
+    assert len(segs) == 1
+    assert set(segs[0].readings.sensor.tolist()) == {0, 1}
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="gate_us"):
+        SegmenterConfig(gate_us=0.0)
+    with pytest.raises(ValueError, match="miss_limit"):
+        SegmenterConfig(miss_limit=0)
+    with pytest.raises(ValueError, match="max_readings"):
+        SegmenterConfig(max_readings=2, min_echoes=3)
+
+
+def test_long_wall_is_cut_into_bounded_segments(rng):
+    t = np.arange(3000) * 0.05
+    x = 0.02 * np.arange(3000)
+    scan = simulate_readings(t, x, 0.0, np.full(3000, np.pi / 2),
+                             [Reflector.line(1.0, np.pi / 2, 0.15)], rng)
+    segs, seg = _segments(scan, SegmenterConfig(max_readings=200))
+    assert len(segs) >= 14
+    assert max(len(s.readings) for s in segs) <= 200
+    assert {s.closed_by for s in segs[:-1]} == {"full"}
