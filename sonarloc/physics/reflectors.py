@@ -27,7 +27,7 @@ much thinner than the wavelength scatters as (ka)^(3/2) relative to geometric
 
 and fix the two constants (kappa_inf = 0.114 us, c = 2.83) so that the rule gives
 exactly the paper's pole (a = 4.45 cm, 0.67 us) and rod (a = 4 mm, 2.68 us) at 1.5 m.
-The crossover c means a = 3.1 mm: thinner rods fade fast (a 2 mm wire: 6.8 us).
+The crossover c means a = 3.1 mm: thinner rods fade fast (radius 2 mm: 6.8 us).
 kappa_inf is not the plane's 0.15 us: the paper's 1 m plane came out 2.4 dB weaker
 than this infinite-radius limit; planes keep the measured value.
 
