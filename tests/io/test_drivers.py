@@ -12,7 +12,7 @@ import time
 import tty
 
 import pytest
-from io_streams import ring_stream
+from io_streams import drain, ring_stream
 
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.drivers import BACKENDS, driver_class, open_driver, parse_source
@@ -24,19 +24,8 @@ from sonarloc.io.protocol.messages import Ack, Echo, RigInfo, RigMount, Start, S
 from sonarloc.io.protocol.records import messages_from_record
 
 
-def read_until_done(sim: SimModule, drv, settle_s: float = 0.3) -> list:
-    """Everything the driver delivers until the module has finished and gone quiet."""
-    got = []
-    while True:
-        try:
-            rec = drv.read(timeout=settle_s if sim.wait(0) else 2.0)
-        except DeviceTimeoutError:
-            if sim.wait(0):
-                return got
-            raise
-        if rec is None:
-            return got
-        got.append(rec)
+def read_until_done(sim: SimModule, drv) -> list:
+    return drain(sim, drv)
 
 
 def sent_records(buf: io.StringIO) -> list:

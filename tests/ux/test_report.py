@@ -124,5 +124,6 @@ def test_drive_figure_writes_png(tmp_path: Path):
          "geometry": {"type": "Point", "coordinates": [2, 1]}}]}
     rep = DriveReport(map="test", rig="ring16", device="can", seed=0, duration_s=10.0)
     out = drive_figure(tmp_path / "d.png", map_source=mp, tracks={"truth": truth},
-                       landmarks=[lm, wall, bad], segments=[seg], report=rep)
+                       landmarks=[(lm, True), (wall, False), (bad, False)],
+                       segments=[seg], report=rep)
     assert out.read_bytes()[:4] == b"\x89PNG" and out.stat().st_size > 20_000
