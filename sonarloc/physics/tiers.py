@@ -18,8 +18,9 @@ The ``auto`` rule (per echo, with ``s = kappa/gain`` the strength of this echo):
    angle (the side-lobe envelope) cannot reach the threshold: recorded as ``gauss``.
 2. *Gaussian* where |theta| <= theta_g(s): the largest angle up to which the Gaussian
    eq. 3 delay stays within ``GAUSS_TOLERANCE_US`` of the piston one,
-   ``s * |1/a_gauss - 1/a_piston| <= tol`` at every smaller angle. Small s (strong
-   reflectors) reach the first null (13.7 deg); weak ones stop earlier.
+   ``s * |1/a_gauss - 1/a_piston| <= tol`` at every smaller angle. Strong reflectors
+   get up to about 12 deg (never the first null, 13.7 deg); weak ones stop earlier
+   (pole 7.5 deg, rod 5.6 deg at unit gain).
 3. *Piston* elsewhere (outside the Gaussian's valid region, side lobes of strong
    reflectors), and for echoes whose Gaussian delay is within ``GAUSS_TOLERANCE_US``
    of ``u_w`` (they are re-evaluated with the piston pattern).
@@ -32,7 +33,11 @@ The ``auto`` rule (per echo, with ``s = kappa/gain`` the strength of this echo):
 The decisions cost two table look-ups per echo at one grid index (tables on a
 uniform 0.01 deg grid, built once per :class:`ModuleParams`); the Gaussian pattern
 is computed for every echo (it is the cheapest), the piston pattern only outside
-the Gaussian's region, the waveform only for weak echoes.
+the Gaussian's region, the waveform only for weak echoes. The piston pattern and the
+waveform crossing are table look-ups too, so every tier costs about the same per
+echo (benchmarks/results/physics.md); ``auto`` buys the waveform's fidelity (within
+1 us, same detections) with eq. 3-exact readings where eq. 3 is accurate, and the
+per-echo record of which model mattered.
 """
 
 from __future__ import annotations
