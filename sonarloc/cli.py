@@ -17,9 +17,12 @@ from sonarloc.errors import SonarlocError
 
 # name -> (module, one-line help). Keep in the order of FORMATS.md section 6.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "drive": ("sonarloc.commands.drive", "the main job: simulated drive, fit, EKF, report, plot"),
     "fit": ("sonarloc.commands.fit", "landmarks from TOF readings of a scan CSV"),
     "simulate": ("sonarloc.commands.simulate", "simulated log (and scan CSV) from a map"),
     "localize": ("sonarloc.commands.localize", "EKF localization of a log against a map"),
+    "serve-sim": ("sonarloc.commands.serve_sim", "a simulated sonar module speaking the protocol"),
+    "record": ("sonarloc.commands.record", "readings from a device, bus or file into a log"),
     "plot": ("sonarloc.commands.plot", "plot a scan with model curves, a sonar map, a trajectory"),
     "bench": ("sonarloc.commands.bench", "run the benchmarks, gather speed-against-error tables"),
     "rosbag": ("sonarloc.commands.rosbag", "ROS bags: import Range/Odometry, export poses"),

@@ -3,15 +3,25 @@
 Candidates are the features of the observation's type that can echo toward the
 transducer (corners from inside their angle, edges from outside and close by, walls
 whose perpendicular foot lies on the segment). For each, the squared Mahalanobis
-distance of the wrapped innovation, ``d2 = nuᵀ S⁻¹ nu`` with ``S = H P Hᵀ + R``, plus,
+distance of the wrapped innovation, ``d2 = nuᵀ S⁻¹ nu`` with ``S = H P Hᵀ + R``, and,
 when both strengths are known, a reflecting-strength term on log(kappa):
-``(ln k_obs - ln k_map)² / (var_obs / k_obs² + kappa_log_sd²)``.
+``dk2 = (ln k_obs - ln k_map)² / (var_obs / k_obs² + kappa_log_sd²)``.
 
-Gate: ``d2 <= chi2.ppf(gate_probability, dof)`` from ``scipy.stats`` (default 99 %,
-dof 2 for position only, 3 with the strength term: 9.21 and 11.34). Ambiguity: among
-the gated candidates, the best one must hold at least ``min_match_probability``
-(default 0.95) of the Gaussian likelihood ``exp(-d2/2) / sqrt(det S)``; otherwise the
-observation is rejected as ambiguous rather than risk a wrong update.
+Gate: ``d2 <= chi2.ppf(gate_probability, dof)`` from ``scipy.stats`` (default 99 %).
+How strength enters (``kappa_mode``):
+
+* ``"weigh"`` (default): the gate is on position alone (dof 2: 9.21); strength weighs
+  the gated candidates through a robust likelihood, a mixture of the Gaussian in
+  ``dk`` with probability ``kappa_outlier_prob`` of a strength fit that says nothing
+  (uniform over ``KAPPA_LOG_SPAN``). A wrong kappa cannot reject a good position
+  match, but a right one tells a pole from a rod 5 cm away.
+* ``"gate"``: ``d2 + dk2`` against dof 3 (11.34); strength can reject.
+* ``"off"``: position only.
+
+Ambiguity: among the gated candidates the best must hold at least
+``min_match_probability`` (default 0.95) of the likelihood
+``exp(-d2/2) / sqrt(det S)`` (times the strength term); otherwise the observation is
+rejected as ambiguous rather than risk a wrong update.
 """
 
 from __future__ import annotations
@@ -28,6 +38,10 @@ from sonarloc.localize.ekf import Feature, Gaussian, Observation
 from sonarloc.localize.features import FeatureMap
 
 AssocStatus = Literal["matched", "no_candidate", "gated", "ambiguous"]
+KappaMode = Literal["weigh", "gate", "off"]
+
+#: Width (natural-log units) of the uniform "says nothing" part of the strength term.
+KAPPA_LOG_SPAN = 8.0
 
 
 @dataclass(frozen=True)
@@ -41,8 +55,9 @@ class AssociationConfig:
 
     gate_probability: float = ekf.GATE_PROBABILITY
     min_match_probability: float = 0.95
-    use_kappa: bool = True
+    kappa_mode: KappaMode = "weigh"
     kappa_log_sd: float = 0.5
+    kappa_outlier_prob: float = 0.1
     wall_margin_m: float = 0.2
     max_range_m: float = 6.0
 
@@ -53,6 +68,11 @@ class AssociationConfig:
         if not 0.5 <= self.min_match_probability <= 1.0:
             raise ValueError(f"`min_match_probability` must be in [0.5, 1], got "
                              f"{self.min_match_probability!r}")
+        if self.kappa_mode not in ("weigh", "gate", "off"):
+            raise ValueError(f"`kappa_mode` must be weigh, gate or off, got {self.kappa_mode!r}")
+        if not 0.0 <= self.kappa_outlier_prob < 1.0:
+            raise ValueError(f"`kappa_outlier_prob` must be in [0, 1), got "
+                             f"{self.kappa_outlier_prob!r}")
         for name in ("kappa_log_sd", "wall_margin_m", "max_range_m"):
             v = getattr(self, name)
             if not (v >= 0 and not math.isnan(v)):
@@ -128,9 +148,9 @@ def associate(state: Gaussian, obs: Observation, fmap: FeatureMap,
                            fmap.wall_kappa_us[idx]))
     if not groups:
         return Association("no_candidate")
-    use_kappa = config.use_kappa and obs.kind != "range_bearing" \
+    use_kappa = config.kappa_mode != "off" and obs.kind != "range_bearing" \
         and math.isfinite(obs.kappa_us) and obs.kappa_us > 0
-    dof = 3 if use_kappa else 2
+    dof = 3 if use_kappa and config.kappa_mode == "gate" else 2
     gate = ekf.chi2_gate(dof, config.gate_probability)
     kinds: list[Literal["point", "wall"]] = []
     index: list[NDArray[np.int64]] = []
@@ -138,18 +158,26 @@ def associate(state: Gaussian, obs: Observation, fmap: FeatureMap,
     loglik: list[NDArray[np.float64]] = []
     for kind, idx, feats, kap in groups:
         d2, logdet = _candidates_d2(state, obs, feats)
+        ll = -0.5 * d2 - 0.5 * logdet
         if use_kappa:
             known = np.isfinite(kap) & (kap > 0)
-            var_obs = obs.kappa_var_us2 / obs.kappa_us**2 if math.isfinite(obs.kappa_var_us2) \
-                else 0.0
+            var_obs = obs.kappa_var_us2 / obs.kappa_us**2 \
+                if math.isfinite(obs.kappa_var_us2) else 0.0
             var = var_obs + config.kappa_log_sd**2
-            dk = np.log(obs.kappa_us) - np.log(np.where(known, kap, 1.0))
-            d2 = d2 + np.where(known, dk**2 / var, 0.0)
-            logdet = logdet + math.log(var)
+            dk2 = np.where(known, (math.log(obs.kappa_us) - np.log(np.where(known, kap, 1.0)))
+                           ** 2 / var, 0.0)
+            if config.kappa_mode == "gate":
+                d2 = d2 + dk2
+                ll = ll - 0.5 * dk2 - 0.5 * math.log(var)
+            else:
+                eps = config.kappa_outlier_prob
+                dens = (1 - eps) * np.exp(-0.5 * dk2) / math.sqrt(2 * math.pi * var) \
+                    + eps / KAPPA_LOG_SPAN
+                ll = ll + np.where(known, np.log(dens), 0.0)
         kinds += [kind] * len(idx)
         index.append(idx)
         d2s.append(d2)
-        loglik.append(-0.5 * d2 - 0.5 * logdet)
+        loglik.append(ll)
     all_d2 = np.concatenate(d2s)
     all_ll = np.concatenate(loglik)
     all_idx = np.concatenate(index)

@@ -38,8 +38,8 @@ import bisect
 import math
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -91,6 +91,10 @@ class LocalizerConfig:
     fit_sd_floor_m, fit_sd_floor_deg : added in quadrature to fitted landmarks'
         position/rho and bearing/alpha SDs (odometry error inside a segment, model error).
     fit_cov_scale : multiplies the fit covariance before the floor is added.
+    fit_statuses : fit statuses fused (``flat``: a wall seen near normal incidence over a
+        short arc; its range is precise, its bearing SD large, as its covariance says).
+    segment_max_readings : the segmenter closes (and the fitter fits) a segment after this
+        many readings, so a wall seen for a long time still gives regular updates.
     conventional_range_sd_m, conventional_bearing_sd_deg : the conventional model.
     max_range_m : readings (conventional) and candidates farther than this are ignored.
     lost_after_rejections : this many observations in a row rejected (no candidate,
@@ -105,9 +109,11 @@ class LocalizerConfig:
         yaw_var_per_m=math.radians(1.0) ** 2, yaw_var_per_rad=math.radians(1.0) ** 2))
     association: AssociationConfig = field(default_factory=AssociationConfig)
     history_s: float = 10.0
-    fit_sd_floor_m: float = 0.002
-    fit_sd_floor_deg: float = 0.2
+    fit_sd_floor_m: float = 0.01
+    fit_sd_floor_deg: float = 1.0
     fit_cov_scale: float = 1.0
+    fit_statuses: tuple[str, ...] = ("ok", "flat")
+    segment_max_readings: int = 400
     conventional_range_sd_m: float = 0.01
     conventional_bearing_sd_deg: float = 10.0
     max_range_m: float = 6.0
@@ -212,14 +218,65 @@ class FusionOutcome:
     reason: str
 
 
-def default_landmark_source(speed_of_sound_mps: float = 343.0) -> LandmarkSource:
-    """The fitting stage's online segmenter + fitter (``sonarloc.fit``)."""
-    from sonarloc.fit.landmarks import OnlineFitter
-    from sonarloc.fit.lsq import FitConfig
-    from sonarloc.physics.tof import ModuleParams
+class SegmentFitSource:
+    """The fitting stage's online segmenter and batch fitter as a :class:`LandmarkSource`.
 
-    src: LandmarkSource = OnlineFitter(FitConfig(module=ModuleParams(c_mps=speed_of_sound_mps)))
-    return src
+    Closed segments are fitted together (vectorised) once ``batch`` of them are waiting
+    or the oldest has waited ``max_wait_s`` of stream time; the Localizer fuses the
+    delayed fits at their reference times anyway. Each landmark gets
+    ``extra["view_xy"]``: the mean transducer position of its echoes (in the frame of
+    the poses), the direction a cylinder's fitted surface point faces.
+    """
+
+    def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 8,
+                 max_wait_s: float = 0.5, max_readings: int | None = None) -> None:
+        from sonarloc.fit.lsq import FitConfig
+        from sonarloc.fit.segment import Segmenter, SegmenterConfig
+        from sonarloc.physics.tof import ModuleParams
+
+        self.fit_config = FitConfig(module=ModuleParams(c_mps=speed_of_sound_mps))
+        seg_cfg = SegmenterConfig() if max_readings is None else \
+            SegmenterConfig(max_readings=max_readings)
+        self.segmenter = Segmenter(seg_cfg, self.fit_config.module)
+        self.batch = batch
+        self.max_wait_s = max_wait_s
+        self._waiting: list[tuple[float, Any]] = []
+
+    def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
+             sensor: int) -> list[Landmark]:
+        for s in self.segmenter.push(t_s, x_m, y_m, yaw_rad, tof_us, sensor):
+            self._waiting.append((t_s, s))
+        if self._waiting and (len(self._waiting) >= self.batch
+                              or t_s - self._waiting[0][0] >= self.max_wait_s):
+            return self._fit()
+        return []
+
+    def flush(self) -> list[Landmark]:
+        for s in self.segmenter.flush():
+            self._waiting.append((math.inf, s))
+        return self._fit()
+
+    def _fit(self) -> list[Landmark]:
+        from sonarloc.fit.landmarks import fit_segments
+
+        segs = [s for _, s in self._waiting]
+        self._waiting.clear()
+        if not segs:
+            return []
+        out = []
+        for s, lm in zip(segs, fit_segments(segs, self.fit_config), strict=True):
+            r = s.readings
+            echo = np.isfinite(r.tof_us)
+            if echo.any():
+                view = (float(np.mean(r.x_m[echo])), float(np.mean(r.y_m[echo])))
+                lm = replace(lm, extra={**lm.extra, "view_xy": view})
+            out.append(lm)
+        return out
+
+
+def default_landmark_source(speed_of_sound_mps: float = 343.0) -> LandmarkSource:
+    """The fitting stage's segmenter and fitter (:class:`SegmentFitSource`)."""
+    return SegmentFitSource(speed_of_sound_mps)
 
 
 class Localizer:
@@ -238,7 +295,8 @@ class Localizer:
         self.fmap = fmap
         self.config = config or LocalizerConfig()
         self.stats = LocalizerStats()
-        self._source_factory = landmark_source or default_landmark_source
+        self._source_factory = landmark_source or (
+            lambda c: SegmentFitSource(c, max_readings=self.config.segment_max_readings))
         self._source: LandmarkSource | None = None
         self._mounts: dict[int, Array] = {}
         self._c_mps = 343.0
@@ -351,7 +409,7 @@ class Localizer:
     def add_landmark(self, lm: Landmark) -> FusionOutcome:
         """Fuse a fitted landmark (in ``odom``; refers to the pose at ``lm.ref_t_s``)."""
         self.stats.landmarks += 1
-        if not lm.ok:
+        if lm.status.value not in self.config.fit_statuses:
             self.stats.skipped[f"fit_{lm.status.value}"] += 1
             return FusionOutcome(lm.ref_t_s, None, False, f"fit status {lm.status.value}")
         if not self._entries:
@@ -509,6 +567,10 @@ class Localizer:
         base = self._odom_at(lm.ref_t_s, i)
         ref_pose = np.asarray(lm.ref_pose, dtype=float)
         sensor = se2.between(base, ref_pose)
+        view = lm.extra.get("view_xy")
+        if isinstance(view, tuple) and len(view) == 2:
+            # a cylinder's fitted surface point faces where its echoes came from
+            sensor[:2] = se2.inverse_transform_points(base, np.asarray(view, dtype=float))
         c = self.config
         pos = cov[:2, :2] * c.fit_cov_scale
         if lm.kind == "point":

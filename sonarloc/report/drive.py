@@ -162,17 +162,20 @@ class SegmentView:
 
 
 def pick_segments(views: Sequence[SegmentView], n: int = 4) -> list[SegmentView]:
-    """Up to ``n`` segments to show: fitted OK, most readings, lines and points mixed."""
+    """Up to ``n`` segments to show, one per label (kind) first, in the given order."""
     ok = [v for v in views if v.landmark.ok and np.isfinite(v.tof_us).sum() >= 5]
-    ok.sort(key=lambda v: -int(np.isfinite(v.tof_us).sum()))
-    points = [v for v in ok if v.landmark.kind == "point"]
-    lines = [v for v in ok if v.landmark.kind == "line"]
     picked: list[SegmentView] = []
-    while len(picked) < n and (points or lines):
-        for pool in (points, points, lines):
-            if pool and len(picked) < n:
-                picked.append(pool.pop(0))
+    for v in ok:
+        if len(picked) < n and v.label not in {p.label for p in picked}:
+            picked.append(v)
+    for v in ok:
+        if len(picked) < n and all(v is not p for p in picked):
+            picked.append(v)
     return picked
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 def drive_figure(
@@ -180,20 +183,23 @@ def drive_figure(
     *,
     map_source: str | Path | Mapping[str, Any] | None,
     tracks: Mapping[str, NDArray[np.float64]],
-    landmarks: Sequence[Landmark],
+    landmarks: Sequence[tuple[Landmark, bool]],
     segments: Sequence[SegmentView],
     report: DriveReport,
     c_mps: float = SPEED_OF_SOUND_MPS,
     sigma_deg: float = GAUSS_SIGMA_DEG,
     n_sigma: float = 3.0,
+    outlier_us: float = 30.0,
     dpi: int = 120,
 ) -> Path:
     """Write the drive PNG: map + paths + landmarks (left), TOF curves with fits (right).
 
     ``tracks``: name -> (n, 4) poses (t_s, x_m, y_m, yaw_rad) in ``map`` (``truth``,
-    ``odometry``, ``estimate``); ``landmarks`` in ``map``; ``segments`` in the fit frame.
+    ``odometry``, ``estimate``); ``landmarks``: (landmark in ``map``, matched to the map);
+    ``segments``: fitted segments with their readings, in the fit frame.
     """
     from sonarloc.report.plots import (
+        beam_delay_us,
         draw_excess_delay,
         draw_landmarks,
         draw_map,
@@ -209,13 +215,19 @@ def drive_figure(
     ax = fig.add_subplot(gs[:, 0])
     if map_source is not None:
         draw_map(ax, map_source)
+        xmin, xmax = ax.get_xlim()
+        ymin, ymax = ax.get_ylim()
     draw_tracks(ax, {k: (v[:, 1], v[:, 2]) for k, v in tracks.items()})
-    draw_landmarks(ax, [lm for lm in landmarks if lm.ok], n_sigma=n_sigma,
-                   label=f"fitted landmarks ({n_sigma:g}σ)")
-    bad = [lm for lm in landmarks if not lm.ok and lm.kind == "point"]
+    matched = [lm for lm, fused in landmarks if fused and lm.ok]
+    other = [lm for lm, fused in landmarks if not fused and lm.ok]
+    draw_landmarks(ax, other, n_sigma=n_sigma, color="0.7", line_half_length_m=0.2,
+                   label=f"fitted, not matched ({n_sigma:g}σ)")
+    draw_landmarks(ax, matched, n_sigma=n_sigma,
+                   label=f"fitted and matched to the map ({n_sigma:g}σ)")
+    bad = [lm for lm, _ in landmarks if not lm.ok and lm.kind == "point"]
     if bad:
         ax.plot([lm.params[0] for lm in bad], [lm.params[1] for lm in bad], "x",
-                color="tab:red", alpha=0.35, ms=4, label="fits not trusted")
+                color="0.6", alpha=0.5, ms=4, label="fits not trusted (status)")
 
     def f(v: float, scale: float = 1.0, fmt: str = ".1f") -> str:
         return format(v * scale, fmt) if math.isfinite(v) else "n/a"
@@ -223,8 +235,12 @@ def drive_figure(
     finish_plane_axes(ax, f"{report.map}: pose RMSE {f(report.pose_rmse_m, 100)} cm, "
                           f"{f(report.yaw_rmse_deg, 1, '.2f')}° (odometry only "
                           f"{f(report.odom_pose_rmse_m, 100)} cm, "
-                          f"{f(report.odom_yaw_rmse_deg, 1, '.2f')}°)", legend=False)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.07), ncol=4,
+                          f"{f(report.odom_yaw_rmse_deg, 1, '.2f')}°)", legend=False,
+                      adjustable="box")
+    if map_source is not None:  # keep the view on the map, not on stray fits
+        ax.set_xlim(xmin - 0.3, xmax + 0.3)
+        ax.set_ylim(ymin - 0.3, ymax + 0.3)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=4,
               frameon=False)
     shown = pick_segments(segments, 4)
     colors = ["tab:blue", "tab:green", "tab:purple", "tab:brown"]
@@ -236,24 +252,27 @@ def drive_figure(
         v = shown[i]
         lm = v.landmark
         model, theta = landmark_model_us(lm, v.x_m, v.y_m, v.yaw_rad, c_mps, sigma_deg)
-        kappa_term = lm.kappa_us * np.exp(theta ** 2 / (2 * math.radians(sigma_deg) ** 2))
-        delay = v.tof_us - (model - kappa_term)
-        ok = np.isfinite(delay)
+        expected = beam_delay_us(lm.kappa_us, theta, lm.tier, sigma_deg, c_mps)
+        delay = v.tof_us - (model - expected)
+        finite = np.isfinite(delay)
+        # readings the fit did not explain (other reflectors, spikes): marked, not hidden
+        used = finite & (np.abs(delay - expected) <= outlier_us)
         what = v.label or lm.kind
-        draw_excess_delay(sub, theta[ok], delay[ok], lm.kappa_us, sigma_deg,
-                          label="eq. 3 fit", color=colors[i])
-        sub.set_title(f"{what}: κ={lm.kappa_us:.2f} µs, {int(ok.sum())} echoes\n"
-                      f"{len(set(lm.sensors)) or '?'} transducers, r={lm.range_m:.2f} m",
-                      fontsize=8)
+        draw_excess_delay(sub, theta[used], delay[used], lm.kappa_us, sigma_deg,
+                          label="fitted model", color=colors[i], tier=lm.tier)
+        if (finite & ~used).any():
+            sub.plot(np.degrees(theta[finite & ~used]),
+                     np.clip(delay[finite & ~used], -outlier_us * 1.5, outlier_us * 2.5), "x",
+                     ms=3, color="0.6", label=f"> {outlier_us:g} µs off the fit")
+        sub.set_title(f"{what}: κ={lm.kappa_us:.2f} µs, {int(used.sum())} echoes\n"
+                      f"{_count(len(set(lm.sensors)), 'transducer')}, r={lm.range_m:.2f} m, "
+                      f"tier {lm.tier}", fontsize=8)
         sub.set_xlabel("angle off the transducer axis (deg)", fontsize=8)
         sub.set_ylabel("TOF − 2r/c (µs)", fontsize=8)
         sub.tick_params(labelsize=7)
         sub.grid(True, alpha=0.3)
-        sub.legend(fontsize=7, loc="upper center")
-        lo = float(np.nanmin(delay[ok])) if ok.any() else 0.0
-        hi = float(np.nanmax(delay[ok])) if ok.any() else 1.0
-        pad = max(5.0, 0.1 * (hi - lo))
-        sub.set_ylim(lo - pad, hi + pad)
+        sub.legend(fontsize=6.5, loc="upper center")
+        sub.set_ylim(-outlier_us * 1.6, outlier_us * 2.7)
     fig.suptitle(f"sonarloc drive — rig {report.rig}, device {report.device}, "
                  f"{f(report.duration_s)} s simulated, {report.landmarks_fitted} landmarks "
                  f"fitted, {report.landmarks_matched} matched", fontsize=11)

@@ -53,11 +53,31 @@ def require_matplotlib() -> Any:
 
 # --------------------------------------------------------------------------- models
 
+def beam_delay_us(kappa_us: ArrayLike, theta_rad: ArrayLike, tier: str = "gauss",
+                  sigma_deg: float = GAUSS_SIGMA_DEG, c_mps: float = SPEED_OF_SOUND_MPS
+                  ) -> NDArray[np.float64]:
+    """Threshold delay kappa / rel_amp(theta) of the beam model a fit used [us].
+
+    ``tier``: ``"piston"`` uses the piston echo pattern (infinite at its nulls); any other
+    tier the Gaussian main lobe of eq. 3, kappa·exp(theta²/2sigma²).
+    """
+    k = np.asarray(kappa_us, dtype=float)
+    t = np.asarray(theta_rad, dtype=float)
+    if tier == "piston":
+        from sonarloc.physics.beam import piston_echo
+
+        a = piston_echo(t, c_mps=c_mps)
+        with np.errstate(divide="ignore"):
+            return np.where(a > 0, k / np.where(a > 0, a, 1.0), np.inf)
+    return k * np.exp(t * t / (2.0 * np.radians(sigma_deg) ** 2))
+
+
 def landmark_model_us(
     lm: Landmark, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
     c_mps: float = SPEED_OF_SOUND_MPS, sigma_deg: float = GAUSS_SIGMA_DEG,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Noise-free eq. 3 TOF of a fitted landmark seen from transducer poses.
+    """Noise-free TOF of a fitted landmark seen from transducer poses (eq. 3, or the
+    piston pattern when the fit used that tier).
 
     Parameters
     ----------
@@ -66,7 +86,7 @@ def landmark_model_us(
 
     Returns
     -------
-    tof_us : (...,) Tm = To + kappa exp(theta²/2sigma²), To = 2 range / c.
+    tof_us : (...,) Tm = To + :func:`beam_delay_us`, To = 2 range / c.
     theta_rad : (...,) angle of the reflecting point off the transducer axis, wrapped.
     """
     x, y, yaw = (np.asarray(v, dtype=float) for v in (x_m, y_m, yaw_rad))
@@ -82,6 +102,8 @@ def landmark_model_us(
         direction = np.where(signed >= 0, p1, p1 + math.pi)
     theta = np.angle(np.exp(1j * (direction - yaw)))
     to_us = 2.0 * rng / c_mps * 1e6
+    if lm.tier == "piston":
+        return to_us + beam_delay_us(kappa, theta, "piston", sigma_deg, c_mps), theta
     return eq3_tof_us(to_us, theta, kappa, sigma_deg), theta
 
 
@@ -131,7 +153,7 @@ def draw_scan(
                    "tab:cyan", "tab:pink"] * 50)
     for lm in landmarks:
         model, theta = landmark_model_us(lm, px, py, grid, c_mps, sigma_deg)
-        to = model - lm.kappa_us * np.exp(theta ** 2 / (2 * np.radians(sigma_deg) ** 2))
+        to = model - beam_delay_us(lm.kappa_us, theta, lm.tier, sigma_deg, c_mps)
         show = (model - to) <= max_delay_us
         curve = np.where(show, model - ref, np.nan)
         color = next(colors)
@@ -147,11 +169,13 @@ def draw_scan(
 def draw_excess_delay(
     ax: Any, theta_rad: ArrayLike, delay_us: ArrayLike, kappa_us: float,
     sigma_deg: float = GAUSS_SIGMA_DEG, label: str = "", color: str = "tab:blue",
+    tier: str = "gauss",
 ) -> None:
     """Readings of one landmark as delay Tm − To against the angle off the transducer axis.
 
     With To from the fitted landmark and each reading's own pose, readings of a moving
-    ring collapse onto one eq. 3 curve kappa·exp(theta²/2sigma²), drawn dashed.
+    ring collapse onto one curve kappa/rel_amp(theta) (:func:`beam_delay_us` of the fit's
+    tier), drawn dashed.
     """
     th = np.degrees(np.asarray(theta_rad, dtype=float))
     d = np.asarray(delay_us, dtype=float)
@@ -159,8 +183,9 @@ def draw_excess_delay(
     if th.size:
         lim = max(abs(th.min()), abs(th.max()), 1.0)
         grid = np.linspace(-lim, lim, 300)
-        model = kappa_us * np.exp(np.radians(grid) ** 2 / (2 * np.radians(sigma_deg) ** 2))
-        ax.plot(grid, model, "--", color=color, lw=1.2, label=label or None)
+        model = beam_delay_us(kappa_us, np.radians(grid), tier, sigma_deg)
+        ax.plot(grid, np.where(np.isfinite(model), model, np.nan), "--", color=color, lw=1.2,
+                label=label or None)
 
 
 def _features(source: str | Path | Mapping[str, Any]) -> list[dict[str, Any]]:
@@ -290,9 +315,10 @@ def draw_landmarks(ax: Any, landmarks: Iterable[Landmark], n_sigma: float = 3.0,
     return count
 
 
-def finish_plane_axes(ax: Any, title: str = "", legend: bool = True) -> None:
+def finish_plane_axes(ax: Any, title: str = "", legend: bool = True,
+                      adjustable: str = "datalim") -> None:
     """Equal aspect, metres on both axes, a light grid and a compact legend."""
-    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_aspect("equal", adjustable=adjustable)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(True, alpha=0.25)

@@ -41,3 +41,30 @@ def ring_stream(duration_s: float = 1.0, dt_s: float = 0.005, pan: bool = False,
 def device_records(stream: list[Record]) -> list[Record]:
     """The records a module sends (no init/truth)."""
     return [r for r in stream if r.type in ("rig", "odom", "tof")]
+
+
+def drain(sim, drv, quiet_s: float = 0.3, limit_s: float = 20.0) -> list:
+    """Everything a driver delivers until the module has finished and the line is quiet."""
+    import time
+
+    from sonarloc.errors import DeviceTimeoutError
+
+    got: list = []
+    end = time.monotonic() + limit_s
+    quiet_since = None
+    while time.monotonic() < end:
+        try:
+            rec = drv.read(timeout=0.05)
+        except DeviceTimeoutError:
+            if not sim.wait(0):
+                continue
+            now = time.monotonic()
+            quiet_since = quiet_since or now
+            if now - quiet_since >= quiet_s:
+                return got
+            continue
+        if rec is None:
+            return got
+        quiet_since = None
+        got.append(rec)
+    raise AssertionError(f"stream did not end within {limit_s} s ({len(got)} records)")

@@ -12,7 +12,7 @@ import time
 import tty
 
 import pytest
-from io_streams import ring_stream
+from io_streams import drain, ring_stream
 
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.drivers import BACKENDS, driver_class, open_driver, parse_source
@@ -24,19 +24,8 @@ from sonarloc.io.protocol.messages import Ack, Echo, RigInfo, RigMount, Start, S
 from sonarloc.io.protocol.records import messages_from_record
 
 
-def read_until_done(sim: SimModule, drv, settle_s: float = 0.3) -> list:
-    """Everything the driver delivers until the module has finished and gone quiet."""
-    got = []
-    while True:
-        try:
-            rec = drv.read(timeout=settle_s if sim.wait(0) else 2.0)
-        except DeviceTimeoutError:
-            if sim.wait(0):
-                return got
-            raise
-        if rec is None:
-            return got
-        got.append(rec)
+def read_until_done(sim: SimModule, drv) -> list:
+    return drain(sim, drv)
 
 
 def sent_records(buf: io.StringIO) -> list:
@@ -254,3 +243,19 @@ def test_ack_is_sent_for_each_command() -> None:
             time.sleep(0.01)
         assert drv.acks == [Ack(0x81, 0, 0)]
         assert ACK == 0x40
+
+
+def test_a_failing_callback_is_reported_not_swallowed() -> None:
+    def boom(rec) -> None:
+        raise RuntimeError("caller bug")
+
+    with open_driver("loop://", start=False, on_record=boom) as drv:
+        drv.send(Echo(1, 2, 3))
+        with pytest.raises(DeviceError, match="caller bug"):
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                try:
+                    drv.read(0.05)
+                except DeviceTimeoutError:
+                    continue
+        assert drv.stats.callback_errors == 1

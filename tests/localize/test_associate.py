@@ -39,10 +39,13 @@ def test_lines_of_segments(fmap):
 def test_matches_wall_and_pole(fmap):
     g = Gaussian.from_pose(3.0, 1.0, 0.3, 0.03, math.radians(1))
     a = associate(g, obs_of("line", g, fmap.wall(1), kappa=0.15), fmap)
-    assert a.matched and a.kind == "wall" and a.index == 1 and a.dof == 3
+    assert a.matched and a.kind == "wall" and a.index == 1 and a.dof == 2
     b = associate(g, obs_of("point", g, fmap.point(0), kappa=0.67), fmap)
     assert b.matched and b.kind == "point" and b.index == 0
-    assert b.gate == pytest.approx(ekf.chi2_gate(3))
+    assert b.gate == pytest.approx(ekf.chi2_gate(2))
+    strict = AssociationConfig(kappa_mode="gate")
+    c = associate(g, obs_of("point", g, fmap.point(0), kappa=0.67), fmap, strict)
+    assert c.matched and c.dof == 3 and c.gate == pytest.approx(ekf.chi2_gate(3))
 
 
 def test_kappa_separates_pole_from_rod(fmap):
@@ -56,6 +59,13 @@ def test_kappa_separates_pole_from_rod(fmap):
     assert rod.matched and rod.index == 1
     pole = associate(g, obs_of("point", g, Feature("point", mid), kappa=0.67), fmap)
     assert pole.matched and pole.index == 2
+
+
+def test_wrong_strength_rejects_only_in_gate_mode(fmap):
+    g = Gaussian.from_pose(3.0, 1.0, 0.3, 0.03, math.radians(1))
+    obs = obs_of("line", g, fmap.wall(1), kappa=20.0)  # a wall fitted as a very weak echo
+    assert associate(g, obs, fmap).matched
+    assert associate(g, obs, fmap, AssociationConfig(kappa_mode="gate")).status == "gated"
 
 
 def test_outlier_gated_and_nothing_visible(fmap):

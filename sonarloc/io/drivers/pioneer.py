@@ -131,6 +131,10 @@ class PioneerDriver(PortDriver):
         self._deliver(out)
 
     def _close(self) -> None:
+        self._stop.set()  # no PULSE may follow the CLOSE
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
         if self._port is not None:
             try:
                 self.write(client_command(CLOSE))

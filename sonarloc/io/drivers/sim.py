@@ -170,13 +170,22 @@ class PtyTransport(_ByteTransport):
             self._decoder = SerialDecoder()
             self._new_pty()
 
+    WRITE_WAIT_S = 0.2
+
     def _write(self, data: bytes) -> bool:
         view = memoryview(data)
         while view:
             try:
                 n = os.write(self._master, view)
-            except (BlockingIOError, OSError):
-                return False  # nobody reads, buffer full: a UART would drop these bytes too
+            except BlockingIOError:
+                # the host is behind: wait a little for room (like hardware flow control),
+                # then give up as a UART without flow control would
+                _, ready, _ = select.select([], [self._master], [], self.WRITE_WAIT_S)
+                if not ready:
+                    return False
+                continue
+            except OSError:
+                return False
             view = view[n:]
         return True
 
@@ -433,6 +442,7 @@ class SimModule:
         self._t_now = 0.0
         self._thread: threading.Thread | None = None
         self._opened = False
+        self.error: BaseException | None = None  # what ended a background stream early
         if not (transport.accepts_commands if wait_for_start is None else wait_for_start):
             self._running.set()
 
@@ -483,6 +493,15 @@ class SimModule:
     def wait(self, timeout: float | None = None) -> bool:
         """True once the stream has ended."""
         return self.finished.wait(timeout)
+
+    def sleep(self, seconds: float) -> bool:
+        """Wait ``seconds`` unless :meth:`stop` is called first; True if stopped."""
+        return self._stop.wait(seconds)
+
+    @property
+    def stopped(self) -> bool:
+        """True once :meth:`stop` was called."""
+        return self._stop.is_set()
 
     def stop(self) -> None:
         self._stop.set()
@@ -588,6 +607,10 @@ class SimModule:
                         self.stats.rigs_sent += 1
                 self._send(msgs, rec.t_s)
                 self.stats.records += 1
+        except BaseException as err:
+            self.error = err
+            if threading.current_thread() is not self._thread:
+                raise
         finally:
             if self._writer is not None:
                 self._writer.flush()

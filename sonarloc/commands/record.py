@@ -1,0 +1,148 @@
+"""Record readings from a sonar device, bus or file into a log (FORMATS.md section 4).
+
+SOURCE is a serial device or pyserial URL (/dev/ttyUSB0, socket://127.0.0.1:PORT,
+loop://), can:INTERFACE:CHANNEL, candump:FILE.log, sim:LOG.jsonl, or a real-device
+driver (pioneer:/dev/ttyS0, maxbotix:/dev/ttyUSB0). The rig record is written first
+(readings that arrive before it are held back). Recording stops after --duration
+seconds, at the end of a file, on Ctrl-C, or after --timeout seconds of silence.
+The decoder's counters (good frames, CRC failures, skipped bytes, sequence gaps,
+...) are printed at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+import time
+from collections import Counter
+from types import FrameType
+from typing import Any
+
+from sonarloc.errors import DeviceTimeoutError
+from sonarloc.io.drivers import open_driver, parse_source
+from sonarloc.io.logfile import LogWriter, Record, RigRecord
+
+HOLD_MAX = 100_000  # readings held back while waiting for the rig
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("source", metavar="SOURCE", help="device, URL, bus or file to read")
+    parser.add_argument("--out", required=True, metavar="LOG", help="log JSONL to write")
+    parser.add_argument("--duration", type=float, metavar="S",
+                        help="stop after S seconds (wall clock)")
+    parser.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                        help="stop after S seconds without data (default 5)")
+    parser.add_argument("--baud", type=int, metavar="N", help="serial line speed")
+    parser.add_argument("--no-start", action="store_true",
+                        help="do not send Start/RequestRig to the module")
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="driver option, e.g. unit=cm (maxbotix), rate=1 (candump); "
+                             "repeatable")
+
+
+def _value(text: str) -> Any:
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def driver_options(args: argparse.Namespace) -> dict[str, Any]:
+    name, _ = parse_source(args.source)
+    opts: dict[str, Any] = {}
+    for item in args.option:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            raise ValueError(f"--option must be KEY=VALUE, got {item!r}")
+        opts[key] = _value(value)
+    if args.baud is not None:
+        if name not in ("serial", "pioneer", "maxbotix"):
+            raise ValueError(f"--baud applies to serial sources, not {name}")
+        opts["baudrate"] = args.baud
+    if args.no_start:
+        if name not in ("serial", "can"):
+            raise ValueError(f"--no-start applies to the module protocol, not {name}")
+        opts["start"] = False
+    return opts
+
+
+def run(args: argparse.Namespace) -> int:
+    for name in ("duration", "timeout"):
+        v = getattr(args, name)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ValueError(f"--{name} must be a positive number of seconds, got {v!r}")
+    opts = driver_options(args)
+    try:
+        driver = open_driver(args.source, **opts)
+    except TypeError as err:  # an option the driver does not take
+        raise ValueError(f"bad --option for {args.source}: {err}") from None
+    stop = False
+
+    def on_term(signum: int, frame: FrameType | None) -> None:
+        nonlocal stop
+        stop = True
+
+    old = signal.signal(signal.SIGTERM, on_term)
+    counts: Counter[str] = Counter()
+    held: list[Record] = []
+    have_rig = False
+    note = ""
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    try:
+        with driver, LogWriter(args.out) as writer:
+            last_data = time.monotonic()
+            while not stop:
+                now = time.monotonic()
+                if t_end is not None and now >= t_end:
+                    break
+                try:  # short reads, so SIGTERM and --duration are noticed quickly
+                    rec = driver.read(timeout=0.2)
+                except DeviceTimeoutError:
+                    if time.monotonic() - last_data < args.timeout:
+                        continue
+                    if sum(counts.values()) + len(held) == 0:
+                        raise DeviceTimeoutError(
+                            f"{driver.source}: no data within {args.timeout:g} s "
+                            f"({driver.summary()})") from None
+                    note = f"; stopped after {args.timeout:g} s without data"
+                    break
+                except KeyboardInterrupt:
+                    break
+                last_data = time.monotonic()
+                if rec is None:
+                    break
+                if isinstance(rec, RigRecord):
+                    if have_rig:
+                        continue  # a changed rig mid-log is not representable; keep the first
+                    have_rig = True
+                    writer.write(rec)
+                    counts["rig"] += 1
+                    for r in held:
+                        writer.write(r)
+                        counts[r.type] += 1
+                    held = []
+                    continue
+                if not have_rig and len(held) < HOLD_MAX:
+                    held.append(rec)
+                    continue
+                writer.write(rec)
+                counts[rec.type] += 1
+            for r in held:  # no rig ever came
+                writer.write(r)
+                counts[r.type] += 1
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    n = sum(counts.values())
+    kinds = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+    print(f"recorded {n} records ({kinds or 'none'}) to {args.out}{note}", file=sys.stderr)
+    if not have_rig:
+        print("warning: the source sent no rig description", file=sys.stderr)
+    print(f"{driver.source}: {driver.summary()}", file=sys.stderr)
+    return 0

@@ -1,0 +1,132 @@
+"""candump logs: written by the simulated module with python-can's writer, read back with
+python-can's reader; a damaged log is read to the end with every problem counted."""
+
+from __future__ import annotations
+
+import io
+import random
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from io_streams import ring_stream
+
+from sonarloc.io.drivers import open_driver
+from sonarloc.io.drivers.candump import CandumpDriver
+from sonarloc.io.drivers.sim import SimModule
+from sonarloc.io.logfile import LogWriter, TofRecord, iter_log
+
+
+def write_candump(path, pan: bool = False, duration_s: float = 1.0) -> list:
+    sent = io.StringIO()
+    sim = SimModule.to_candump(ring_stream(duration_s=duration_s, pan=pan), path,
+                               sent_log=LogWriter(sent))
+    sim.run()
+    sim.close()
+    return list(iter_log(io.StringIO(sent.getvalue())))
+
+
+def read_all(source: str, **kw) -> tuple[list, CandumpDriver]:
+    drv = open_driver(source, **kw)
+    with drv:
+        out = list(drv.records(timeout=5.0))
+    assert isinstance(drv, CandumpDriver)
+    return out, drv
+
+
+def test_candump_round_trip(tmp_path) -> None:
+    path = tmp_path / "sonar.log"
+    sent = write_candump(path, pan=True)
+    got, drv = read_all(f"candump:{path}")
+    assert got == sent
+    assert drv.counters()["malformed_lines"] == 0 and drv.decoder.stats.incomplete == 0
+    first = path.read_text().splitlines()[0]
+    assert first.startswith("(0.000000) can0 130#")  # RIG_INFO, in candump -L format
+
+
+def test_paced_replay_follows_the_timestamps(tmp_path) -> None:
+    import time
+
+    path = tmp_path / "sonar.log"
+    write_candump(path, duration_s=0.5)
+    t = time.monotonic()
+    got, _ = read_all(f"candump:{path}", rate=5.0)
+    assert time.monotonic() - t >= 0.5 / 5.0 * 0.9
+    assert got[-1].t_s == 0.5
+
+
+def test_corrupted_candump_is_read_to_the_end(tmp_path) -> None:
+    rng = random.Random(3)
+    path = tmp_path / "sonar.log"
+    sent = write_candump(path, duration_s=2.0)
+    lines = path.read_text().splitlines()
+    echo_lines = [i for i, ln in enumerate(lines) if " 110#" in ln]
+    damaged = sorted(rng.sample(echo_lines, 60))
+    kinds = {}
+    out = []
+    for i, ln in enumerate(lines):
+        if i in damaged:
+            kind = len(kinds) % 6
+            kinds[i] = kind
+            stamp, chan, frame, rx = ln.split()
+            if kind == 0:
+                ln = ln.replace("110#", "11G#")  # bad hex id
+            elif kind == 1:
+                ln = ln[: len(ln) // 2]  # truncated line
+            elif kind == 2:
+                ln = "\x00\x17binary junk\xff"  # noise
+            elif kind == 3:
+                ln = f"{stamp} {chan} 110#{frame[4:12]} {rx}"  # DLC 4 instead of 8
+            elif kind == 4:
+                ln = f"{stamp} {chan} 7AB#{frame[4:]} {rx}"  # an id not in the DBC
+            else:
+                ln = f"{stamp} {chan} 20000080#0000000000000000"  # error frame
+        out.append(ln)
+    out.insert(5, "")  # blank lines are fine
+    path.write_text("\n".join(out) + "\n", encoding="latin-1")
+    got, drv = read_all(f"candump:{path}")
+
+    lost = {lines[i] for i in damaged}
+    # every undamaged reading is there, in order; the 60 damaged ones are missing
+    expect_tof = [r for r in sent if isinstance(r, TofRecord)]
+    got_tof = [r for r in got if isinstance(r, TofRecord)]
+    assert len(got_tof) == len(expect_tof) - 60
+    assert [r for r in got if not isinstance(r, TofRecord)] == \
+        [r for r in sent if not isinstance(r, TofRecord)]
+    n = {k: sum(1 for v in kinds.values() if v == k) for k in range(6)}
+    c = drv.counters()
+    assert c["malformed_lines"] == n[0] + n[1] + n[2]
+    assert c["bad_length"] == n[3]
+    assert c["unknown"] == n[4]
+    assert c["error_frames"] == n[5]
+    assert c["seq_gaps"] > 0 and c["frames_lost"] == 60  # the 4-bit echo counter saw them go
+    assert all(lineno >= 1 for lineno, _ in drv.malformed)
+    assert len(lost) == 60
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.text(max_size=60), max_size=30))
+def test_any_text_no_exception(tmp_path_factory, text_lines) -> None:
+    path = tmp_path_factory.mktemp("fuzz") / "junk.log"
+    path.write_text("\n".join(text_lines), encoding="utf-8", errors="surrogatepass")
+    got, drv = read_all(f"candump:{path}")
+    assert drv.stats.malformed_lines <= len(path.read_text(errors="replace").splitlines())
+
+
+def test_other_python_can_formats(tmp_path) -> None:
+    import can
+
+    from sonarloc.io.protocol.canbus import CanEncoder
+    from sonarloc.io.protocol.records import messages_from_record
+
+    recs = list(ring_stream(duration_s=0.2))
+    enc = CanEncoder()
+    path = tmp_path / "sonar.asc"
+    with can.Logger(str(path)) as logger:
+        t = 0.0
+        for r in recs:
+            for m in messages_from_record(r):
+                for f in enc.encode(m):
+                    f.timestamp = t = t + 0.001
+                    logger.on_message_received(f)
+    got, _ = read_all(f"candump:{path}")
+    assert len(got) == 1 + sum(r.type in ("odom", "tof") for r in recs)
