@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import platform
 import random
 import statistics
@@ -95,6 +96,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     duration = 20.0 if args.quick else 120.0
     repeats = 3 if args.quick else 15
 
+    load = os.getloadavg()[0]
     recs, what = drive_records(duration)
     span = max(r.t_s for r in recs) - min(r.t_s for r in recs)
     msgs: list[Message] = [m for r in recs for m in messages_from_record(r)]
@@ -170,7 +172,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(lines[-1], flush=True)
     lines += ["", f"Machine: {platform.machine()} {platform.processor()}, Python "
               f"{platform.python_version()}, python-can {can.__version__}; "
-              f"{datetime.date.today().isoformat()}; {'quick' if args.quick else 'full'} run."]
+              f"{datetime.date.today().isoformat()}; {'quick' if args.quick else 'full'} run; "
+              f"load average {load:.1f} on {os.cpu_count()} CPUs at the start (shared machine)."]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n", encoding="utf-8")
     print(f"wrote {args.out}", file=sys.stderr)

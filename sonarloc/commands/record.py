@@ -97,23 +97,25 @@ def run(args: argparse.Namespace) -> int:
     t_end = None if args.duration is None else time.monotonic() + args.duration
     try:
         with driver, LogWriter(args.out) as writer:
+            last_data = time.monotonic()
             while not stop:
-                wait = args.timeout
-                if t_end is not None:
-                    wait = min(wait, t_end - time.monotonic())
-                    if wait <= 0:
-                        break
-                try:
-                    rec = driver.read(timeout=wait)
+                now = time.monotonic()
+                if t_end is not None and now >= t_end:
+                    break
+                try:  # short reads, so SIGTERM and --duration are noticed quickly
+                    rec = driver.read(timeout=0.2)
                 except DeviceTimeoutError:
-                    if t_end is not None and time.monotonic() >= t_end:
-                        break
+                    if time.monotonic() - last_data < args.timeout:
+                        continue
                     if sum(counts.values()) + len(held) == 0:
-                        raise
+                        raise DeviceTimeoutError(
+                            f"{driver.source}: no data within {args.timeout:g} s "
+                            f"({driver.summary()})") from None
                     note = f"; stopped after {args.timeout:g} s without data"
                     break
                 except KeyboardInterrupt:
                     break
+                last_data = time.monotonic()
                 if rec is None:
                     break
                 if isinstance(rec, RigRecord):

@@ -125,3 +125,34 @@ def test_frame_ids_used_by_the_codec_match_the_dbc() -> None:
     for name, fid in (("ECHO", ECHO), ("ECHO_PAN", ECHO_PAN), ("ODOM_POS", ODOM_POS),
                       ("ODOM_YAW", ODOM_YAW)):
         assert db.get_message_by_name(name).frame_id == fid
+
+
+junk_frames = st.one_of(
+    st.just(can.Message(is_error_frame=True)),
+    st.builds(lambda i, d: can.Message(arbitration_id=i, data=d, is_extended_id=False),
+              st.integers(0x141, 0x7FF), st.binary(max_size=8)),  # ids not in the DBC
+    st.builds(lambda i, d: can.Message(arbitration_id=i, data=d, is_extended_id=True),
+              st.integers(0, 0x1FFFFFFF), st.binary(max_size=8)),
+    st.builds(lambda i: can.Message(arbitration_id=i, is_remote_frame=True, dlc=8,
+                                    is_extended_id=False), st.sampled_from([0x110, 0x120])),
+    st.builds(lambda i, n: can.Message(arbitration_id=i, data=bytes(n), is_extended_id=False),
+              st.sampled_from([0x110, 0x111, 0x120, 0x121]), st.integers(0, 7)),  # too short
+)
+
+
+@FAST
+@given(st.lists(st.tuples(st.lists(junk_frames, max_size=3), messages(can=True)), max_size=20),
+       st.lists(junk_frames, max_size=3))
+def test_messages_among_junk_frames_all_recovered(pieces, tail) -> None:
+    enc, dec = CanEncoder(), CanDecoder()
+    stream = []
+    for junk, msg in pieces:
+        frames = enc.encode(msg)
+        stream += junk[:1] + frames[:1] + junk[1:] + frames[1:]  # junk inside pairs too
+    stream += tail
+    out = [m for f in stream for m in dec.feed(f)]
+    assert out == [m for _, m in pieces]
+    s = dec.stats
+    n_junk = sum(len(j) for j, _ in pieces) + len(tail)
+    assert s.error_frames + s.unknown + s.bad_length == n_junk
+    assert s.incomplete == 0 and s.seq_gaps == 0

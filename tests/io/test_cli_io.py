@@ -91,3 +91,22 @@ def test_bad_input_exits_2_with_one_line(run_cli, tmp_path) -> None:
         assert len(lines) == 1 and "error" in lines[0], (args, proc.stderr)
     proc = run_cli("serve-sim", "--listen", "127.0.0.1:0")  # neither --map nor --log
     assert proc.returncode == 2
+
+
+def test_record_duration_and_serve_sim_sigterm(run_cli, tmp_path) -> None:
+    log, sent, out = tmp_path / "in.jsonl", tmp_path / "sent.jsonl", tmp_path / "rec.jsonl"
+    with LogWriter(log) as w:
+        w.write_all(ring_stream(duration_s=30.0))
+    proc, url = serve("--log", str(log), "--listen", "127.0.0.1:0", "--rate", "1",
+                      "--sent-log", str(sent))
+    try:
+        rec = run_cli("record", url, "--out", str(out), "--duration", "0.8", check=True)
+    finally:
+        proc.terminate()  # SIGTERM: the module stops cleanly and flushes its sent log
+    err = finish(proc)
+    lines = out.read_text().splitlines()
+    assert '"type":"rig"' in lines[0] and len(lines) > 20
+    assert "sent " in err
+    sent_lines = sent.read_text().splitlines()
+    assert sent_lines[:len(lines)] == lines  # what was recorded is what was sent, in order
+    assert "recorded" in rec.stderr

@@ -243,3 +243,19 @@ def test_ack_is_sent_for_each_command() -> None:
             time.sleep(0.01)
         assert drv.acks == [Ack(0x81, 0, 0)]
         assert ACK == 0x40
+
+
+def test_a_failing_callback_is_reported_not_swallowed() -> None:
+    def boom(rec) -> None:
+        raise RuntimeError("caller bug")
+
+    with open_driver("loop://", start=False, on_record=boom) as drv:
+        drv.send(Echo(1, 2, 3))
+        with pytest.raises(DeviceError, match="caller bug"):
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                try:
+                    drv.read(0.05)
+                except DeviceTimeoutError:
+                    continue
+        assert drv.stats.callback_errors == 1

@@ -35,6 +35,7 @@ class DriverStats:
     disconnects: int = 0
     dropped: int = 0  # records lost because the caller did not read them fast enough
     malformed_lines: int = 0  # text logs: lines no reader could parse
+    callback_errors: int = 0  # exceptions raised by an on_record callback
 
 
 class Driver(ABC):
@@ -190,7 +191,11 @@ class Driver(ABC):
         self.stats.records += len(recs)
         if self._on_record is not None:
             for rec in recs:
-                self._on_record(rec)
+                try:
+                    self._on_record(rec)
+                except Exception as err:  # the caller's bug must not kill the reader
+                    self.stats.callback_errors += 1
+                    self._fail(err)
             return
         with self._cond:
             self._queue.extend(recs)

@@ -130,6 +130,13 @@ class PortDriver(Driver):
         return bytes(port.read(port.in_waiting or 1))
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as err:  # a bug must not die silently: read() reports it
+            self._fail(err)
+            self._end()
+
+    def _loop(self) -> None:
         while not self._stop.is_set():
             try:
                 data = self._read()

@@ -170,13 +170,22 @@ class PtyTransport(_ByteTransport):
             self._decoder = SerialDecoder()
             self._new_pty()
 
+    WRITE_WAIT_S = 0.2
+
     def _write(self, data: bytes) -> bool:
         view = memoryview(data)
         while view:
             try:
                 n = os.write(self._master, view)
-            except (BlockingIOError, OSError):
-                return False  # nobody reads, buffer full: a UART would drop these bytes too
+            except BlockingIOError:
+                # the host is behind: wait a little for room (like hardware flow control),
+                # then give up as a UART without flow control would
+                _, ready, _ = select.select([], [self._master], [], self.WRITE_WAIT_S)
+                if not ready:
+                    return False
+                continue
+            except OSError:
+                return False
             view = view[n:]
         return True
 
