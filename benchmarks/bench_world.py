@@ -117,7 +117,10 @@ def time_records(seconds: float, repeats: int) -> tuple[float, float]:
     return float(np.median(rates)), float(np.median(prates))
 
 
-def plot(rows: list[tuple[int, float, float, float, float, float, float]], path: Path) -> None:
+Row = tuple[int, float, float, float, float, float, float, float]
+
+
+def plot(rows: list[Row], path: Path) -> None:
     """Log-log plot of pings/s against reflectors, indexed and brute force."""
     import matplotlib
 
@@ -127,7 +130,7 @@ def plot(rows: list[tuple[int, float, float, float, float, float, float]], path:
     n = [r[0] for r in rows]
     fig, ax = plt.subplots(figsize=(5.5, 3.6), dpi=120)
     ax.loglog(n, [r[3] for r in rows], "o-", label="STRtree index (auto tier)")
-    ax.loglog(n, [r[6] for r in rows], "s--", label="brute force (auto tier)")
+    ax.loglog(n, [r[7] for r in rows], "s--", label="brute force (auto tier)")
     ax.set_xlabel("reflectors in the map (constant density)")
     ax.set_ylabel("simulated pings per second")
     ax.grid(True, which="both", alpha=0.3)
@@ -146,20 +149,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     n_calls, repeats = (40, 2) if args.quick else (300, 7)
     rng = np.random.default_rng(2003)
     params = module_for_rig(ring16())
-    rows = []
+    rows: list[Row] = []
     for n in sizes:
         m, side = random_map(n, rng)
         poses = group_poses(side, n_calls, rng)
         fast, slow = Scene(m, params), Scene(m, params, use_index=False)
         m.tree  # build the index outside the timing  # noqa: B018
         brute_calls = poses if n <= 1000 else poses[: max(10, n_calls // 5)]
-        got = time_configs({"auto": (fast, poses, Tier.AUTO),
-                            "gauss": (fast, poses, Tier.GAUSS),
-                            "piston": (fast, poses, Tier.PISTON),
-                            "brute": (slow, brute_calls, Tier.AUTO)}, repeats)
+        configs = {"auto": (fast, poses, Tier.AUTO), "gauss": (fast, poses, Tier.GAUSS),
+                   "piston": (fast, poses, Tier.PISTON),
+                   "waveform": (fast, poses, Tier.WAVEFORM),
+                   "brute": (slow, brute_calls, Tier.AUTO)}
+        try:
+            one_run(fast, poses[:2], Tier.WAVEFORM, 0)
+        except NotImplementedError:
+            del configs["waveform"]
+        got = time_configs(configs, repeats)
         (idx_rate, cands), (gauss_rate, _) = got["auto"], got["gauss"]
         piston_rate, brute_rate = got["piston"][0], got["brute"][0]
-        rows.append((n, side, cands, idx_rate, gauss_rate, piston_rate, brute_rate))
+        wave_rate = got["waveform"][0] if "waveform" in got else float("nan")
+        rows.append((n, side, cands, idx_rate, gauss_rate, piston_rate, wave_rate, brute_rate))
         print(f"{n:>6} reflectors ({side:.0f} m square): indexed {idx_rate:8.0f} pings/s, "
               f"brute force {brute_rate:8.0f} pings/s, {cands:.1f} candidates/ping",
               file=sys.stderr)
@@ -178,12 +187,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         "same readings. Tier columns use the index.",
         "",
         "| reflectors | map side (m) | candidates/ping | indexed, auto (pings/s) | "
-        "indexed vs 10 | gauss | piston | brute force, auto (pings/s) | index speed-up |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "indexed vs 10 | gauss | piston | waveform | brute force, auto (pings/s) | "
+        "index speed-up |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for n, side, cands, idx, ga, pi, brute in rows:
+    for n, side, cands, idx, ga, pi, wf, brute in rows:
+        wf_text = "n/a" if math.isnan(wf) else f"{wf:.0f}"
         lines.append(f"| {n} | {side:.0f} | {cands:.1f} | {idx:.0f} | {idx / base:.2f} | "
-                     f"{ga:.0f} | {pi:.0f} | {brute:.0f} | {idx / brute:.1f}x |")
+                     f"{ga:.0f} | {pi:.0f} | {wf_text} | {brute:.0f} | {idx / brute:.1f}x |")
     lines += [
         "",
         f"Full `simulate_records` drive (room map, ring16, odometry + truth at 20 Hz, 30 s "

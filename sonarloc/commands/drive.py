@@ -100,12 +100,18 @@ def run(args: argparse.Namespace) -> int:
         write_poses_csv(args.poses, PoseTrack(e[:, 0], e[:, 1], e[:, 2], e[:, 3],
                                               result.covariance))
     if not args.no_plot:
-        path = drive_figure(args.plot, map_source=result.map_path,
-                            tracks={"truth": result.truth, "odometry": result.odometry,
-                                    "estimate": result.estimate},
-                            landmarks=result.landmarks, segments=result.segments,
-                            report=report)
-        report.plot = str(path)
+        from sonarloc.report.plots import matplotlib_available
+
+        if matplotlib_available():
+            path = drive_figure(args.plot, map_source=result.map_path,
+                                tracks={"truth": result.truth, "odometry": result.odometry,
+                                        "estimate": result.estimate},
+                                landmarks=result.landmarks, segments=result.segments,
+                                report=report)
+            report.plot = str(path)
+        else:
+            report.notes.append("no plot: matplotlib is not installed "
+                                "(pip install 'sonarloc[plot]')")
     report.wall_time_s = time.perf_counter() - t0
     if args.json:
         print(json.dumps(report.to_json()))

@@ -7,7 +7,9 @@ cov_xx,cov_xy,cov_xt,cov_yy,cov_yt,cov_tt (m², m·rad, rad²; t = yaw) of base_
 map. Without --out the rows go to stdout. A summary (malformed lines by line number,
 unknown records, time going backwards, landmarks fused and rejected, final status)
 goes to stderr. --method conventional uses each reading as a range along the beam
-axis instead (the classic sonar EKF); --method odometry ignores the sonar.
+axis instead (the textbook sonar EKF: beam-wide bearing SD, walls ray-cast along the
+axis); --method specular is that reading with walls seen at normal incidence;
+--method odometry ignores the sonar.
 """
 
 from __future__ import annotations
@@ -48,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="POSES.csv", help="pose CSV to write (default stdout)")
     parser.add_argument("--init", metavar="X,Y,YAW_DEG",
                         help="prior pose of base_link in map, overriding the log's init record")
-    parser.add_argument("--method", default="kuc", choices=("kuc", "conventional", "odometry"),
+    parser.add_argument("--method", default="kuc", choices=("kuc", "conventional", "specular",
+                                                            "odometry"),
                         help="observation model (default kuc: fitted landmarks)")
     parser.add_argument("--status", action="store_true",
                         help="add a `status` column (tracking, dead_reckoning, lost)")

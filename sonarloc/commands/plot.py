@@ -6,7 +6,7 @@
 
 `scan` draws TOF against transducer bearing referenced to the smallest TOF, with the
 eq. 3 curve of each landmark dashed (the paper's Fig. 4/5); landmarks come from --fits
-(the output of `sonarloc fit --json`).
+(the output of `sonarloc fit --json`) or, without it, from fitting the scan here.
 `map` draws each echo as an arc at its range across the beam. `trajectory` draws truth,
 odometry (aligned at the start) and the estimate. Needs matplotlib (extra `plot`).
 """
@@ -23,7 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="plot_command", metavar="KIND", required=True)
     scan = sub.add_parser("scan", help="TOF against bearing with fitted model curves")
     scan.add_argument("scan", help="scan CSV (FORMATS.md section 1)")
-    scan.add_argument("--fits", help="landmarks JSON from `sonarloc fit --json`")
+    scan.add_argument("--fits", help="landmarks JSON from `sonarloc fit --json` (default: fit "
+                                     "the scan here)")
+    scan.add_argument("--no-fit", action="store_true", help="draw the readings only")
     scan.add_argument("--sensor", type=int, help="only this transducer's readings")
     smap = sub.add_parser("map", help="sonar map: readings as arcs in the plane")
     smap.add_argument("log", help="log JSONL (FORMATS.md section 4)")
@@ -59,6 +61,10 @@ def _scan_figure(args: argparse.Namespace, plt: Any) -> Any:
         from sonarloc.report.fitjson import read_fit_json
 
         landmarks = read_fit_json(args.fits)
+    elif not args.no_fit:
+        from sonarloc.fit.landmarks import fit_scan
+
+        landmarks = fit_scan(readings).landmarks
     fig, ax = plt.subplots(figsize=(7.5, 5.0))
     draw_scan(ax, readings.x_m, readings.y_m, readings.yaw_rad, readings.tof_us, landmarks)
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2,

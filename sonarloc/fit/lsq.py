@@ -44,7 +44,10 @@ class FitConfig:
         echoes' delays are truncated at the detection limit).
     grid_step_deg : largest spacing of the global bearing grid.
     margin_deg : how far beyond the arc covered by echoes a minimum may lie.
-    rounds, iterations : reweighting rounds and damped Fisher-scoring steps per round.
+    rounds, iterations : reweighting rounds and (at most) damped Fisher-scoring steps
+        per round.
+    tolerance : a fit has converged when the expected decrease of the objective
+        (-log-likelihood; the Newton decrement) is below this.
     outlier_sigma : standardised residual beyond which an echo is dropped as a spike
         (at most ``max_outlier_fraction`` of a segment's echoes).
     flat_bearing_sd_deg : a fit whose bearing SD exceeds this is ``FLAT``.
@@ -52,30 +55,32 @@ class FitConfig:
     kappa_guess_us : kappa of the conventional fallback result.
     second_start_dcost : a second local minimum of the grid profile within this much
         (-2 log-likelihood) of the best is refined too, and the better result kept.
-    chunk : segments fitted together (keeps the arrays in cache).
+    chunk_readings : segments are fitted in chunks of about this many padded readings
+        (keeps the arrays in cache).
     """
 
     module: ModuleParams = field(default_factory=ModuleParams)
     detection: bool = True
-    grid_step_deg: float = 1.5
+    grid_step_deg: float = 3.0
     margin_deg: float = 12.0
     rounds: int = 2
-    iterations: int = 3
+    iterations: int = 12
+    tolerance: float = 1e-3
     outlier_sigma: float = 4.5
     max_outlier_fraction: float = 0.2
     flat_bearing_sd_deg: float = 3.0
     kappa_min_us: float = 1e-3
     kappa_guess_us: float = 1.0
     second_start_dcost: float = 6.0
-    chunk: int = 256
+    chunk_readings: int = 65536
 
     def __post_init__(self) -> None:
         for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
-                     "kappa_min_us", "kappa_guess_us"):
+                     "kappa_min_us", "kappa_guess_us", "tolerance"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
-        for name in ("rounds", "iterations", "chunk"):
+        for name in ("rounds", "iterations", "chunk_readings"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"`{name}` must be a positive integer, got {v!r}")
@@ -219,33 +224,35 @@ class BatchFit:
             "robust_cost")))
 
 
-def _solve_2x2_profile(w: Array, g: Array, y: Array, kmin: float | Array,
-                       kmax: float | Array = np.inf) -> tuple[Array, Array, Array]:
-    """Weighted LS of y = T + K g over the last axis, kmin <= K <= kmax -> T, K, cost."""
-    S0 = w.sum(-1)
-    S1 = (w * g).sum(-1)
-    S2 = (w * g * g).sum(-1)
-    wy = w * y
-    Sy = wy.sum(-1)
-    Sgy = (wy * g).sum(-1)
-    Syy = (wy * y).sum(-1)
+def _profile_2x2(S0: Array, S1: Array, S2: Array, Sy: Array, Sgy: Array, Syy: Array,
+                 kmin: float | Array, kmax: float | Array = np.inf
+                 ) -> tuple[Array, Array, Array]:
+    """LS of y = T + K g from its sums (S0 = sum w, S1 = sum w g, ...), kmin <= K <= kmax.
+
+    Returns T, K and the weighted sum of squared residuals.
+    """
     det = S0 * S2 - S1 * S1
     good = det > 1e-12 * np.maximum(S0 * S2, 1e-300)
     K = np.where(good, (S0 * Sgy - S1 * Sy) / np.where(good, det, 1.0), kmin)
     K = np.clip(K, kmin, np.maximum(kmax, kmin))
-    S0s = np.maximum(S0, 1e-300)
-    T = (Sy - K * S1) / S0s
-    cost = Syy - 2 * T * Sy - 2 * K * Sgy + T * T * S0 + 2 * T * K * S1 + K * K * S2
-    return T, K, np.maximum(cost, 0.0)
+    T = (Sy - K * S1) / np.maximum(S0, 1e-300)
+    sse = Syy - 2 * T * Sy - 2 * K * Sgy + T * T * S0 + 2 * T * K * S1 + K * K * S2
+    return T, K, np.maximum(sse, 0.0)
 
 
-def _axis_bearings(batch: SegmentBatch, y: Array, tau: float) -> tuple[Array, Array]:
-    """Bearing (from the reference) of each echo's beam-axis point, and its wrap centre."""
-    R = np.where(batch.valid, y / tau, 0.0)
-    ax = batch.px + R * np.cos(batch.yaw)
-    ay = batch.py + R * np.sin(batch.yaw)
-    bear = np.arctan2(ay, ax)
-    # centre: the axis bearing of the earliest-minimum echo (robust to wrap)
+def _axis_bearings(kind: str, batch: SegmentBatch, y: Array, tau: float
+                   ) -> tuple[Array, Array]:
+    """Where the landmark's ``phi`` is expected, per echo, and a wrap centre.
+
+    Point: the bearing from the reference of each echo's beam-axis point; line: each
+    echo's axis direction (the wall normal lies within the beam of every echo).
+    The centre is that of the earliest minimum-TOF echo.
+    """
+    if kind == "line":
+        bear = batch.yaw
+    else:
+        R = np.where(batch.valid, y / tau, 0.0)
+        bear = np.arctan2(batch.py + R * np.sin(batch.yaw), batch.px + R * np.cos(batch.yaw))
     ymin_idx = np.argmin(np.where(batch.valid, y, np.inf), axis=1)
     centre = np.take_along_axis(bear, ymin_idx[:, None], axis=1)[:, 0]
     return bear, centre
@@ -263,50 +270,56 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
     geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw)
     g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=want_derivs)
-    z = M.detection_z(K, lng, mod) if cfg.detection else None
-    delay, ddu = M.mean_delay(K, g, mod, z)
-    mean = tau * geo.R + delay
-    s = np.sqrt(s2)
-    e = np.where(use, (y - mean) / s, 0.0)
+    det = cfg.detection
+    z = M.detection_z(K, lng, mod) if det else None
+    et = M.echo_terms(K, g, z, mod, want_info=False)
+    w = np.where(use, 1.0 / np.sqrt(s2), 0.0)               # 1/s, 0 where unused
+    e = (y - tau * geo.R - et.delay) * w
     F = (e * e).sum(-1)
+    if det:
+        F = F - 2.0 * (et.log_p * use).sum(-1)
     B = p.shape[0]
     grad = np.zeros((B, 3))
     H = np.zeros((B, 3, 3))
     if want_derivs:
-        du_dr = K * dg * geo.dtheta_dr
-        du_dphi = K * dg * geo.dtheta_dphi
-        Jw = np.stack([tau * geo.dR_dr + ddu * du_dr, tau * geo.dR_dphi + ddu * du_dphi,
-                       ddu * g], axis=-1) / s[..., None]  # (B, Nd, 3)
-        Jw = np.where(use[..., None], Jw, 0.0)
-        grad -= np.matmul(e[:, None, :], Jw)[:, 0, :]
-        H += np.matmul(np.swapaxes(Jw, 1, 2), Jw)
-    if z is None:
+        a = et.ddelay_du * K * dg                            # d mean / d theta
+        if geo.moving:
+            cols = [(tau * geo.dR_dr + a * geo.dtheta_dr) * w,
+                    (tau * geo.dR_dphi + a * geo.dtheta_dphi) * w]
+        else:
+            cols = [np.broadcast_to(tau * w, w.shape), a * w]
+        cols.append(et.ddelay_du * g * w)
+        Jw = np.stack(cols, axis=1)                          # (B, 3, Nd)
+        grad -= np.einsum("bkn,bn->bk", Jw, e)
+        H += np.matmul(Jw, np.swapaxes(Jw, 1, 2))
+    if not det:
         return F, grad, H, e
     sa = M.sigma_a(mod)
-    # detected echoes: event probability Phi(-z)
-    lp, mills, info = M.probit_terms(-z, want_info=want_derivs)
-    F = F - 2.0 * np.where(use, lp, 0.0).sum(-1)
     if want_derivs:
-        dlng = np.where(g < 1e11, dg / g, 0.0)
-        dz = np.stack([dlng * geo.dtheta_dr, dlng * geo.dtheta_dphi,
-                       np.broadcast_to(1.0 / K, g.shape)], axis=-1) * (1.0 / sa)
-        dz = np.where(use[..., None], dz, 0.0)
-        grad += np.matmul(np.where(use, mills, 0.0)[:, None, :], dz)[:, 0, :]
-        H += np.matmul(np.swapaxes(dz * np.where(use, info, 0.0)[..., None], 1, 2), dz)
-    if batch.ne_valid.any():
+        dlng = np.where(g < 1e11, dg / g, 0.0) / sa
+        dzk = np.broadcast_to(1.0 / (K * sa), g.shape)
+        if geo.moving:
+            dz = np.stack([dlng * geo.dtheta_dr, dlng * geo.dtheta_dphi, dzk], axis=1)
+        else:
+            dz = np.stack([np.zeros(g.shape), dlng, dzk], axis=1)  # (B, 3, Nd)
+        grad -= np.einsum("bkn,bn->bk", dz, et.dlogp_dz * use)
+        H += np.matmul(dz * (et.curv * use)[:, None, :], np.swapaxes(dz, 1, 2))
+    nv = batch.ne_valid
+    if nv.any():
         ng = M.geometry(kind, r, phi, batch.ne_px, batch.ne_py, batch.ne_yaw)
         gn, dgn, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=want_derivs)
         zn = M.detection_z(K, lgn, mod)
-        lpn, millsn, infon = M.probit_terms(zn, want_info=want_derivs)
-        nv = batch.ne_valid
-        F = F - 2.0 * np.where(nv, lpn, 0.0).sum(-1)
+        lpn, dlpn, _, curvn = M.noecho_terms(zn, want_info=False)
+        F = F - 2.0 * (lpn * nv).sum(-1)
         if want_derivs:
-            dlgn = np.where(gn < 1e11, dgn / gn, 0.0)
-            dzn = np.stack([dlgn * ng.dtheta_dr, dlgn * ng.dtheta_dphi,
-                            np.broadcast_to(1.0 / K, gn.shape)], axis=-1) * (1.0 / sa)
-            dzn = np.where(nv[..., None], dzn, 0.0)
-            grad -= np.matmul(np.where(nv, millsn, 0.0)[:, None, :], dzn)[:, 0, :]
-            H += np.matmul(np.swapaxes(dzn * np.where(nv, infon, 0.0)[..., None], 1, 2), dzn)
+            dlgn = np.where(gn < 1e11, dgn / gn, 0.0) / sa
+            dzkn = np.broadcast_to(1.0 / (K * sa), gn.shape)
+            if ng.moving:
+                dzn = np.stack([dlgn * ng.dtheta_dr, dlgn * ng.dtheta_dphi, dzkn], axis=1)
+            else:
+                dzn = np.stack([np.zeros(gn.shape), dlgn, dzkn], axis=1)
+            grad -= np.einsum("bkn,bn->bk", dzn, dlpn * nv)
+            H += np.matmul(dzn * (curvn * nv)[:, None, :], np.swapaxes(dzn, 1, 2))
     return F, grad, H, e
 
 
@@ -316,8 +329,8 @@ def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConf
     geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], batch.px, batch.py, batch.yaw)
     g, _, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
     z = M.detection_z(p[:, 2:3], lng, mod) if cfg.detection else None
-    delay, _ = M.mean_delay(p[:, 2:3], g, mod, z)
-    return M.tof_variance_us2(delay, mod)
+    et = M.echo_terms(p[:, 2:3], g, z, mod, want_info=False)
+    return M.tof_variance_us2(et.delay, mod)
 
 
 def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray,
@@ -327,11 +340,10 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     mod = cfg.module
     tau = M.us_per_m(mod)
     B = batch.size
-    ymask = np.where(use, y, np.nan)
     with np.errstate(invalid="ignore"):
         y0 = np.nanmin(np.where(use, y, np.inf), axis=1)
     y0 = np.where(np.isfinite(y0), y0, 0.0)
-    bear, centre = _axis_bearings(batch, np.where(use, y, y0[:, None]), tau)
+    bear, centre = _axis_bearings(kind, batch, np.where(use, y, y0[:, None]), tau)
     rel = M.wrap_angle(bear - centre[:, None])
     lo = np.min(np.where(use, rel, np.inf), axis=1)
     hi = np.max(np.where(use, rel, -np.inf), axis=1)
@@ -357,15 +369,27 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     r0 = y0 / tau
     geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
                      batch.py[:, None, :], batch.yaw[:, None, :])
-    g, _, _ = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
+    g, _, lg = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
     scale = np.exp(0.5 * M.sigma_a(mod) ** 2)
-    geff = g * scale
+    usef = use[:, None, :].astype(float)
+    gu = g * scale * usef                                                     # (B, G, Nd)
     # bearing-independent weights (the on-axis variance), so that the profile costs of
     # the nodes compare (weights from the model at each node would discount far-off
     # readings) and weigh against the detection terms as a likelihood does
-    w = np.where(use[:, None, :], 1.0 / float(M.tof_variance_us2(0.0, mod)), 0.0)
-    yc = (ymask - y0[:, None])[:, None, :] - tau * (geo.R - r0[:, None, None])
-    yc = np.where(use[:, None, :], yc, 0.0)
+    w0 = 1.0 / float(M.tof_variance_us2(0.0, mod))
+    yc = np.where(use, y - y0[:, None], 0.0)                                 # (B, Nd)
+    S0 = use.sum(1)[:, None].astype(float)
+    S1 = gu.sum(-1)
+    S2 = np.einsum("bgn,bgn->bg", gu, gu)
+    if geo.moving:   # the range offsets of the readings depend on the node
+        ycg = (yc[:, None, :] - tau * (geo.R - r0[:, None, None])) * usef
+        Sy = ycg.sum(-1)
+        Syy = np.einsum("bgn,bgn->bg", ycg, ycg)
+        Sgy = np.einsum("bgn,bgn->bg", gu, ycg)
+    else:
+        Sy = yc.sum(-1)[:, None]
+        Syy = np.einsum("bn,bn->b", yc, yc)[:, None]
+        Sgy = np.matmul(gu, yc[:, :, None])[..., 0]
     if cfg.detection:
         # echoes were detected: the one nearest the axis must be detectable (z < 2)
         g_min = np.min(np.where(use[:, None, :], g, np.inf), axis=-1)
@@ -373,20 +397,22 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
                 / np.where(np.isfinite(g_min), g_min, 1.0))
     else:
         kmax = np.full(phis.shape, np.inf)
-    T, Keff, cost = _solve_2x2_profile(w, np.where(use[:, None, :], geff, 0.0), yc,
-                                       cfg.kappa_min_us * scale, kmax)
+    T, Keff, sse = _profile_2x2(S0, S1, S2, Sy, Sgy, Syy, cfg.kappa_min_us * scale, kmax)
+    cost = w0 * sse
     K = Keff / scale
     if cfg.detection:
-        _, _, lg = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
-        lpd, _, _ = M.probit_terms(-M.detection_z(K[..., None], lg, mod), want_info=False)
-        cost = cost - 2.0 * np.where(use[:, None, :], lpd, 0.0).sum(-1)
-    if cfg.detection and batch.ne_valid.any():
-        ng = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.ne_px[:, None, :],
-                        batch.ne_py[:, None, :], batch.ne_yaw[:, None, :])
-        _, _, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=False)
-        zn = M.detection_z(K[..., None], lgn, mod)
-        lpn, _, _ = M.probit_terms(zn, want_info=False)
-        cost = cost - 2.0 * np.where(batch.ne_valid[:, None, :], lpn, 0.0).sum(-1)
+        # -log P(echo) of the echoes and -log P(no echo) of the others, in a cheap form
+        # good to ~10% (a bracket needs only the shape): 0.35 max(z + 1.4, 0)^2
+        zd = M.detection_z(K[..., None], lg, mod)
+        cost = cost + 0.7 * (np.maximum(zd + 1.4, 0.0) ** 2 * usef).sum(-1)
+        if batch.ne_valid.any():
+            ng = M.geometry(kind, r0[:, None, None], phis[:, :, None],
+                            batch.ne_px[:, None, :], batch.ne_py[:, None, :],
+                            batch.ne_yaw[:, None, :])
+            _, _, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=False)
+            zn = M.detection_z(K[..., None], lgn, mod)
+            cost = cost + 0.7 * (np.maximum(1.4 - zn, 0.0) ** 2
+                                 * batch.ne_valid[:, None, :]).sum(-1)
     cost = np.where(np.isfinite(cost) & ~pad, cost, np.inf)
     rows = np.arange(B)
     arc = np.stack([centre + lo, centre + hi], axis=-1)
@@ -422,43 +448,61 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
 
 def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             cfg: FitConfig, rounds: int) -> tuple[Array, NDArray[np.bool_]]:
-    """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective."""
+    """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective.
+
+    A segment stops when its Newton decrement g^T H^-1 g (the expected decrease of the
+    objective) falls below ``cfg.tolerance``; stopped segments are frozen for the rest
+    of the round (so no result depends on the other segments of the batch) and left
+    out of the remaining iterations.
+    """
     B = p.shape[0]
-    lam = np.full(B, 1e-3)
+    p = p.copy()
+    lam = np.full(B, 1e-1)
     converged = np.zeros(B, dtype=bool)
-    step_scale = np.array([1e-6, 1e-7, 1e-5])  # m, rad, us: "no longer moving"
     for _ in range(rounds):
         # variances from the current delays, fixed for this round
         s2 = _variances(kind, tier, p, batch, cfg)
         F, grad, H, _ = _evaluate(kind, tier, p, batch, y, use, s2, cfg)
         done = np.zeros(B, dtype=bool)
+        act = np.arange(B)
+        sub, ys, us, s2s = batch, y, use, s2
         for _ in range(cfg.iterations):
-            diag = np.maximum(np.einsum("bkk->bk", H), 1e-12)
-            A = H + (lam[:, None] * diag)[:, :, None] * np.eye(3)[None]
+            # steps in (r, phi, log kappa): the delays scale with kappa and the detection
+            # margin with log kappa, so this is where the objective is nearly quadratic
+            kap = p[act, 2]
+            ga = grad[act] * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)
+            Ha = H[act] * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)[:, :, None]
+            Ha = Ha * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)[:, None, :]
+            diag = np.maximum(np.einsum("bkk->bk", Ha), 1e-12)
+            A = Ha + (lam[act, None] * diag)[:, :, None] * np.eye(3)[None]
             try:
-                delta = np.linalg.solve(A, -grad[..., None])[..., 0]
+                delta = np.linalg.solve(A, -ga[..., None])[..., 0]
             except np.linalg.LinAlgError:
-                delta = np.zeros_like(p)
-                for b in range(B):
-                    delta[b] = np.linalg.lstsq(A[b], -grad[b], rcond=None)[0]
+                delta = np.stack([np.linalg.lstsq(A[b], -ga[b], rcond=None)[0]
+                                  for b in range(act.size)])
             delta = np.where(np.isfinite(delta), delta, 0.0)
+            # converged where the expected decrease (Newton decrement) is negligible
+            done[act[-np.einsum("bk,bk->b", ga, delta) < cfg.tolerance]] = True
+            keep = np.flatnonzero(~done[act])
+            if keep.size == 0:
+                break
+            if keep.size < 0.7 * act.size:      # compact to the active segments
+                act, delta = act[keep], delta[keep]
+                sub, ys, us, s2s = _take(sub, keep), ys[keep], us[keep], s2s[keep]
             # keep steps physical: bearing moves at most 10 deg per step
             delta[:, 1] = np.clip(delta[:, 1], -0.17, 0.17)
-            q = p + delta
+            delta[:, 2] = np.clip(delta[:, 2], -3.0, 3.0)      # kappa at most x20 per step
+            q = p[act].copy()
+            q[:, :2] += delta[:, :2]
             q[:, 0] = np.maximum(q[:, 0], 1e-3)
-            q[:, 2] = np.maximum(q[:, 2], cfg.kappa_min_us)
-            Fq, gq, Hq, _ = _evaluate(kind, tier, q, batch, y, use, s2, cfg)
-            ok = np.isfinite(Fq) & (Fq <= F) & ~done
-            p = np.where(ok[:, None], q, p)
-            F = np.where(ok, Fq, F)
-            grad = np.where(ok[:, None], gq, grad)
-            H = np.where(ok[:, None, None], Hq, H)
-            lam = np.where(ok, np.maximum(lam / 4.0, 1e-9), np.minimum(lam * 8.0, 1e9))
-            # a segment that stopped moving is frozen for the rest of the round, so
-            # its result does not depend on the other segments of the batch
-            done |= ok & np.all(np.abs(delta) < step_scale, axis=1)
-            if done.all():
-                break
+            q[:, 2] = np.maximum(q[:, 2] * np.exp(delta[:, 2]), cfg.kappa_min_us)
+            Fq, gq, Hq, _ = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg)
+            ok = np.isfinite(Fq) & (Fq <= F[act]) & ~done[act]
+            ia = act[ok]
+            p[ia], F[ia], grad[ia], H[ia] = q[ok], Fq[ok], gq[ok], Hq[ok]
+            lam[act] = np.where(ok, np.maximum(lam[act] / 4.0, 1e-9),
+                                np.minimum(lam[act] * 8.0, 1e9))
+            done[act[~ok & (lam[act] >= 1e9)]] = True
         converged = done
     return p, converged
 
@@ -524,10 +568,12 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
         raise ValueError(f"`tier` must be one of {', '.join(M.TIERS)}; got {tier!r}")
     cfg = config or FitConfig()
     B = batch.size
-    if B > cfg.chunk:   # stay in cache: fit in chunks
+    chunk = int(np.clip(cfg.chunk_readings // max(batch.px.shape[1] + batch.ne_px.shape[1], 1),
+                        16, 8192))
+    if B > chunk:   # stay in cache: fit in chunks
         parts = []
-        for i in range(0, B, cfg.chunk):
-            idx = np.arange(i, min(i + cfg.chunk, B))
+        for i in range(0, B, chunk):
+            idx = np.arange(i, min(i + chunk, B))
             parts.append(fit_batch(
                 _take(batch, idx), kind, tier, cfg,
                 None if offsets_us is None else offsets_us[idx],
@@ -546,29 +592,25 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
     p, conv, arc = _solve(kind, tier, batch, y, use0, cfg)
-    # spikes: drop the worst echoes beyond outlier_sigma, then polish again
     s2 = _variances(kind, tier, p, batch, cfg)
-    _, _, _, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg, want_derivs=False)
-    n_use = use0.sum(1)
+    F, _, H, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg)
+    # spikes: drop the worst echoes beyond outlier_sigma, then fit those segments again
     bad = use0 & (np.abs(e) > cfg.outlier_sigma)
-    max_drop = np.floor(cfg.max_outlier_fraction * n_use).astype(int)
     if bad.any():
+        max_drop = np.floor(cfg.max_outlier_fraction * use0.sum(1)).astype(int)
         order = np.argsort(-np.abs(np.where(bad, e, 0.0)), axis=1)
         rank = np.empty_like(order)
         np.put_along_axis(rank, order, np.arange(order.shape[1])[None, :].repeat(
             order.shape[0], 0), axis=1)
         drop = bad & (rank < max_drop[:, None])
         if drop.any():
-            use1 = use0 & ~drop
-            redo = drop.any(1)
-            idx = np.flatnonzero(redo)
+            use0 = use0 & ~drop
+            idx = np.flatnonzero(drop.any(1))
             sub = _take(batch, idx)
-            p2, c2, _ = _solve(kind, tier, sub, y[idx], use1[idx], cfg)
-            p[idx] = p2
-            conv[idx] = c2
-            use0 = use1
-    s2 = _variances(kind, tier, p, batch, cfg)
-    F, _, H, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg)
+            p2, c2, _ = _solve(kind, tier, sub, y[idx], use0[idx], cfg)
+            s2b = _variances(kind, tier, p2, sub, cfg)
+            F2, _, H2, e2 = _evaluate(kind, tier, p2, sub, y[idx], use0[idx], s2b, cfg)
+            p[idx], conv[idx], s2[idx], F[idx], H[idx], e[idx] = p2, c2, s2b, F2, H2, e2
     chi2 = (e * e).sum(1)
     # full -2 log-likelihood (with the variances' log-determinant) to compare models
     F = F + np.where(use0, np.log(2.0 * np.pi * s2), 0.0).sum(1)

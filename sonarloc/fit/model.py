@@ -53,6 +53,8 @@ def wrap_angle(a: ArrayLike) -> Array:
 
 def _wrap_fast(a: Array) -> Array:
     """Angle(s) wrapped to [-pi, pi] (hot paths; -pi and pi both allowed)."""
+    if a.size == 0 or (a.max() <= np.pi and a.min() >= -np.pi):
+        return a
     return a - _TWO_PI * np.rint(a * (1.0 / _TWO_PI))
 
 
@@ -69,6 +71,9 @@ class Geometry:
     dR_dphi: Array
     dtheta_dr: Array
     dtheta_dphi: Array
+    moving: bool = True
+    """False when all readings were taken at the reference position (derivatives
+    ``dR_dr = 1, dR_dphi = 0, dtheta_dr = 0, dtheta_dphi = 1``)."""
 
 
 def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLike,
@@ -101,8 +106,9 @@ def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLi
             dR_dphi = np.zeros(())
         shape = np.broadcast_shapes(np.shape(R), theta.shape)
         one, zero = np.ones(()), np.zeros(())
-        return Geometry(*(np.broadcast_to(a, shape) for a in
-                          (R, theta, one, dR_dphi, zero, one)))
+        b = [np.broadcast_to(a, shape) for a in (R, theta, one, dR_dphi, zero, one)]
+        return Geometry(b[0], b[1], b[2], b[3], b[4], b[5],
+                        moving=bool(px.any() or py.any()))
     c, s = np.cos(phi), np.sin(phi)
     qx = r * c - px
     qy = r * s - py
@@ -118,8 +124,8 @@ def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLi
     dtheta_dphi = r * (qx * c + qy * s) * inv
     theta = _wrap_fast(bearing - yaw)
     shape = np.broadcast_shapes(R.shape, theta.shape)
-    return Geometry(*(np.broadcast_to(a, shape) for a in
-                      (R, theta, dR_dr, dR_dphi, dtheta_dr, dtheta_dphi)))
+    b = [np.broadcast_to(a, shape) for a in (R, theta, dR_dr, dR_dphi, dtheta_dr, dtheta_dphi)]
+    return Geometry(b[0], b[1], b[2], b[3], b[4], b[5], moving=True)
 
 
 def beam_delay_factor(theta: ArrayLike, tier: str, params: ModuleParams,
@@ -214,6 +220,95 @@ def probit_terms(v: ArrayLike, want_info: bool = True) -> tuple[Array, Array, Ar
 def bernoulli_info(z: ArrayLike) -> Array:
     """Fisher information phi(z)^2 / (Phi(z) Phi(-z)) of a probit event per unit z^2."""
     return probit_terms(z)[2]
+
+
+@dataclass(frozen=True)
+class EchoTerms:
+    """Detection-model terms of detected echoes (shape of the inputs).
+
+    ``log_p``: log P(echo) = log Phi(-z); ``dlogp_dz``: its derivative by z;
+    ``info``: Bernoulli (expected) information per unit z^2; ``curv``: the observed
+    curvature d^2(-log P)/dz^2 (larger than ``info`` for unlikely echoes);
+    ``delay``: mean delay of a detected echo [us]; ``ddelay_du``: its derivative by
+    the eq. 3 delay u = kappa g.
+    """
+
+    log_p: Array
+    dlogp_dz: Array
+    info: Array
+    curv: Array
+    delay: Array
+    ddelay_du: Array
+
+
+def echo_terms(kappa: ArrayLike, g: ArrayLike, z: ArrayLike | None, params: ModuleParams,
+               want_info: bool = True) -> EchoTerms:
+    """Mean delay and detection terms of detected echoes in one pass (the fit's hot path).
+
+    ``z`` = :func:`detection_z`; None = no detection model (untruncated mean, P = 1).
+    Exact where z > -7; deeper inside the arc P(echo) = 1 and the truncation vanish
+    to 1e-12 and the constants are used.
+    """
+    s = sigma_a(params)
+    u = np.asarray(kappa, float) * np.asarray(g, float)
+    scale = np.exp(0.5 * s * s)
+    zeros = np.zeros(u.shape)
+    if z is None:
+        return EchoTerms(zeros, zeros, zeros, zeros, u * scale, np.full(u.shape, scale))
+    z = np.asarray(z, dtype=float)
+    log_p = np.zeros(u.shape)
+    dlogp = np.zeros(u.shape)
+    info = np.zeros(u.shape)
+    curv = np.zeros(u.shape)
+    ratio = np.ones(u.shape)
+    dratio = np.zeros(u.shape)
+    act = z > -_Z_HIGH
+    if act.any():
+        za = z[act]
+        l0 = log_ndtr(-za)                        # log P(echo)
+        lpdf = -0.5 * za * za - _LOG_SQRT_2PI
+        m0 = np.exp(lpdf - l0)                    # phi(z) / Phi(-z)
+        ra = np.exp(log_ndtr(-za - s) - l0)       # Phi(-z-s) / Phi(-z)
+        m1 = np.exp(-0.5 * (za + s) ** 2 - _LOG_SQRT_2PI - l0)
+        log_p[act] = l0
+        dlogp[act] = -m0
+        curv[act] = m0 * (m0 - za)
+        ratio[act] = ra
+        dratio[act] = -m1 + ra * m0
+        if want_info:
+            with np.errstate(divide="ignore"):
+                lq = np.log(-np.expm1(l0))        # log Phi(z), accurate for all z
+            info[act] = np.exp(2.0 * lpdf - l0 - lq)
+    return EchoTerms(log_p, dlogp, info, curv, u * scale * ratio,
+                     scale * (ratio + dratio / s))
+
+
+def noecho_terms(z: ArrayLike, want_info: bool = True
+                 ) -> tuple[Array, Array, Array, Array]:
+    """log P(no echo) = log Phi(z), its derivative by z, the Bernoulli (expected)
+    information and the observed curvature d^2(-log P)/dz^2.
+
+    Exact where z < 7; beyond, P = 1 to 1.3e-12 and the constants are used.
+    """
+    z = np.asarray(z, dtype=float)
+    log_p = np.zeros(z.shape)
+    dlogp = np.zeros(z.shape)
+    info = np.zeros(z.shape)
+    curv = np.zeros(z.shape)
+    act = z < _Z_HIGH
+    if act.any():
+        za = z[act]
+        lp = log_ndtr(za)
+        lpdf = -0.5 * za * za - _LOG_SQRT_2PI
+        m = np.exp(lpdf - lp)
+        log_p[act] = lp
+        dlogp[act] = m
+        curv[act] = m * (za + m)
+        if want_info:
+            with np.errstate(divide="ignore"):
+                lq = np.log(-np.expm1(lp))
+            info[act] = np.exp(2.0 * lpdf - lp - lq)
+    return log_p, dlogp, info, curv
 
 
 def mean_delay(kappa: ArrayLike, g: ArrayLike, params: ModuleParams,

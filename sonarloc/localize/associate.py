@@ -134,21 +134,27 @@ def associate(state: Gaussian, obs: Observation, fmap: FeatureMap,
     sensor_xy = se2.transform_points(state.mean, obs.sensor[:2])
     groups: list[tuple[Literal["point", "wall"], NDArray[np.int64], Feature, NDArray[np.float64]]]
     groups = []
-    if obs.kind in ("point", "range_bearing") and fmap.n_points:
+    ranged = obs.kind in ("range_bearing", "range_axis")
+    if (obs.kind == "point" or ranged) and fmap.n_points:
         idx = np.flatnonzero(fmap.points_visible_from(sensor_xy, config.max_range_m))
         if idx.size:
             groups.append(("point", idx, Feature("point", fmap.point_xy[idx],
                                                  fmap.point_radius_m[idx]),
                            fmap.point_kappa_us[idx]))
-    if obs.kind in ("line", "range_bearing") and fmap.n_walls:
-        idx = np.flatnonzero(fmap.walls_facing(sensor_xy, config.wall_margin_m,
-                                               config.max_range_m))
+    if (obs.kind == "line" or ranged) and fmap.n_walls:
+        if obs.kind == "range_axis":
+            yaw = float(state.mean[2] + obs.sensor[2])
+            idx = np.flatnonzero(fmap.walls_hit_by_ray(sensor_xy, yaw, config.wall_margin_m,
+                                                       config.max_range_m))
+        else:
+            idx = np.flatnonzero(fmap.walls_facing(sensor_xy, config.wall_margin_m,
+                                                   config.max_range_m))
         if idx.size:
             groups.append(("wall", idx, Feature("wall", fmap.wall_line[idx]),
                            fmap.wall_kappa_us[idx]))
     if not groups:
         return Association("no_candidate")
-    use_kappa = config.kappa_mode != "off" and obs.kind != "range_bearing" \
+    use_kappa = config.kappa_mode != "off" and not ranged \
         and math.isfinite(obs.kappa_us) and obs.kappa_us > 0
     dof = 3 if use_kappa and config.kappa_mode == "gate" else 2
     gate = ekf.chi2_gate(dof, config.gate_probability)

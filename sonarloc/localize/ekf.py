@@ -44,7 +44,7 @@ Array = NDArray[np.float64]
 #: distance is below the 99 % quantile of chi-square with dof = its dimension.
 GATE_PROBABILITY = 0.99
 
-ObsKind = Literal["point", "line", "range_bearing"]
+ObsKind = Literal["point", "line", "range_bearing", "range_axis"]
 FeatureKind = Literal["point", "wall"]
 
 
@@ -225,7 +225,11 @@ class Observation:
     * ``"line"``: ``z`` = (rho_m, alpha_rad) of a wall ``x cos a + y sin a = rho`` in
       ``base_link`` (rho >= 0);
     * ``"range_bearing"``: ``z`` = (range_m, bearing_rad) seen from the transducer
-      ``sensor``, bearing measured from its axis (CCW).
+      ``sensor``, bearing measured from its axis (CCW); a wall is seen at its
+      normal-incidence point (specular);
+    * ``"range_axis"``: the same, but the echo is taken to come from the beam axis: a
+      wall is predicted at the range where the axis meets it (ray casting, the textbook
+      sonar model), points as in ``range_bearing``.
 
     ``cov``: (..., 2, 2) covariance of ``z``. ``sensor``: (..., 3) pose of the
     (reference) transducer in ``base_link``; a point feature with a radius reflects at
@@ -243,8 +247,9 @@ class Observation:
     t_s: float = math.nan
 
     def __post_init__(self) -> None:
-        if self.kind not in ("point", "line", "range_bearing"):
-            raise ValueError(f"`kind` must be point, line or range_bearing, got {self.kind!r}")
+        if self.kind not in ("point", "line", "range_bearing", "range_axis"):
+            raise ValueError(f"`kind` must be point, line, range_bearing or range_axis, got "
+                             f"{self.kind!r}")
         z = np.asarray(self.z, dtype=float)
         cov = np.asarray(self.cov, dtype=float)
         if z.shape[-1:] != (2,) or cov.shape[-2:] != (2, 2):
@@ -421,6 +426,39 @@ def range_bearing_wall(pose: ArrayLike, sensor: ArrayLike, wall: ArrayLike
     return z, h
 
 
+def axis_range_wall(pose: ArrayLike, sensor: ArrayLike, wall: ArrayLike
+                    ) -> tuple[Array, Array]:
+    """Range along the transducer axis to where it meets a wall (ray casting), bearing 0.
+
+    ``pose`` (..., 3); ``sensor`` (..., 3) in base_link; ``wall`` (..., 2) in map. Returns
+    z = (range_m, 0) (..., 2) and H (..., 2, 3); range is inf where the axis points away
+    from the wall.
+    """
+    p = np.asarray(pose, dtype=float)
+    sen = np.asarray(sensor, dtype=float)
+    w = np.asarray(wall, dtype=float)
+    spos, js = _sensor_in_map(p, sen)
+    ca, sa = np.cos(w[..., 1]), np.sin(w[..., 1])
+    signed = w[..., 0] - spos[..., 0] * ca - spos[..., 1] * sa
+    sign = np.where(signed < 0, -1.0, 1.0)
+    d = np.abs(signed)
+    nx, ny = sign * ca, sign * sa  # normal pointing from the transducer to the wall
+    psi = p[..., 2] + sen[..., 2]
+    ax, ay = np.cos(psi), np.sin(psi)
+    cos_t = ax * nx + ay * ny
+    hit = cos_t > 1e-6
+    cos_safe = np.where(hit, cos_t, 1.0)
+    rng = np.where(hit, d / cos_safe, np.inf)
+    z = np.stack([rng, np.zeros_like(rng)], axis=-1)
+    h = np.zeros(z.shape[:-1] + (2, 3))
+    # r = d / cos_t: dr/ds = -n / cos_t ; dr/dpsi = -d (a_perp . n) / cos_t^2
+    dr_ds = np.stack([-nx / cos_safe, -ny / cos_safe], axis=-1)[..., None, :]
+    h[..., 0:1, :] = dr_ds @ js
+    h[..., 0, 2] += -d * (-ay * nx + ax * ny) / cos_safe**2
+    h = np.where(hit[..., None, None], h, 0.0)
+    return z, h
+
+
 def measure(pose: ArrayLike, obs: Observation, feature: Feature) -> tuple[Array, Array]:
     """Predicted ``obs.z`` of ``feature`` from ``pose`` and its Jacobian (..., 2, 3)."""
     if obs.kind == "point":
@@ -433,6 +471,8 @@ def measure(pose: ArrayLike, obs: Observation, feature: Feature) -> tuple[Array,
         return wall_in_base(pose, feature.params)
     if feature.kind == "point":
         return range_bearing_point(pose, obs.sensor, feature.params, feature.radius_m)
+    if obs.kind == "range_axis":
+        return axis_range_wall(pose, obs.sensor, feature.params)
     return range_bearing_wall(pose, obs.sensor, feature.params)
 
 

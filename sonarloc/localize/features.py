@@ -193,6 +193,27 @@ class FeatureMap:
         return np.asarray((t >= -margin_m) & (t <= length + margin_m) & (dist <= max_range_m))
 
 
+    def walls_hit_by_ray(self, xy: ArrayLike, yaw_rad: float, margin_m: float = 0.2,
+                         max_range_m: float = math.inf) -> NDArray[np.bool_]:
+        """(W,) walls that a ray from ``xy`` along ``yaw_rad`` meets (segments extended by
+        ``margin_m`` at both ends) within ``max_range_m``."""
+        p = np.asarray(xy, dtype=float)
+        d = np.array([math.cos(yaw_rad), math.sin(yaw_rad)])
+        a, b = self.wall_ends[:, 0], self.wall_ends[:, 1]
+        ab = b - a
+        length = np.hypot(ab[:, 0], ab[:, 1])
+        u = ab / length[:, None]
+        a_ext = a - margin_m * u
+        ab_ext = ab + 2 * margin_m * u
+        den = d[0] * ab_ext[:, 1] - d[1] * ab_ext[:, 0]
+        ok = np.abs(den) > 1e-12
+        den_s = np.where(ok, den, 1.0)
+        ap = a_ext - p
+        t = (ap[:, 0] * ab_ext[:, 1] - ap[:, 1] * ab_ext[:, 0]) / den_s  # along the ray
+        s = (ap[:, 0] * d[1] - ap[:, 1] * d[0]) / den_s  # along the segment, 0..1
+        return np.asarray(ok & (t > 0) & (t <= max_range_m) & (s >= 0) & (s <= 1))
+
+
 def _lines(ends: Array) -> Array:
     """(rho >= 0, alpha) of the infinite lines through segments (W, 2, 2)."""
     if len(ends) == 0:

@@ -60,7 +60,7 @@ from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
 
 Array = NDArray[np.float64]
-Method = Literal["kuc", "conventional", "odometry"]
+Method = Literal["kuc", "conventional", "specular", "odometry"]
 Status = Literal["initializing", "tracking", "dead_reckoning", "lost"]
 
 
@@ -83,8 +83,11 @@ class LocalizerConfig:
 
     Attributes
     ----------
-    method : ``"kuc"`` (fitted landmarks), ``"conventional"`` (range along the axis) or
-        ``"odometry"`` (readings ignored: dead reckoning from the prior, for comparison).
+    method : ``"kuc"`` (fitted landmarks); ``"conventional"`` (each reading a range along
+        the beam axis with a beam-wide bearing SD: walls ray-cast along the axis);
+        ``"specular"`` (the conventional reading, but a wall predicted at its
+        normal-incidence point: a stronger baseline); ``"odometry"`` (readings ignored:
+        dead reckoning from the prior, for comparison).
     odom_noise : odometry increment noise model of :func:`~sonarloc.localize.ekf.predict`.
     association : gate and ambiguity settings.
     history_s : how far back delayed observations can be fused.
@@ -94,7 +97,10 @@ class LocalizerConfig:
     fit_statuses : fit statuses fused (``flat``: a wall seen near normal incidence over a
         short arc; its range is precise, its bearing SD large, as its covariance says).
     segment_max_readings : the segmenter closes (and the fitter fits) a segment after this
-        many readings, so a wall seen for a long time still gives regular updates.
+        many readings, so a wall seen for a long time by a fixed transducer still gives
+        regular updates. None (default): 8 for fixed transducers, 400 (the segmenter's
+        own limit) when the readings come with a pan angle: a panning transducer sweeps
+        past its landmarks, and cutting a pass short leaves a partial U.
     conventional_range_sd_m, conventional_bearing_sd_deg : the conventional model.
     max_range_m : readings (conventional) and candidates farther than this are ignored.
     lost_after_rejections : this many observations in a row rejected (no candidate,
@@ -109,11 +115,11 @@ class LocalizerConfig:
         yaw_var_per_m=math.radians(1.0) ** 2, yaw_var_per_rad=math.radians(1.0) ** 2))
     association: AssociationConfig = field(default_factory=AssociationConfig)
     history_s: float = 10.0
-    fit_sd_floor_m: float = 0.01
-    fit_sd_floor_deg: float = 1.0
+    fit_sd_floor_m: float = 0.002
+    fit_sd_floor_deg: float = 0.2
     fit_cov_scale: float = 1.0
     fit_statuses: tuple[str, ...] = ("ok", "flat")
-    segment_max_readings: int = 400
+    segment_max_readings: int | None = None
     conventional_range_sd_m: float = 0.01
     conventional_bearing_sd_deg: float = 10.0
     max_range_m: float = 6.0
@@ -122,9 +128,9 @@ class LocalizerConfig:
     dead_reckoning_after_s: float = 5.0
 
     def __post_init__(self) -> None:
-        if self.method not in ("kuc", "conventional", "odometry"):
-            raise ValueError(f"`method` must be 'kuc', 'conventional' or 'odometry', got "
-                             f"{self.method!r}")
+        if self.method not in ("kuc", "conventional", "specular", "odometry"):
+            raise ValueError(f"`method` must be 'kuc', 'conventional', 'specular' or "
+                             f"'odometry', got {self.method!r}")
         for name in ("history_s", "conventional_range_sd_m", "conventional_bearing_sd_deg",
                      "max_range_m", "lost_sd_m", "dead_reckoning_after_s", "fit_cov_scale"):
             v = getattr(self, name)
@@ -274,11 +280,6 @@ class SegmentFitSource:
         return out
 
 
-def default_landmark_source(speed_of_sound_mps: float = 343.0) -> LandmarkSource:
-    """The fitting stage's segmenter and fitter (:class:`SegmentFitSource`)."""
-    return SegmentFitSource(speed_of_sound_mps)
-
-
 class Localizer:
     """EKF localization against a landmark map (see the module docstring).
 
@@ -287,7 +288,8 @@ class Localizer:
     fmap : the map's features.
     config : settings.
     landmark_source : factory ``(speed_of_sound_mps) -> LandmarkSource`` for the
-        ``kuc`` method (default: :func:`default_landmark_source`).
+        ``kuc`` method (default: a :class:`SegmentFitSource` with
+        ``config.segment_max_readings``).
     """
 
     def __init__(self, fmap: FeatureMap, config: LocalizerConfig | None = None,
@@ -295,8 +297,7 @@ class Localizer:
         self.fmap = fmap
         self.config = config or LocalizerConfig()
         self.stats = LocalizerStats()
-        self._source_factory = landmark_source or (
-            lambda c: SegmentFitSource(c, max_readings=self.config.segment_max_readings))
+        self._source_factory = landmark_source
         self._source: LandmarkSource | None = None
         self._mounts: dict[int, Array] = {}
         self._c_mps = 343.0
@@ -537,17 +538,25 @@ class Localizer:
             self.stats.skipped["tof_older_than_history"] += 1
             return
         base, mount = self._transducer_pose(r.t_s, r.sensor, r.pan_deg)
-        if self.config.method == "conventional":
+        if self.config.method in ("conventional", "specular"):
             if r.tof_us is None or not (r.tof_us > 0):
                 return
             rng = 0.5e-6 * self._c_mps * r.tof_us
             if rng > self.config.max_range_m:
                 return
-            self.add_observation(Observation("range_bearing", np.array([rng, 0.0]),
-                                             self._conv_cov, mount, t_s=r.t_s), r.t_s)
+            kind: Literal["range_axis", "range_bearing"] = \
+                "range_axis" if self.config.method == "conventional" else "range_bearing"
+            self.add_observation(Observation(kind, np.array([rng, 0.0]), self._conv_cov,
+                                             mount, t_s=r.t_s), r.t_s)
             return
         if self._source is None:
-            self._source = self._source_factory(self._c_mps)
+            if self._source_factory is not None:
+                self._source = self._source_factory(self._c_mps)
+            else:
+                n = self.config.segment_max_readings
+                if n is None:
+                    n = 400 if r.pan_deg is not None else 8
+                self._source = SegmentFitSource(self._c_mps, max_readings=n)
         pose = se2.compose(base, mount)
         tof = math.nan if r.tof_us is None else float(r.tof_us)
         for lm in self._source.push(r.t_s, float(pose[0]), float(pose[1]), float(pose[2]),

@@ -108,11 +108,12 @@ class Reflector:
     cone_rad: tuple[float, float] | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Map:
     """A validated map: its source features, reflectors, routes and a spatial index.
 
     Build one with :func:`load_map`, :func:`map_from_geojson` or :func:`build_map`.
+    Immutable; equality and hash are by identity (usable as a cache key).
     """
 
     features: tuple[MapFeature, ...]
@@ -255,6 +256,10 @@ def _parse_feature(index: int, obj: Any) -> MapFeature:
         raise _fail(index, f"geometry type {gtype!r} is not supported "
                            "(Point, LineString or Polygon)")
     _check_positions(index, geom.get("coordinates"), depth)
+    if gtype == "Polygon":
+        for k, ring in enumerate(geom["coordinates"]):
+            if len(ring) < 3:
+                raise _fail(index, f"Polygon ring {k} needs at least 3 positions, got {len(ring)}")
     try:
         geometry = shape({"type": gtype, "coordinates": geom["coordinates"]})
     except Exception as err:  # shapely raises several types on bad coordinates

@@ -33,8 +33,10 @@ def piston_x(
     _check_positive("diameter_m", diameter_m)
     _check_positive("freq_hz", freq_hz)
     _check_positive("c_mps", c_mps)
-    wavelength_m = c_mps / freq_hz
-    return np.pi * diameter_m * np.sin(np.asarray(theta_rad, dtype=float)) / wavelength_m
+    scale = np.pi * diameter_m * freq_hz / c_mps  # pi d / lambda
+    x = np.sin(np.asarray(theta_rad, dtype=float))
+    x *= scale
+    return x
 
 
 def piston_one_way(
@@ -50,11 +52,11 @@ def piston_one_way(
     >>> round(float(piston_one_way(0.0)), 6)
     1.0
     """
-    x = piston_x(theta_rad, diameter_m, freq_hz, c_mps)
-    small = np.abs(x) < 1e-6
-    safe = np.where(small, 1.0, x)
-    # Taylor series 1 - x^2/8 near the axis avoids 0/0.
-    return np.where(small, 1.0 - x * x / 8.0, 2.0 * j1(safe) / safe)
+    x = np.asarray(piston_x(theta_rad, diameter_m, freq_hz, c_mps))
+    d = j1(x)
+    d *= 2.0
+    # J1(x) ~ x/2 keeps full relative precision for tiny x; only x == 0 needs the limit.
+    return np.asarray(np.divide(d, x, out=np.ones_like(x), where=x != 0.0))
 
 
 def piston_echo(
@@ -65,7 +67,8 @@ def piston_echo(
 ) -> NDArray[np.float64]:
     """Transmit/receive echo amplitude (2 J1(x)/x)^2, in [0, 1] (reciprocity)."""
     d = piston_one_way(theta_rad, diameter_m, freq_hz, c_mps)
-    return d * d
+    d *= d
+    return d
 
 
 def gaussian_echo(theta_rad: ArrayLike, sigma_deg: float = GAUSS_SIGMA_DEG) -> NDArray[np.float64]:

@@ -14,6 +14,15 @@ CARRIER_HZ = 49.4e3
 BURST_CYCLES = 16
 """Cycles per ping (pulse about 324 us)."""
 
+TRANSDUCER_Q = 1.0
+"""Quality of the transducer's resonant band-pass (waveform tier): broad, as befits an
+electrostatic foil transducer."""
+
+RESONANT_FRACTION = 0.5
+"""Share of the transducer response that is resonant (the rest follows the drive at
+once). With ``TRANSDUCER_Q`` it makes the waveform tier's first half cycle agree with
+eq. 3 within 0.11 us (see ``sonarloc.physics.waveform``)."""
+
 TRANSDUCER_DIAMETER_M = 0.036
 """Piston diameter d of the 600-series electrostatic transducer."""
 

@@ -30,7 +30,8 @@ class ModuleParams:
     ``jitter_sd_us`` is the on-axis timing jitter; ``amplitude_fluctuation`` the SD of
     the log echo amplitude (0.25: arcs measured over 100 pings per angle match the
     paper's 18.6/22.8/45 deg); ``detection_limit_us`` the largest threshold delay
-    still detected.
+    still detected. ``burst_cycles``, ``transducer_q`` and ``resonant_fraction``
+    shape the waveform tier's simulated module (``sonarloc.physics.waveform``).
     """
 
     c_mps: float = k.SPEED_OF_SOUND_MPS
@@ -43,6 +44,9 @@ class ModuleParams:
     count_period_us: float = k.COUNT_PERIOD_US
     blanking_us: float = k.BLANKING_US
     max_range_m: float = k.MAX_RANGE_M
+    burst_cycles: int = k.BURST_CYCLES
+    transducer_q: float = k.TRANSDUCER_Q
+    resonant_fraction: float = k.RESONANT_FRACTION
 
     def __post_init__(self) -> None:
         for name in ("c_mps", "carrier_hz", "diameter_m", "sigma_deg", "detection_limit_us",
@@ -54,6 +58,16 @@ class ModuleParams:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"`{name}` must be non-negative, got {value!r}")
+        if isinstance(self.burst_cycles, bool) or not isinstance(self.burst_cycles, int) \
+                or self.burst_cycles < 1:
+            raise ValueError(
+                f"`burst_cycles` must be a positive integer, got {self.burst_cycles!r}")
+        if not (np.isfinite(self.transducer_q) and self.transducer_q > 0):
+            raise ValueError(f"`transducer_q` must be positive, got {self.transducer_q!r}")
+        if not (np.isfinite(self.resonant_fraction) and 0 <= self.resonant_fraction < 1):
+            raise ValueError(
+                f"`resonant_fraction` must be in [0, 1), got {self.resonant_fraction!r}"
+            )
 
     @property
     def max_tof_us(self) -> float:

@@ -240,7 +240,7 @@ def drive_figure(
     if map_source is not None:  # keep the view on the map, not on stray fits
         ax.set_xlim(xmin - 0.3, xmax + 0.3)
         ax.set_ylim(ymin - 0.3, ymax + 0.3)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=4,
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=4,
               frameon=False)
     shown = pick_segments(segments, 4)
     colors = ["tab:blue", "tab:green", "tab:purple", "tab:brown"]

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from sonarloc.errors import DeviceTimeoutError, MapError
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, OdomRecord, Record, TofRecord, TruthRecord
-from sonarloc.report.drive import DriveReport, SegmentView, landmark_to_map
+from sonarloc.report.drive import DriveReport, SegmentView
 from sonarloc.report.metrics import track_error
 
 Device = Literal["can", "serial"]
@@ -96,7 +96,7 @@ class DriveResult:
     """Everything a drive produced: the report, and the data behind the figure.
 
     Tracks are (n, 4) arrays (t_s, x_m, y_m, yaw_rad) in ``map``; ``landmarks`` are in
-    ``map`` (moved from ``odom`` with the estimate at their reference time), each paired
+    ``map`` (moved from ``odom`` with the estimate when they were fused), each paired
     with whether the Localizer matched it to the map; ``segments`` are a few fitted
     segments with their readings (``odom`` frame) for the TOF panel.
     """
@@ -209,10 +209,11 @@ def run_drive(config: DriveConfig = DriveConfig(),
     landmarks, compute per reading, real-time factor, device counters) and the tracks,
     landmarks and segments behind the figure. ``report.plot`` is not set here.
     """
+    from sonarloc.api import LocalizerNode
     from sonarloc.io.drivers import open_driver
     from sonarloc.io.drivers.sim import SimModule
     from sonarloc.localize.features import FeatureMap
-    from sonarloc.localize.localizer import FusionOutcome, Localizer, LocalizerConfig
+    from sonarloc.localize.localizer import LocalizerConfig
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import rig_by_name
     from sonarloc.world.robot import Route
@@ -234,18 +235,11 @@ def run_drive(config: DriveConfig = DriveConfig(),
     tee = _Tee(simulate_records(world_map, rig, duration_s=duration, seed=config.seed,
                                 tier=config.tier))
     keeper = _SegmentKeeper()
-    outcomes: list[tuple[Landmark, bool]] = []
-
-    class _Localizer(Localizer):
-        def add_landmark(self, lm: Landmark) -> FusionOutcome:
-            out = super().add_landmark(lm)
-            if len(outcomes) < 20_000:
-                outcomes.append((lm, out.fused))
-            return out
-
     loc_config = LocalizerConfig(method=config.method)
-    loc = _Localizer(FeatureMap.from_map(world_map), loc_config,
-                     landmark_source=_recording_source(keeper, loc_config.segment_max_readings))
+    node = LocalizerNode(FeatureMap.from_map(world_map), config=loc_config,
+                         keep_landmarks=20_000,
+                         landmark_source=_recording_source(keeper,
+                                                           loc_config.segment_max_readings))
     if config.device == "can":
         channel = f"sonarloc-drive-{os.getpid()}-{next(_channels)}"
         module = SimModule.on_can(tee, interface="virtual", channel=channel, rate=config.rate)
@@ -254,7 +248,6 @@ def run_drive(config: DriveConfig = DriveConfig(),
 
     est_rows: list[tuple[float, float, float, float]] = []
     covs: list[NDArray[np.float64]] = []
-    m2o: list[tuple[float, float, float, float]] = []
     odom_rows: list[tuple[float, float, float, float]] = []
     n_tof = n_echo = 0
     compute = 0.0
@@ -263,7 +256,7 @@ def run_drive(config: DriveConfig = DriveConfig(),
     with module:
         if not tee.have_init.wait(config.read_timeout_s) or tee.init is None:
             raise tee.error or DeviceTimeoutError("the simulator produced no init record")
-        loc.handle(tee.init)  # the prior: an operator's input, not device data
+        node.feed(tee.init)  # the prior: an operator's input, not device data
         with open_driver(module.url) as drv:
             while True:
                 try:
@@ -278,7 +271,7 @@ def run_drive(config: DriveConfig = DriveConfig(),
                 if rec is None:
                     break
                 t0 = time.perf_counter()
-                est = loc.handle(rec)
+                est = node.feed(rec)
                 compute += time.perf_counter() - t0
                 if isinstance(rec, TofRecord):
                     n_tof += 1
@@ -290,11 +283,9 @@ def run_drive(config: DriveConfig = DriveConfig(),
                 if est is not None:
                     est_rows.append((est.t_s, est.x_m, est.y_m, est.yaw_rad))
                     covs.append(np.asarray(est.state.cov, dtype=float))
-                    tx, ty, tyaw = (float(v) for v in est.map_to_odom)
-                    m2o.append((est.t_s, tx, ty, tyaw))
                     last_status = f"{est.status} ({est.reason})"
             t0 = time.perf_counter()
-            loc.finish()
+            node.finish()
             compute += time.perf_counter() - t0
             device_stats = drv.counters()
     if tee.error is not None:
@@ -307,22 +298,16 @@ def run_drive(config: DriveConfig = DriveConfig(),
     odo = _odometry_in_map(np.array(odom_rows, dtype=float).reshape(-1, 4), tee.init)
     e_est, e_odo = track_error(est_track, truth), track_error(odo, truth)
 
-    m2o_arr = np.array(m2o, dtype=float).reshape(-1, 4)
-    in_map: list[tuple[Landmark, bool]] = []
-    for lm, fused in outcomes:
-        if len(m2o_arr) == 0:
-            break
-        k = min(int(np.searchsorted(m2o_arr[:, 0], lm.ref_t_s)), len(m2o_arr) - 1)
-        in_map.append((landmark_to_map(lm, tuple(m2o_arr[k, 1:].tolist())), fused))
-
-    st = loc.stats
+    reports = node.landmarks()
+    in_map = [(r.in_map, r.fused) for r in reports if r.in_map is not None]
+    st = node.stats
     report = DriveReport(
         map=map_path.stem, rig=config.rig, device=config.device, seed=config.seed,
         duration_s=float(duration), readings=n_tof, echoes=n_echo, odom_records=len(odom_rows),
         pose_rmse_m=e_est.rmse_m, yaw_rmse_deg=e_est.yaw_rmse_deg, pose_max_m=e_est.max_m,
         pose_final_m=e_est.final_m, odom_pose_rmse_m=e_odo.rmse_m,
         odom_yaw_rmse_deg=e_odo.yaw_rmse_deg, landmarks_fitted=st.landmarks,
-        landmarks_ok=sum(1 for lm, _ in outcomes if lm.ok),
+        landmarks_ok=sum(1 for r in reports if r.landmark.ok),
         landmarks_matched=int(st.outcomes.get("matched", 0)),
         landmarks_rejected=int(sum(v for k, v in st.outcomes.items() if k != "matched")),
         status=last_status, compute_s=compute,

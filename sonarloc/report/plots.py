@@ -37,6 +37,13 @@ KIND_STYLES: dict[str, dict[str, Any]] = {
 }
 
 
+def matplotlib_available() -> bool:
+    """Whether the optional extra ``plot`` (matplotlib) is installed."""
+    import importlib.util
+
+    return importlib.util.find_spec("matplotlib") is not None
+
+
 def require_matplotlib() -> Any:
     """``matplotlib.pyplot`` (Agg backend by default), or a clear error if it is missing."""
     try:

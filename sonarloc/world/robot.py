@@ -189,10 +189,12 @@ class Robot:
         self.finished = route is None
 
     @staticmethod
-    def at_route_start(route: Route, **kwargs: object) -> Robot:
+    def at_route_start(route: Route, drive: DriveParams = DriveParams(),
+                       odometry: OdometryModel = OdometryModel(),
+                       rng: np.random.Generator | None = None) -> Robot:
         """A robot placed at the route's first point, heading along it."""
         x, y = route.point_at(0.0)
-        return Robot(Pose2(x, y, route.heading_at(0.0)), route, **kwargs)  # type: ignore[arg-type]
+        return Robot(Pose2(x, y, route.heading_at(0.0)), route, drive, odometry, rng)
 
     def _command(self) -> tuple[float, float]:
         """Pure pursuit: (speed, yaw rate) toward the route point one lookahead ahead."""

@@ -38,15 +38,18 @@ def test_pan_recovers_pole_rod_plane_with_calibrated_covariance(rng, kappa, bear
 
 
 def test_batch_equals_one_by_one_and_chunking(rng):
+    # a segment's fit does not depend on the other segments of its batch (to within
+    # the convergence tolerance: a few hundredths of a standard deviation)
     batch = _pan_batch(rng, 5, 1.2, 10.0, 0.67)
     whole = fit_batch(batch, "point", "gauss")
-    chunked = fit_batch(batch, "point", "gauss", FitConfig(chunk=2))
-    np.testing.assert_allclose(whole.local, chunked.local, rtol=1e-9, atol=1e-12)
+    chunked = fit_batch(batch, "point", "gauss", FitConfig(chunk_readings=2))
+    sd = np.sqrt(np.einsum("bkk->bk", whole.cov))
+    assert np.all(np.abs(whole.local - chunked.local) < 0.05 * sd)
     from sonarloc.fit.lsq import _take
 
     for b in range(5):
         one = fit_batch(_take(batch, np.array([b])), "point", "gauss")
-        np.testing.assert_allclose(one.local[0], whole.local[b], rtol=1e-6, atol=1e-9)
+        assert np.all(np.abs(one.local[0] - whole.local[b]) < 0.05 * sd[b])
 
 
 def test_speed_of_sound_scales_range(rng):
@@ -142,3 +145,30 @@ def test_config_rejects_bad_values():
                                   np.ones(3))]), "circle")
     with pytest.raises(ValueError, match="c_mps"):
         FitConfig(module=ModuleParams(c_mps=-3.0))
+
+
+@pytest.mark.parametrize("kind", ["point", "line"])
+@pytest.mark.parametrize("moving", [False, True])
+@pytest.mark.parametrize("tier", ["gauss", "piston"])
+def test_objective_gradient_matches_finite_differences(rng, kind, moving, tier):
+    from sonarloc.fit.lsq import _evaluate, _variances
+
+    t = np.arange(60) * 0.05
+    x = (0.02 * np.arange(60) - 0.6) if moving else np.zeros(60)
+    yaw = np.deg2rad(np.linspace(-25, 25, 60)) + np.pi / 2
+    refl = (Reflector.point(0.1, 1.4, 0.67) if kind == "point"
+            else Reflector.line(1.4, np.pi / 2, 0.4))
+    sc = simulate_readings(t, x, 0.0, yaw, [refl], rng, tier="gauss")
+    batch = pack_segments([(sc.t_s, sc.x_m, sc.y_m, sc.yaw_rad, sc.tof_us)])
+    cfg = FitConfig()
+    y = np.where(batch.valid, batch.tof_us - 1.0, 0.0)
+    p = np.array([[1.4 + 0.01, np.pi / 2 + 0.03, 0.6]])
+    s2 = _variances(kind, tier, p, batch, cfg)
+    F, grad, H, _ = _evaluate(kind, tier, p, batch, y, batch.valid, s2, cfg)
+    for k, h in enumerate((1e-6, 1e-7, 1e-6)):
+        d = np.zeros((1, 3))
+        d[0, k] = h
+        up = _evaluate(kind, tier, p + d, batch, y, batch.valid, s2, cfg, want_derivs=False)[0]
+        dn = _evaluate(kind, tier, p - d, batch, y, batch.valid, s2, cfg, want_derivs=False)[0]
+        assert grad[0, k] == pytest.approx((up - dn)[0] / (4 * h), rel=1e-4, abs=1e-3)
+    assert np.all(np.linalg.eigvalsh(H[0]) > 0)

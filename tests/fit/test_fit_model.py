@@ -134,3 +134,23 @@ def test_to_frame_jacobian_and_line_sign(kind):
         # the wall contains the reflecting point seen from ref
         foot = ref + local[0] * np.array([np.cos(local[1]), np.sin(local[1])])
         assert foot @ np.array([np.cos(out[1]), np.sin(out[1])]) == pytest.approx(out[0])
+
+
+def test_fast_detection_terms_match_reference():
+    z = np.linspace(-30, 30, 601)
+    log_p, dlogp, info, curv = M.noecho_terms(z)
+    ref_lp, ref_mills, ref_info = M.probit_terms(z)
+    np.testing.assert_allclose(log_p, ref_lp, rtol=1e-8, atol=2e-12)
+    np.testing.assert_allclose(dlogp, ref_mills, rtol=1e-6, atol=1e-10)
+    np.testing.assert_allclose(info, ref_info, rtol=1e-6, atol=1e-10)
+    # observed curvature: second derivative of -log Phi(z)
+    h = 1e-4
+    num = -(M.noecho_terms(z + h)[0] - 2 * log_p + M.noecho_terms(z - h)[0]) / h**2
+    away = np.abs(np.abs(z) - 7.0) > 2 * h     # the exact/constant switch at |z| = 7
+    np.testing.assert_allclose(curv[away], num[away], rtol=1e-3, atol=1e-5)
+    et = M.echo_terms(1.0, np.exp(0.25 * z + np.log(MOD.detection_limit_us)), z, MOD)
+    e_lp, e_mills, e_info = M.probit_terms(-z)
+    np.testing.assert_allclose(et.log_p, e_lp, rtol=1e-8, atol=2e-12)
+    np.testing.assert_allclose(-et.dlogp_dz, e_mills, rtol=1e-6, atol=1e-10)
+    np.testing.assert_allclose(et.info, e_info, rtol=1e-6, atol=1e-10)
+    assert np.all(et.curv >= -1e-12) and np.all(curv >= -1e-12)

@@ -113,3 +113,12 @@ def test_conventional_range_bearing(fmap):
 def test_config_validation():
     with pytest.raises(ValueError, match="gate_probability"):
         AssociationConfig(gate_probability=1.0)
+
+
+def test_ray_hits_walls(fmap):
+    hit = fmap.walls_hit_by_ray([3.0, 1.0], 0.0)
+    assert hit.tolist() == [False, True, False, False]
+    short = FeatureMap.build(walls=[[[5, -1], [5, 1]]])
+    assert short.walls_hit_by_ray([0.0, 0.0], math.radians(5))[0]
+    assert not short.walls_hit_by_ray([0.0, 0.0], math.radians(20))[0]
+    assert not short.walls_hit_by_ray([0.0, 0.0], math.pi)[0]

@@ -107,3 +107,26 @@ def test_bad_map_and_missing_log(run_cli, room_log, tmp_path):
     assert proc.returncode == 2 and "feature 0" in proc.stderr
     proc = run_cli("localize", str(tmp_path / "nope.jsonl"), "--map", ROOM)
     assert proc.returncode == 2 and "nope.jsonl" in proc.stderr
+
+
+def test_localize_kuc_default_method(run_cli, room_log, tmp_path):
+    out = tmp_path / "kuc.csv"
+    proc = run_cli("localize", str(room_log), "--map", ROOM, "--out", str(out), "--status",
+                   check=True)
+    assert "landmarks fitted" in proc.stderr
+    track = read_poses_csv(out)
+    truth = _truth(room_log)
+    err = np.array([math.hypot(x - truth[t][0], y - truth[t][1])
+                    for t, x, y in zip(track.t_s, track.x_m, track.y_m, strict=True)])
+    steady = track.t_s > 5.0
+    assert np.sqrt(np.mean(err[steady] ** 2)) < 0.02
+    status = out.read_text().splitlines()[-1].rsplit(",", 1)[1]
+    assert status == "tracking"
+
+
+def test_specular_and_conventional_both_run(run_cli, room_log, tmp_path):
+    for method in ("specular", "conventional"):
+        out = tmp_path / f"{method}.csv"
+        run_cli("localize", str(room_log), "--map", ROOM, "--out", str(out), "--method",
+                method, check=True)
+        assert len(read_poses_csv(out)) > 200

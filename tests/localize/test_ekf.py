@@ -220,3 +220,18 @@ def test_gate_values():
     assert ekf.chi2_gate(3, 0.95) == pytest.approx(7.8147, abs=1e-4)
     with pytest.raises(ValueError, match="probability"):
         ekf.chi2_gate(2, 1.5)
+
+
+def test_axis_range_wall_jacobian_and_values(rng, poses, sensors):
+    walls = np.stack([rng.uniform(0.5, 6, 40), rng.uniform(-math.pi, math.pi, 40)], axis=-1)
+    z, h = ekf.axis_range_wall(poses, sensors, walls)
+    hit = np.isfinite(z[:, 0])
+    assert hit.sum() > 10
+    with np.errstate(invalid="ignore"):  # inf - inf where the axis misses the wall
+        num = numeric_jacobian(lambda p: ekf.axis_range_wall(p, sensors, walls)[0], poses)
+    assert np.allclose(h[hit], num[hit], atol=1e-6)
+    # wall x = 3, transducer at (1.1, 0) looking 30 deg off the normal: 1.9 / cos(30 deg)
+    z1, _ = ekf.axis_range_wall([1, 0, 0], [0.1, 0.0, math.radians(30)], [3.0, 0.0])
+    assert np.allclose(z1, [1.9 / math.cos(math.radians(30)), 0.0])
+    z2, _ = ekf.axis_range_wall([1, 0, 0], [0.1, 0.0, math.pi], [3.0, 0.0])
+    assert np.isinf(z2[0])

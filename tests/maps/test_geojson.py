@@ -103,6 +103,8 @@ def test_vertices_property_and_explicit_corner_override():
         (fc(feat("LineString", [[0, 0]], kind="wall")), "feature 0: bad LineString"),
         (fc(feat("Polygon", [[[0, 0], [2, 2], [2, 0], [0, 2], [0, 0]]], kind="wall")),
          "feature 0: invalid Polygon"),
+        (fc(feat("Polygon", [[[0, 0], [0, 1], [1, 0]], []], kind="wall")),
+         "feature 0: Polygon ring 1 needs at least 3 positions"),
         (fc(feat("LineString", [[0, 0], [1, 0]], kind="wall", vertices="some")),
          "feature 0: `vertices`"),
         (fc(feat("Point", [0, 0], kind="pole", id="a"), feat("Point", [1, 0], kind="rod", id="a")),

@@ -123,6 +123,10 @@ def test_cli_plot_scan_map_trajectory(tmp_path: Path, run_cli, rng):
     proc = run_cli("plot", "scan", str(scan), "--fits", str(fits), "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    out2 = tmp_path / "scan_fit_here.png"  # without --fits: fitted here
+    proc = run_cli("plot", "scan", str(scan), "--out", str(out2))
+    assert proc.returncode == 0, proc.stderr
+    assert out2.stat().st_size > 20_000
     log, poses = tmp_path / "drive.jsonl", tmp_path / "poses.csv"
     write_poses_csv(poses, _drive_log(log))
     for kind, extra in (("map", []), ("trajectory", ["--poses", str(poses)])):

@@ -5,6 +5,7 @@ import re
 import numpy as np
 import pytest
 
+from sonarloc.cli import main as cli_main
 from sonarloc.io.logfile import (
     InitRecord,
     LogStats,
@@ -153,13 +154,16 @@ def test_cli_drive_with_rig_file(run_cli, tmp_path):
         (["--repeat", "3"], "need a pan rig"),
     ],
 )
-def test_cli_bad_arguments_name_the_value(run_cli, tmp_path, args, match):
-    proc = run_cli("simulate", "--map", str(MAPS / "room.geojson"), "--out",
-                   str(tmp_path / "x.jsonl"), *args)
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1, proc.stderr
+def test_cli_bad_arguments_name_the_value(capsys, tmp_path, args, match):
+    # in-process (same dispatch as the `sonarloc` command; one subprocess case below)
+    code = cli_main(["simulate", "--map", str(MAPS / "room.geojson"), "--out",
+                     str(tmp_path / "x.jsonl"), *args])
+    assert code == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
     assert re.search(match, lines[0]), lines[0]
+    assert not (tmp_path / "x.jsonl").exists()
 
 
 def test_cli_bad_map_names_the_feature(run_cli, tmp_path):
@@ -172,4 +176,5 @@ def test_cli_bad_map_names_the_feature(run_cli, tmp_path):
     proc = run_cli("simulate", "--map", str(bad), "--out", str(tmp_path / "x.jsonl"),
                    "--at", "0,0,0")
     assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1
     assert "feature 1" in proc.stderr and "radius_m" in proc.stderr

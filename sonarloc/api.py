@@ -1,0 +1,229 @@
+"""Embedding sonarloc in a robot's software (a ROS node, a control loop): one object.
+
+:class:`LocalizerNode` wraps the :class:`~sonarloc.localize.localizer.Localizer` (online
+segmentation and fitting of the TOF curves, EKF against a map) behind the calls a node
+makes: feed readings and odometry as they arrive, read pose, covariance, the
+``map -> odom`` transform, recent landmarks and the status. Units are SI, angles in
+radians, frames per REP-105 (``map``, ``odom``, ``base_link``). See docs/API.md.
+
+>>> from sonarloc.api import LocalizerNode
+>>> node = LocalizerNode.from_map_file("maps/room.geojson",
+...                                    sensors=[(0, 0.2, 0.0, 0.0), (1, 0.0, 0.2, 90.0)])
+>>> node.set_pose(1.0, 1.0, 0.0, sd_xy_m=0.05, sd_yaw_rad=0.03)
+>>> node.odometry(0.00, 0.0, 0.0, 0.0).status
+'tracking'
+>>> node.reading(0.01, sensor=0, tof_us=40_000.0)   # an echo 6.9 m ahead
+>>> node.reading(0.04, sensor=1, tof_us=None)       # no echo
+>>> round(node.pose[0], 3), node.covariance.shape
+(1.0, (3, 3))
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sonarloc.fit.result import Landmark
+from sonarloc.io.logfile import Record, SensorMount
+from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.localizer import (
+    FusionOutcome,
+    LandmarkSource,
+    Localizer,
+    LocalizerConfig,
+    PoseEstimate,
+)
+
+
+@dataclass(frozen=True)
+class LandmarkReport:
+    """A fitted landmark as the node saw it.
+
+    ``landmark``: the fit in ``odom`` (:class:`~sonarloc.fit.result.Landmark`: kind,
+    params, cov, kappa_us, status, reference time and pose). ``in_map``: the same moved
+    into ``map`` with the estimate of ``map -> odom`` when the landmark was fused (None
+    before the first estimate). ``fused``: matched to a map feature and used by the filter;
+    ``outcome``: why not, otherwise (``gated``, ``ambiguous``, ``no_candidate``, fit
+    status, ...).
+    """
+
+    landmark: Landmark
+    in_map: Landmark | None
+    fused: bool
+    outcome: str
+
+
+class _HookedLocalizer(Localizer):
+    """A Localizer that tells the node about every landmark it was given."""
+
+    def __init__(self, *args: Any, on_landmark: Callable[[Landmark, FusionOutcome], None],
+                 **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._on_landmark = on_landmark
+
+    def add_landmark(self, lm: Landmark) -> FusionOutcome:
+        out = super().add_landmark(lm)
+        self._on_landmark(lm, out)
+        return out
+
+
+class LocalizerNode:
+    """Pose of a robot from sonar readings and wheel odometry against a map.
+
+    Parameters
+    ----------
+    fmap : the map's features (``FeatureMap.from_map(load_map(path))``), or use
+        :meth:`from_map_file`.
+    sensors : transducer mounts in ``base_link``: ``(id, x_m, y_m, yaw_deg)`` tuples or
+        :class:`~sonarloc.io.logfile.SensorMount`; may also come later with
+        :meth:`set_rig` or a ``rig`` record.
+    speed_of_sound_mps : the speed of sound (343 m/s at 20 °C).
+    config : :class:`~sonarloc.localize.localizer.LocalizerConfig` (method, noise,
+        gates, status thresholds).
+    keep_landmarks : how many recent :class:`LandmarkReport` to keep (memory is bounded).
+    landmark_source : advanced: a factory ``(speed_of_sound_mps) -> LandmarkSource`` to
+        replace the built-in online fitter.
+    """
+
+    def __init__(self, fmap: FeatureMap, sensors: Iterable[SensorMount | Sequence[float]] = (),
+                 *, speed_of_sound_mps: float = 343.0, config: LocalizerConfig | None = None,
+                 keep_landmarks: int = 500,
+                 landmark_source: Callable[[float], LandmarkSource] | None = None) -> None:
+        if keep_landmarks < 0:
+            raise ValueError(f"`keep_landmarks` must be >= 0, got {keep_landmarks!r}")
+        self._reports: deque[LandmarkReport] = deque(maxlen=keep_landmarks or None)
+        self._keep = keep_landmarks > 0
+        self.localizer = _HookedLocalizer(fmap, config, landmark_source=landmark_source,
+                                          on_landmark=self._landmark)
+        mounts = [self._mount(s) for s in sensors]
+        if mounts:
+            self.set_rig(mounts, speed_of_sound_mps)
+
+    @classmethod
+    def from_map_file(cls, path: str | Path, sensors: Iterable[SensorMount | Sequence[float]]
+                      = (), **kwargs: Any) -> LocalizerNode:
+        """A node for the map GeoJSON at ``path`` (FORMATS.md section 3)."""
+        from sonarloc.maps.geojson import load_map
+
+        return cls(FeatureMap.from_map(load_map(path)), sensors, **kwargs)
+
+    # -- inputs ---------------------------------------------------------------------------
+
+    @staticmethod
+    def _mount(s: SensorMount | Sequence[float]) -> SensorMount:
+        if isinstance(s, SensorMount):
+            return s
+        if len(s) != 4:
+            raise ValueError(f"a sensor must be (id, x_m, y_m, yaw_deg), got {s!r}")
+        sid = s[0]
+        if isinstance(sid, bool) or not float(sid).is_integer():
+            raise ValueError(f"sensor id must be an integer, got {sid!r}")
+        return SensorMount(int(sid), float(s[1]), float(s[2]), float(s[3]))
+
+    def set_rig(self, sensors: Iterable[SensorMount | Sequence[float]],
+                speed_of_sound_mps: float = 343.0) -> None:
+        """Transducer mounts in ``base_link`` and the speed of sound."""
+        self.localizer.set_rig([self._mount(s) for s in sensors], speed_of_sound_mps)
+
+    def set_pose(self, x_m: float, y_m: float, yaw_rad: float, *, sd_xy_m: float = 0.1,
+                 sd_yaw_rad: float = math.radians(5.0), t_s: float = math.nan) -> None:
+        """Prior of ``base_link`` in ``map`` (e.g. rviz's "2D Pose Estimate");
+        (re)starts the filter at the next odometry message."""
+        for name, v in (("sd_xy_m", sd_xy_m), ("sd_yaw_rad", sd_yaw_rad)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"`{name}` must be positive, got {v!r}")
+        self.localizer.set_prior(t_s, x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
+
+    def odometry(self, t_s: float, x_m: float, y_m: float, yaw_rad: float
+                 ) -> PoseEstimate | None:
+        """Wheel odometry: pose of ``base_link`` in ``odom`` at ``t_s`` (integrated).
+
+        Returns the new estimate (None before :meth:`set_pose`).
+        """
+        return self.localizer.on_odom(t_s, x_m, y_m, yaw_rad)
+
+    def reading(self, t_s: float, sensor: int, tof_us: float | None,
+                pan_rad: float | None = None) -> None:
+        """One sonar reading: first-echo time of flight in µs (None = no echo).
+
+        Readings are processed once odometry has reached their time (so the transducer
+        pose is interpolated, never extrapolated).
+        """
+        self.localizer.on_tof(t_s, sensor, tof_us, pan_rad)
+
+    def feed(self, rec: Record) -> PoseEstimate | None:
+        """A log record or a record from a driver (:func:`sonarloc.io.drivers.open_driver`):
+        rig, init, odom and tof are used, truth is ignored."""
+        return self.localizer.handle(rec)
+
+    def finish(self) -> None:
+        """End of stream: fit and fuse what the online fitter still holds."""
+        self.localizer.finish()
+
+    # -- outputs --------------------------------------------------------------------------
+
+    @property
+    def estimate(self) -> PoseEstimate | None:
+        """The latest :class:`~sonarloc.localize.localizer.PoseEstimate` (or None)."""
+        return self.localizer.estimate
+
+    def _require(self) -> PoseEstimate:
+        est = self.localizer.estimate
+        if est is None:
+            raise RuntimeError("no estimate yet: call set_pose() and odometry() first")
+        return est
+
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """(x_m, y_m, yaw_rad) of ``base_link`` in ``map``."""
+        est = self._require()
+        return est.x_m, est.y_m, est.yaw_rad
+
+    @property
+    def covariance(self) -> NDArray[np.float64]:
+        """(3, 3) covariance of (x, y, yaw) [m², m·rad, rad²]."""
+        return np.array(self._require().state.cov, dtype=float)
+
+    @property
+    def map_to_odom(self) -> tuple[float, float, float]:
+        """Pose of ``odom`` in ``map`` (x_m, y_m, yaw_rad): the transform a node broadcasts."""
+        x, y, yaw = (float(v) for v in self._require().map_to_odom)
+        return x, y, yaw
+
+    @property
+    def status(self) -> str:
+        """``initializing``, ``tracking``, ``dead_reckoning`` or ``lost``."""
+        est = self.localizer.estimate
+        return "initializing" if est is None else est.status
+
+    @property
+    def reason(self) -> str:
+        """Why the status is what it is (e.g. "no landmark fused for 6.2 s")."""
+        est = self.localizer.estimate
+        return "no prior or no odometry yet" if est is None else est.reason
+
+    def landmarks(self, since_t_s: float = -math.inf) -> list[LandmarkReport]:
+        """Recent fitted landmarks (reference time >= ``since_t_s``), oldest first."""
+        return [r for r in self._reports if r.landmark.ref_t_s >= since_t_s]
+
+    @property
+    def stats(self) -> Any:
+        """Counters of the Localizer (odom, tof, landmarks, fused, rejections)."""
+        return self.localizer.stats
+
+    def _landmark(self, lm: Landmark, outcome: FusionOutcome) -> None:
+        if not self._keep:
+            return
+        from sonarloc.report.drive import landmark_to_map
+
+        est = self.localizer.estimate
+        in_map = landmark_to_map(lm, tuple(float(v) for v in est.map_to_odom)) \
+            if est is not None else None
+        self._reports.append(LandmarkReport(lm, in_map, outcome.fused, outcome.reason))

@@ -1,0 +1,83 @@
+"""The examples that need no hardware run, and say what they should."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+EXAMPLES = REPO / "examples"
+
+
+def run_example(name: str, *args: str, cwd: Path, timeout: float = 120.0
+                ) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("MPLBACKEND", "Agg")
+    proc = subprocess.run([sys.executable, str(EXAMPLES / name), *args], capture_output=True,
+                          text=True, timeout=timeout, env=env, cwd=cwd)
+    assert proc.returncode == 0, f"{name} failed:\n{proc.stdout}\n{proc.stderr}"
+    return proc
+
+
+def test_every_example_is_covered():
+    names = {p.name for p in EXAMPLES.glob("*.py")}
+    assert names == {"fit_paper_scene.py", "drive_ring.py", "build_map.py",
+                     "read_serial_sonar.py", "embed_node.py"}
+
+
+def test_fit_paper_scene(tmp_path: Path):
+    out = run_example("fit_paper_scene.py", "--plot", "fig5.png", cwd=tmp_path).stdout
+    rows = {m[0]: m for m in re.findall(
+        r"^(pole|plane|rod)\s+([\d.]+)\s+([\d.]+)\s+(-?[\d.]+)\s+(-?[\d.]+)", out, re.M)}
+    assert set(rows) == {"pole", "plane", "rod"}, out
+    for name, fit_r, paper_r, fit_b, paper_b in rows.values():
+        assert abs(float(fit_r) - float(paper_r)) < 0.005, name  # range within 5 mm
+        assert abs(float(fit_b) - float(paper_b)) < 1.5, name     # bearing within 1.5 deg
+    assert (tmp_path / "fig5.png").stat().st_size > 20_000
+
+
+def test_drive_ring(tmp_path: Path):
+    out = run_example("drive_ring.py", "--duration", "6", "--out", "ring.png",
+                      cwd=tmp_path).stdout
+    assert "pose RMSE" in out and "121 poses" in out
+    assert (tmp_path / "ring.png").exists()
+
+
+def test_build_map(tmp_path: Path):
+    out = run_example("build_map.py", "--duration", "25", "--out", "built.geojson",
+                      cwd=tmp_path).stdout
+    assert "localized on the built map" in out
+    from sonarloc.maps.geojson import load_map
+
+    built = load_map(tmp_path / "built.geojson")  # the built map loads as a map
+    assert len(built) > 0
+    near = [float(d) for d in re.findall(r"nearest true \w+\s+([\d.]+) cm away", out)]
+    assert near and min(near) < 3.0
+
+
+def test_read_serial_sonar_from_a_simulated_module(tmp_path: Path):
+    out = run_example("read_serial_sonar.py", "--duration", "1.5", "--out", "rec.jsonl",
+                      cwd=tmp_path).stdout
+    assert "simulated module on /dev/pts/" in out
+    m = re.search(r"^(\d+) readings \((\d+) echoes\)", out, re.M)
+    assert m and int(m[1]) > 50 and int(m[2]) > 10
+    assert re.search(r"crc 0, skipped 0 B, gaps 0", out)
+    from sonarloc.io.logfile import TofRecord, iter_log
+
+    assert sum(isinstance(r, TofRecord) for r in iter_log(tmp_path / "rec.jsonl")) == int(m[1])
+
+
+@pytest.mark.parametrize("seed", [1])
+def test_embed_node(tmp_path: Path, seed: int):
+    out = run_example("embed_node.py", "--duration", "12", "--seed", str(seed),
+                      cwd=tmp_path).stdout
+    errors = [float(e) for e in re.findall(r"error\s+([\d.]+) cm", out)]
+    assert len(errors) == 13
+    assert errors[-1] < 5.0  # after 12 s with landmarks the estimate is within 5 cm
+    assert "map->odom" in out and "fused" in out
