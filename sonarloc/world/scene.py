@@ -70,21 +70,24 @@ def reach_half_angle_rad(kappa_us: float, params: ModuleParams = ModuleParams(),
 
 def sector_bounds(x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike, radius_m: float,
                   half_angle_rad: float) -> NDArray[np.float64]:
-    """Axis-aligned bounding boxes of beam sectors, shape (K, 4) ``minx, miny, maxx, maxy``."""
-    x, y, yaw = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (x_m, y_m, yaw_rad))
-    x, y, yaw = np.broadcast_arrays(x, y, yaw)
+    """Axis-aligned bounding boxes of beam sectors, shape (K, 4) ``minx, miny, maxx, maxy``.
+
+    The box of the apex, the two arc ends and every axis direction (0, 90, 180, 270
+    deg) the sector spans: exact for any half-angle up to pi.
+    """
+    x, y, yaw = np.broadcast_arrays(*(np.atleast_1d(np.asarray(a, dtype=float))
+                                      for a in (x_m, y_m, yaw_rad)))
     h = min(float(half_angle_rad), math.pi)
     r = float(radius_m)
-    xs = [x, x + r * np.cos(yaw - h), x + r * np.cos(yaw + h)]
-    ys = [y, y + r * np.sin(yaw - h), y + r * np.sin(yaw + h)]
-
-    def covers(direction: float) -> NDArray[np.bool_]:
-        return np.abs(_wrap(direction - yaw)) <= h
-
-    xs += [np.where(covers(0.0), x + r, x), np.where(covers(math.pi), x - r, x)]
-    ys += [np.where(covers(math.pi / 2), y + r, y), np.where(covers(-math.pi / 2), y - r, y)]
-    return np.column_stack([np.min(xs, axis=0), np.min(ys, axis=0),
-                            np.max(xs, axis=0), np.max(ys, axis=0)])
+    # directions: arc ends, then the four axis directions where the sector spans them
+    ends = yaw[:, None] + np.array([-h, h])
+    axes = np.array([0.0, 0.5, 1.0, 1.5]) * math.pi
+    spans = np.abs(_wrap(axes[None, :] - yaw[:, None])) <= h
+    apex = np.zeros((yaw.shape[0], 1))  # unspanned axes also fall back to the apex
+    ux = np.concatenate([np.cos(ends), np.where(spans, np.cos(axes), 0.0), apex], axis=1)
+    uy = np.concatenate([np.sin(ends), np.where(spans, np.sin(axes), 0.0), apex], axis=1)
+    return np.column_stack([x + r * ux.min(axis=1), y + r * uy.min(axis=1),
+                            x + r * ux.max(axis=1), y + r * uy.max(axis=1)])
 
 
 def _wrap(a: ArrayLike) -> NDArray[np.float64]:
