@@ -136,10 +136,11 @@ def write_plot(path: Path) -> None:
     ax[1].legend(fontsize=8)
     params = ModuleParams(amplitude_fluctuation=0.0)
     th = np.deg2rad(np.linspace(-25, 25, 2001))
-    for kap, name in zip(PAPER_KAPPA_US, ("plane", "pole", "rod"), strict=True):
+    for kap, name, colour in zip(PAPER_KAPPA_US, ("plane", "pole", "rod"), ("C0", "C1", "C2"),
+                                 strict=True):
         for tier, style in (("piston", "--"), ("auto", "-")):
             d, _ = echo_delays_us(th, kap, tier, np.random.default_rng(0), params)
-            ax[2].plot(np.rad2deg(th), d, style, lw=0.9,
+            ax[2].plot(np.rad2deg(th), d, style, color=colour, lw=0.9,
                        label=f"{name} {tier}" if tier == "auto" else None)
     ax[2].set(ylim=(0, 80), xlabel="bearing [deg]", ylabel="Tm - To [us]",
               title="noise-free scans at 1.5 m (dashed: piston eq. 3)")
