@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fit": ("sonarloc.commands.fit", "landmarks from TOF readings of a scan CSV"),
     "simulate": ("sonarloc.commands.simulate", "simulated log (and scan CSV) from a map"),
     "localize": ("sonarloc.commands.localize", "EKF localization of a log against a map"),
+    "map": ("sonarloc.commands.map", "landmark maps from logs (map build)"),
     "serve-sim": ("sonarloc.commands.serve_sim", "a simulated sonar module speaking the protocol"),
     "record": ("sonarloc.commands.record", "readings from a device, bus or file into a log"),
     "plot": ("sonarloc.commands.plot", "plot a scan with model curves, a sonar map, a trajectory"),

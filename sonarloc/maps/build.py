@@ -11,15 +11,20 @@ landmarks in ``map``; the builder merges them across passes:
   overlap or nearly touch (``wall_gap_m``) are one wall. Its (rho, alpha) is the
   information-weighted mean of the fits (fit covariance plus, with a pose track, the
   pose covariance carried through), its extent the span of the echo points. Walls that
-  nearly meet (ends within ``join_m`` of their lines' intersection) are joined there.
-* **points**: point fits within ``point_gate_m`` and within a factor
-  ``exp(kappa_log_gate)`` in strength are one reflector. A cylinder reflects at its
+  nearly meet (ends within ``join_m`` of their lines' intersection, beyond both ends)
+  are extended to meet there; clusters on one line with overlapping extents are merged,
+  and a wall parallel within ``shadow_m`` of a wall seen twice as often over the same
+  stretch is dropped as a biased duplicate.
+* **points**: point fits within ``point_gate_m`` of a cluster's predicted reflecting
+  point are one reflector (strength is not used to split clusters: fitted kappas
+  scatter widely; the cluster keeps their median). A cylinder reflects at its
   surface point facing the transducer, ``q = c + R u``: the builder solves the linear
   least squares for the centre ``c`` and radius ``R`` (with a zero-mean prior of SD
   ``radius_prior_sd_m`` on R, so R shrinks to 0 when the viewing directions do not
-  spread). The kind follows strength and radius: plane-strength (kappa near 0.15 us) is
-  a ``corner``, near 0.67 us a ``pole`` (or ``point`` when R is 0), near 2.68 us a
-  ``rod`` (``edge`` when within 0.3 m of a built wall's end).
+  spread). The kind follows radius, then strength: R >= ``pole_radius_m`` is a
+  ``pole``; otherwise plane-strength (kappa near 0.15 us) is a ``corner``, near 0.67 us
+  a ``point``, near 2.68 us a ``rod`` (``edge`` when within 0.3 m of a built wall's
+  end). Clusters that converge within ``point_gate_m`` of each other are merged.
 
 Clusters seen fewer than ``min_observations`` times are dropped (spikes, ghosts). Every
 feature carries its uncertainty: ``sd_m`` (largest position SD; for walls the SD of
@@ -30,7 +35,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,19 +62,21 @@ class BuildConfig:
     """Settings of the map builder (see the module docstring)."""
 
     point_gate_m: float = 0.10
-    kappa_log_gate: float = 1.0
     wall_gate_m: float = 0.08
     wall_gate_deg: float = 6.0
     wall_gap_m: float = 0.6
-    join_m: float = 0.3
-    min_observations: int = 3
+    join_m: float = 1.0
+    shadow_m: float = 0.3
+    min_observations: int = 4
     radius_prior_sd_m: float = 0.03
-    statuses: tuple[str, ...] = ("ok",)
+    pole_radius_m: float = 0.015
+    statuses: tuple[str, ...] = ("ok", "flat")
+    segment_max_readings: int = 30
     edge_near_wall_m: float = 0.3
     speed_of_sound_mps: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("point_gate_m", "kappa_log_gate", "wall_gate_m", "wall_gate_deg",
+        for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "pole_radius_m", "shadow_m",
                      "wall_gap_m", "join_m", "radius_prior_sd_m", "edge_near_wall_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -86,8 +93,7 @@ class _PointCluster:
     normal: Array
     rhs: Array
     n: int = 0
-    log_kappa_sum: float = 0.0
-    log_kappa_sq: float = 0.0
+    log_kappas: deque[float] = field(default_factory=lambda: deque(maxlen=255))
     _solution: Array | None = None
     _cov: Array | None = None
 
@@ -97,8 +103,16 @@ class _PointCluster:
         self.normal += a.T @ w
         self.rhs += w.T @ q
         self.n += 1
-        self.log_kappa_sum += log_kappa
-        self.log_kappa_sq += log_kappa**2
+        self.log_kappas.append(log_kappa)
+        self._solution = None
+
+    def absorb(self, other: _PointCluster, prior_info: float) -> None:
+        """Merge another cluster's observations (its radius prior is not counted twice)."""
+        self.normal += other.normal
+        self.normal[2, 2] -= prior_info
+        self.rhs += other.rhs
+        self.n += other.n
+        self.log_kappas.extend(other.log_kappas)
         self._solution = None
 
     def solve(self) -> tuple[Array, Array]:
@@ -118,7 +132,8 @@ class _PointCluster:
 
     @property
     def log_kappa(self) -> float:
-        return self.log_kappa_sum / self.n
+        """Median of the fitted log strengths (fits of kappa scatter widely)."""
+        return float(np.median(np.asarray(self.log_kappas)))
 
     def predict(self, u: Array) -> Array:
         sol, _ = self.solve()
@@ -135,7 +150,15 @@ class _WallCluster:
     t_min: float = math.inf
     t_max: float = -math.inf
     n: int = 0
-    log_kappa_sum: float = 0.0
+    log_kappas: deque[float] = field(default_factory=lambda: deque(maxlen=255))
+    zwz: float = 0.0
+
+    def scatter(self) -> float:
+        """Chi-square per degree of freedom of the member fits about the merged line."""
+        if self.n < 2:
+            return math.nan
+        m, _ = self.mean()
+        return max(self.zwz - float(m @ self.info @ m), 0.0) / (2 * (self.n - 1))
 
     def aligned(self, rho: float, alpha: float) -> Array:
         """(rho, alpha) expressed with alpha near ``alpha_ref`` (rho may turn negative)."""
@@ -232,8 +255,6 @@ class MapBuilder:
         u = v / max(float(np.hypot(*v)), 1e-9)
         best, best_d = None, math.inf
         for c in self.points:
-            if abs(c.log_kappa - log_k) > cfg.kappa_log_gate:
-                continue
             d = float(np.hypot(*(c.predict(u) - q)))
             if d < best_d:
                 best, best_d = c, d
@@ -251,10 +272,14 @@ class MapBuilder:
         cfg = self.config
         f = np.zeros((0, 2)) if feet is None else np.asarray(feet, dtype=float).reshape(-1, 2)
         best, best_score = None, math.inf
+        mid = f.mean(axis=0) if len(f) else None
         for c in self.walls:
             m, _ = c.mean()
             z = c.aligned(rho, alpha)
-            drho, dalpha = abs(z[0] - m[0]), abs(z[1] - m[1])
+            dalpha = abs(z[1] - m[1])
+            # offset between the lines where this fit's echoes were (not at the origin)
+            drho = abs(z[0] - m[0]) if mid is None else \
+                abs(float(mid @ [math.cos(m[1]), math.sin(m[1])]) - m[0])
             if drho > cfg.wall_gate_m or dalpha > math.radians(cfg.wall_gate_deg):
                 continue
             if len(f) and math.isfinite(c.t_min):
@@ -272,8 +297,9 @@ class MapBuilder:
         w = np.linalg.inv(cov)
         best.info += w
         best.rhs += w @ z
+        best.zwz += float(z @ w @ z)
         best.n += 1
-        best.log_kappa_sum += log_k
+        best.log_kappas.append(log_k)
         if len(f):
             t = best.project(f)
             best.t_min = min(best.t_min, float(t.min()))
@@ -284,7 +310,7 @@ class MapBuilder:
         """The merged map features (clusters with at least ``min_observations``)."""
         cfg = self.config
         walls: list[BuiltFeature] = []
-        for c in self.walls:
+        for c in _merge_walls(self.walls, cfg):
             if c.n < cfg.min_observations or not math.isfinite(c.t_min):
                 continue
             m, cov = c.mean()
@@ -294,26 +320,30 @@ class MapBuilder:
             ends = np.array([rho * n + c.t_min * d, rho * n + c.t_max * d])
             if c.t_max - c.t_min < 1e-3:
                 continue
-            walls.append(BuiltFeature("wall", ends, math.exp(c.log_kappa_sum / c.n),
+            walls.append(BuiltFeature("wall", ends, math.exp(float(np.median(c.log_kappas))),
                                       math.sqrt(cov[0, 0]), c.n,
                                       sd_alpha_deg=math.degrees(math.sqrt(cov[1, 1]))))
-        walls = _join_walls(walls, cfg.join_m)
+        walls = _join_walls(_drop_shadowed(walls, cfg), cfg.join_m)
         points: list[BuiltFeature] = []
         wall_ends = np.array([w.coords for w in walls]).reshape(-1, 2)
-        for pc in self.points:
+        prior_info = 1.0 / cfg.radius_prior_sd_m**2
+        for pc in _merge_points(self.points, cfg.point_gate_m, prior_info):
             if pc.n < cfg.min_observations:
                 continue
             sol, cov = pc.solve()
             kappa = math.exp(pc.log_kappa)
-            kind = min(_KIND_KAPPA, key=lambda k: abs(math.log(_KIND_KAPPA[k]) - pc.log_kappa))
             radius = float(sol[2])
             centre = sol[:2]
-            near_end = len(wall_ends) and float(np.min(np.hypot(*(wall_ends - centre).T))) \
-                < cfg.edge_near_wall_m
-            if kind == "pole" and radius < 0.005:
-                kind = "point"
-            elif kind == "rod" and near_end:
-                kind = "edge"
+            if radius >= cfg.pole_radius_m:
+                kind = "pole"  # a resolved radius says cylinder, whatever kappa says
+            else:
+                kind = min(_KIND_KAPPA, key=lambda k: abs(math.log(_KIND_KAPPA[k]) - pc.log_kappa))
+                near_end = bool(len(wall_ends)) and float(
+                    np.min(np.hypot(*(wall_ends - centre).T))) < cfg.edge_near_wall_m
+                if kind == "pole":
+                    kind = "point"
+                elif kind == "rod" and near_end:
+                    kind = "edge"
             if kind in ("corner", "edge"):
                 radius = 0.0
             sd = math.sqrt(float(np.max(np.linalg.eigvalsh(cov[:2, :2]))))
@@ -333,6 +363,95 @@ class MapBuilder:
         return map_from_geojson(self.geojson())
 
 
+def _drop_shadowed(walls: list[BuiltFeature], cfg: BuildConfig) -> list[BuiltFeature]:
+    """Drop a wall running parallel within ``shadow_m`` of a wall seen at least twice as
+    often, over an overlapping stretch: a biased duplicate (one wall cannot be seen
+    through another)."""
+    keep = []
+    for i, w in enumerate(walls):
+        a0, a1 = w.coords
+        d = a1 - a0
+        length = float(np.hypot(*d))
+        shadowed = False
+        for j, o in enumerate(walls):
+            if j == i or o.n_obs < 2 * w.n_obs:
+                continue
+            b0, b1 = o.coords
+            e = b1 - b0
+            lo = float(np.hypot(*e))
+            if abs(d[0] * e[1] - d[1] * e[0]) > math.sin(math.radians(cfg.wall_gate_deg)) \
+                    * length * lo:
+                continue
+            n = np.array([-e[1], e[0]]) / lo
+            if max(abs(float((a0 - b0) @ n)), abs(float((a1 - b0) @ n))) > cfg.shadow_m:
+                continue
+            t = sorted(float((p - b0) @ e) / lo for p in (a0, a1))
+            if t[1] > 0 and t[0] < lo:  # overlapping stretch
+                shadowed = True
+                break
+        if not shadowed:
+            keep.append(w)
+    return keep
+
+
+def _merge_walls(clusters: list[_WallCluster], cfg: BuildConfig) -> list[_WallCluster]:
+    """Merge wall clusters on the same line whose extents overlap or nearly touch."""
+    out: list[_WallCluster] = []
+    for c in sorted(clusters, key=lambda c: -c.n):
+        if not math.isfinite(c.t_min):
+            out.append(c)
+            continue
+        m, _ = c.mean()
+        n = np.array([math.cos(m[1]), math.sin(m[1])])
+        d = np.array([-n[1], n[0]])
+        ends = np.array([m[0] * n + c.t_min * d, m[0] * n + c.t_max * d])
+        for o in out:
+            if not math.isfinite(o.t_min):
+                continue
+            om, _ = o.mean()
+            z = o.aligned(float(m[0]), float(m[1]))
+            mid = ends.mean(axis=0)
+            offset = abs(float(mid @ [math.cos(om[1]), math.sin(om[1])]) - om[0])
+            if offset > cfg.wall_gate_m or abs(z[1] - om[1]) > math.radians(cfg.wall_gate_deg):
+                continue
+            t = o.project(ends)
+            if t.max() < o.t_min - cfg.wall_gap_m or t.min() > o.t_max + cfg.wall_gap_m:
+                continue
+            # express c's information in o's (rho, alpha) branch: flip the sign of rho if
+            # the normals point opposite ways
+            flip = abs(float(se2.wrap_angle(m[1] - om[1]))) > math.pi / 2
+            j = np.diag([-1.0, 1.0]) if flip else np.eye(2)
+            o.info += j @ c.info @ j
+            o.rhs += j @ c.info @ z
+            o.zwz += c.zwz
+            o.n += c.n
+            o.log_kappas.extend(c.log_kappas)
+            o.t_min = min(o.t_min, float(t.min()))
+            o.t_max = max(o.t_max, float(t.max()))
+            break
+        else:
+            out.append(_WallCluster(c.alpha_ref, c.info.copy(), c.rhs.copy(), c.t_min, c.t_max,
+                                    c.n, deque(c.log_kappas, maxlen=255), c.zwz))
+    return out
+
+
+def _merge_points(clusters: list[_PointCluster], gate_m: float, prior_info: float
+                  ) -> list[_PointCluster]:
+    """Merge clusters whose centres ended up within ``gate_m`` (split early in a drive)."""
+    out: list[_PointCluster] = []
+    for c in sorted(clusters, key=lambda c: -c.n):
+        centre = c.solve()[0][:2]
+        for o in out:
+            if float(np.hypot(*(o.solve()[0][:2] - centre))) <= gate_m:
+                o.absorb(c, prior_info)
+                break
+        else:
+            merged = _PointCluster(c.normal.copy(), c.rhs.copy(), c.n, deque(c.log_kappas,
+                                                                             maxlen=255))
+            out.append(merged)
+    return out
+
+
 def _pose_jacobian(kind: str, p: Array, pose: Array) -> Array:
     """d(landmark xy or rho/alpha in map) / d(base_link pose), (2, 3)."""
     if kind == "point":
@@ -343,7 +462,8 @@ def _pose_jacobian(kind: str, p: Array, pose: Array) -> Array:
 
 
 def _join_walls(walls: list[BuiltFeature], join_m: float) -> list[BuiltFeature]:
-    """Snap wall ends that nearly meet (within ``join_m`` of both lines' intersection)."""
+    """Extend wall ends that nearly meet (within ``join_m`` of both lines' intersection,
+    which must lie beyond both ends: walls are only lengthened, never cut)."""
     ends = [w.coords.copy() for w in walls]
     for i in range(len(walls)):
         for j in range(i + 1, len(walls)):
@@ -358,7 +478,12 @@ def _join_walls(walls: list[BuiltFeature], join_m: float) -> list[BuiltFeature]:
             x = a0 + s * da
             ia = int(np.argmin(np.hypot(*(ends[i] - x).T)))
             ib = int(np.argmin(np.hypot(*(ends[j] - x).T)))
-            if np.hypot(*(ends[i][ia] - x)) <= join_m and np.hypot(*(ends[j][ib] - x)) <= join_m:
+            beyond_a = float((x - ends[i][1 - ia]) @ (ends[i][ia] - ends[i][1 - ia])) >= \
+                float(np.sum((ends[i][ia] - ends[i][1 - ia]) ** 2)) - 1e-9
+            beyond_b = float((x - ends[j][1 - ib]) @ (ends[j][ib] - ends[j][1 - ib])) >= \
+                float(np.sum((ends[j][ib] - ends[j][1 - ib]) ** 2)) - 1e-9
+            if beyond_a and beyond_b and np.hypot(*(ends[i][ia] - x)) <= join_m \
+                    and np.hypot(*(ends[j][ib] - x)) <= join_m:
                 ends[i][ia] = x
                 ends[j][ib] = x
     return [BuiltFeature(w.kind, e, w.kappa_us, w.sd_m, w.n_obs, w.radius_m, w.sd_alpha_deg)
@@ -508,7 +633,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     """
     from sonarloc.fit.landmarks import fit_segments
     from sonarloc.fit.lsq import FitConfig
-    from sonarloc.fit.segment import Segmenter
+    from sonarloc.fit.segment import Segmenter, SegmenterConfig
     from sonarloc.physics.tof import ModuleParams
 
     cfg = config or BuildConfig()
@@ -520,7 +645,8 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     for t, sensor, tof, pose, cov, base, c_mps in _readings(source, stats, poses, result.skipped):
         if seg is None or fit_cfg is None:
             fit_cfg = FitConfig(module=ModuleParams(c_mps=cfg.speed_of_sound_mps or c_mps))
-            seg = Segmenter(None, fit_cfg.module)
+            seg = Segmenter(SegmenterConfig(max_readings=cfg.segment_max_readings),
+                            fit_cfg.module)
         result.readings += 1
         if math.isfinite(tof):
             ref_cov[t] = (base, cov)

@@ -1,0 +1,180 @@
+import io
+import math
+
+import numpy as np
+import pytest
+
+from sonarloc.fit.result import FitStatus, Landmark
+from sonarloc.io.logfile import LogWriter, TruthRecord, iter_log
+from sonarloc.io.posescsv import PoseTrack, read_poses_csv, write_poses_csv
+from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.replay import replay_log
+from sonarloc.maps.build import BuildConfig, MapBuilder, build_from_log
+from sonarloc.maps.geojson import load_map, map_from_geojson
+from sonarloc.world.rig import ring16
+from sonarloc.world.simulate import simulate_records
+from tests.conftest import MAPS
+
+ROOM = MAPS / "room.geojson"
+
+
+def point_lm(q, sd=0.002, kappa=0.67, status=FitStatus.OK):
+    cov = np.diag([sd**2, sd**2, 0.01])
+    return Landmark("point", np.array([q[0], q[1], kappa]), cov, 1.0, 0.0, 10, 0.0,
+                    (0.0, 0.0, 0.0), status)
+
+
+def line_lm(rho, alpha, sd=0.002, sd_a=0.003, kappa=0.15):
+    cov = np.diag([sd**2, sd_a**2, 0.001])
+    return Landmark("line", np.array([rho, alpha, kappa]), cov, 1.0, 0.0, 10, 0.0,
+                    (0.0, 0.0, 0.0))
+
+
+def test_cylinder_centre_and_radius_from_several_directions(rng):
+    c, r = np.array([2.0, 1.0]), 0.0445
+    b = MapBuilder()
+    for ang in np.linspace(-2.5, 2.5, 40):
+        u = np.array([math.cos(ang), math.sin(ang)])
+        view = c + 1.5 * u
+        q = c + r * u + rng.normal(0, 0.002, 2)
+        assert b.add(point_lm(q), view) == "point"
+    (f,) = b.features()
+    assert f.kind == "pole"
+    assert np.hypot(*(f.coords - c)) < 0.002
+    assert f.radius_m == pytest.approx(r, abs=0.003)
+    assert f.n_obs == 40 and 0 < f.sd_m < 0.002
+
+
+def test_point_seen_from_one_side_has_no_radius(rng):
+    b = MapBuilder()
+    for _ in range(10):
+        b.add(point_lm(np.array([1.0, 1.0]) + rng.normal(0, 0.001, 2), kappa=0.15),
+              np.array([0.0, 1.0]))
+    (f,) = b.features()
+    assert f.kind == "corner" and f.radius_m == 0.0
+    assert np.hypot(*(f.coords - [1.0, 1.0])) < 0.002
+
+
+def test_walls_merge_across_passes_and_spurious_clusters_drop(rng):
+    b = MapBuilder(BuildConfig(min_observations=3))
+    for k in range(12):  # a wall y = 3 seen in pieces along x from 0 to 6
+        x0 = 0.5 * k
+        feet = np.array([[x0, 3.0], [x0 + 0.5, 3.0]])
+        b.add(line_lm(3.0 + rng.normal(0, 0.002), math.pi / 2 + rng.normal(0, 0.003)),
+              np.array([x0, 2.0]), feet=feet)
+    b.add(point_lm([5.0, 5.0]), np.array([4.0, 4.0]))  # seen once: dropped
+    b.add(point_lm([1.0, 1.0], status=FitStatus.PARTIAL), np.array([0.0, 0.0]))
+    feats = b.features()
+    assert [f.kind for f in feats] == ["wall"]
+    ends = feats[0].coords
+    assert np.allclose(sorted(ends[:, 0]), [0.0, 6.0], atol=0.01)
+    assert np.allclose(ends[:, 1], 3.0, atol=0.01)
+    assert b.stats["skipped_partial"] == 1
+    m = b.to_map()
+    assert [r.kind for r in m.reflectors] == ["wall"]  # vertices "none": no edges at the ends
+
+
+def test_walls_are_extended_to_meet_at_corners():
+    b = MapBuilder(BuildConfig(min_observations=1))
+    b.add(line_lm(0.0, -math.pi / 2), np.array([1.0, 1.0]),
+          feet=np.array([[0.6, 0.0], [3.0, 0.0]]))
+    b.add(line_lm(4.0, 0.0), np.array([3.0, 1.0]), feet=np.array([[4.0, 0.5], [4.0, 3.0]]))
+    walls = [f for f in b.features() if f.kind == "wall"]
+    corner = np.array([4.0, 0.0])
+    assert all(np.min(np.hypot(*(w.coords - corner).T)) < 1e-9 for w in walls)
+    # the far ends stay where the echoes were
+    assert any(np.allclose(w.coords, [[0.6, 0.0], [4.0, 0.0]]) or
+               np.allclose(w.coords, [[4.0, 0.0], [0.6, 0.0]]) for w in walls)
+
+
+@pytest.fixture(scope="module")
+def room_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("build")
+    log = d / "room.jsonl"
+    with LogWriter(log) as w:
+        w.write_all(simulate_records(load_map(ROOM), ring16(), duration_s=116.0, seed=7))
+    truth = [r for r in iter_log(log) if isinstance(r, TruthRecord)]
+    n = len(truth)
+    track = PoseTrack(np.array([r.t_s for r in truth]), np.array([r.x_m for r in truth]),
+                      np.array([r.y_m for r in truth]), np.radians([r.yaw_deg for r in truth]),
+                      np.zeros((n, 3, 3)))
+    poses = d / "truth.csv"
+    write_poses_csv(poses, track)
+    built = d / "built.geojson"
+    result = build_from_log(log, read_poses_csv(poses))
+    built.write_text(__import__("json").dumps(result.geojson()))
+    return d, log, poses, built
+
+
+def _line_distance(p, seg):
+    a, b = seg
+    d = b - a
+    n = np.array([-d[1], d[0]]) / np.hypot(*d)
+    return abs((p - a) @ n)
+
+
+def test_built_map_recovers_the_room_within_2cm(room_run):
+    d, log, poses, out = room_run
+    built_map = load_map(out)
+    built = FeatureMap.from_map(built_map)
+    true = FeatureMap.from_map(load_map(ROOM))
+    n_obs = [f.properties["n_obs"] for f in built_map.features if f.kind == "wall"]
+    assert built.n_walls >= 5
+    for ends, n in zip(built.wall_ends, n_obs, strict=True):
+        if n < 10:
+            continue  # a few short ghost walls (corner echoes fitted as lines) may remain
+        err = min(max(_line_distance(p, seg) for p in ends) for seg in true.wall_ends)
+        assert err < 0.02  # both ends on a true wall's line
+    well_seen = sum(n >= 10 for n in n_obs)
+    assert well_seen >= 5
+    cyl = [i for i, k in enumerate(true.point_kind) if k in ("pole", "rod")]
+    for i in cyl:  # every pole and rod found, centre within 2 cm
+        d_c = np.hypot(*(built.point_xy - true.point_xy[i]).T)
+        assert d_c.min() < 0.02, (true.point_id[i], d_c.min())
+    for p in built.point_xy:  # nothing made up: every point near a true reflector
+        assert np.hypot(*(true.point_xy - p).T).min() < 0.02
+
+
+def test_built_map_works_in_localize(room_run):
+    d, log, poses, out = room_run
+    fmap = FeatureMap.from_map(load_map(out))
+    truth = {r.t_s: r for r in iter_log(log) if isinstance(r, TruthRecord)}
+    head = io.StringIO("".join(line for line, _ in zip(open(log, encoding="utf-8"),
+                                                       range(9000), strict=False)))
+    errors = []
+
+    def check(rec, est):
+        if rec.t_s > 5.0:
+            t = truth[rec.t_s]
+            errors.append(math.hypot(est.x_m - t.x_m, est.y_m - t.y_m))
+
+    result = replay_log(head, fmap, on_estimate=check)
+    assert result.localizer.stats.accepted > 50
+    assert np.sqrt(np.mean(np.square(errors))) < 0.02
+    assert result.last is not None and result.last.status == "tracking"
+
+
+def test_build_cli_from_odometry_and_bad_input(run_cli, room_run, tmp_path):
+    _, log, _, _ = room_run
+    lines = log.read_text().splitlines()[:3000]
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text("\n".join(lines[:50] + ["garbage", '{"type": "sonar"}'] + lines[50:]) + "\n")
+    out = tmp_path / "m.geojson"
+    proc = run_cli("map", "build", str(bad), "--out", str(out), check=True)
+    assert "line 51" in proc.stderr and "sonar" in proc.stderr
+    assert "landmarks fitted" in proc.stderr
+    map_from_geojson(__import__("json").loads(out.read_text()))
+    proc = run_cli("map", "build", str(bad), "--poses", str(tmp_path / "none.csv"), "--out",
+                   str(out))
+    assert proc.returncode == 2 and "none.csv" in proc.stderr
+    proc = run_cli("map", "build", str(bad))
+    assert proc.returncode == 2 and "--out" in proc.stderr
+
+
+def test_builder_memory_is_bounded():
+    b = MapBuilder()
+    for k in range(3000):
+        b.add(point_lm([1.0, 1.0], kappa=0.5 + (k % 7) * 0.1), np.array([0.0, 1.0]))
+    assert len(b.points) == 1 and len(b.points[0].log_kappas) <= 255
+    result = build_from_log(io.StringIO(""))
+    assert result.readings == 0 and result.builder.features() == []
