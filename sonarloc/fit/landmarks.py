@@ -13,16 +13,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from sonarloc.fit import model as M
-from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, fit_batch, pack_segments
+from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_segments
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig, SegmenterStats
-from sonarloc.fit.select import KAPPA_WALL_US, choose_kind, choose_tier, overlap_check
+from sonarloc.fit.select import Selection, select_models
 from sonarloc.io.scancsv import ScanReadings
 
 Array = NDArray[np.float64]
@@ -98,15 +98,6 @@ def _fallback(seg_arrays: _Cleaned, status: FitStatus, reason: str,
                     sensors=sensors, extra={**extra, "n_noecho": int((~finite).sum())})
 
 
-@dataclass
-class _Choice:
-    kind: str
-    tier: str
-    fit: BatchFit   # one row
-    notes: list[str] = field(default_factory=list)
-    extra: dict[str, object] = field(default_factory=dict)
-
-
 def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = None
                  ) -> list[Landmark]:
     """Fit one landmark to each segment (vectorised over all of them).
@@ -149,131 +140,83 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
             todo.append(i)
     if todo:
         batch = pack_segments([cleaned[i][:5] for i in todo])
-        choices = _fit_and_select(batch, cfg)
+        sel = select_models(batch, cfg)
+        lms = _landmarks(batch, sel, [cleaned[i] for i in todo], cfg, [meta[i] for i in todo])
         for j, i in enumerate(todo):
-            out[i] = _landmark(batch, j, choices[j], cleaned[i], cfg, meta[i])
+            out[i] = lms[j]
     return [lm for lm in out if lm is not None]
 
 
-def _fit_and_select(batch: SegmentBatch, cfg: FitConfig) -> list[_Choice]:
-    """Fit point (and line where motion can tell), then the piston tier where needed."""
+def _landmarks(batch: SegmentBatch, sel: Selection, arrs: list[_Cleaned], cfg: FitConfig,
+               meta: list[dict[str, object]]) -> list[Landmark]:
+    """Landmarks with statuses from the selected fits (vectorised, then one object each)."""
     B = batch.size
-    base = np.max(np.hypot(np.where(batch.valid, batch.px, 0.0),
-                           np.where(batch.valid, batch.py, 0.0)), axis=1)
-    point = fit_batch(batch, "point", "gauss", cfg)
-    moving = np.flatnonzero(base > cfg_baseline(cfg))
-    line = None
-    if moving.size:
-        sub = _take_batch(batch, moving)
-        line = fit_batch(sub, "line", "gauss", cfg)
-    kinds, kind_notes, kind_extra = choose_kind(point, line, moving, cfg)
-    choices: list[_Choice] = []
-    for b in range(B):
-        if kinds[b] == "line" and line is not None and b in set(moving.tolist()):
-            j = int(np.flatnonzero(moving == b)[0])
-            row = line.take(np.array([j]))
-        else:
-            row = point.take(np.array([b]))
-        choices.append(_Choice(kinds[b], "gauss", row, list(kind_notes[b]), dict(kind_extra[b])))
-    choose_tier(batch, choices, cfg)
-    for b, ch in enumerate(choices):
-        if base[b] <= cfg_baseline(cfg) and ch.extra.get("kind_basis") == "strength":
-            # one viewpoint: point and line are the same fit; the final kappa decides
-            ch.kind = "line" if ch.fit.local[0, 2] < KAPPA_WALL_US else "point"
-    overlap_check(batch, choices, cfg)
-    return choices
-
-
-def cfg_baseline(cfg: FitConfig) -> float:
-    """Transducer displacement within a segment [m] above which point and line are
-    both fitted (motion may tell them apart)."""
-    return 0.02
-
-
-def _take_batch(batch: SegmentBatch, idx: NDArray[np.int64]) -> SegmentBatch:
-    from sonarloc.fit.lsq import _take
-
-    return _take(batch, idx)
-
-
-def _landmark(batch: SegmentBatch, j: int, ch: _Choice, arrs: _Cleaned,
-              cfg: FitConfig, meta: dict[str, object]) -> Landmark:
-    f = ch.fit
-    local = f.local[0].copy()
-    local[1] = float(M.wrap_angle(local[1]))
-    lcov = f.cov[0]
-    ref_xy = batch.ref_xy[j]
-    params, cov, _ = M.to_frame(ch.kind, local, lcov, ref_xy)
-    t, x, y, yaw, tof, sensor = arrs
-    finite = np.isfinite(tof)
-    sensors = tuple(sorted({int(s) for s in sensor[finite]}))
-    n_used = int(f.n_used[0])
-    sd_phi = math.sqrt(max(lcov[1, 1], 0.0))
-    sd_r = math.sqrt(max(lcov[0, 0], 0.0))
-    kappa = float(local[2])
-    resid_us = _raw_rms(f)
-    extra: dict[str, object] = dict(meta)
-    extra.update(ch.extra)
-    extra.update(
-        bearing_sd_deg=math.degrees(sd_phi), range_sd_m=sd_r,
-        kappa_sd_us=math.sqrt(max(lcov[2, 2], 0.0)),
-        strength_db=20.0 * math.log10(cfg.module.detection_limit_us / max(kappa, 1e-12)),
-        n_noecho=int((~finite).sum()), n_spikes=int(finite.sum()) - n_used,
-        chi2=float(f.chi2[0]), cost=float(f.cost[0]))
-    status = FitStatus.OK
-    reasons = list(ch.notes)
-    lo, hi = f.arc[0]
-    off = float(M.wrap_angle(local[1] - 0.5 * (lo + hi)))
-    half = 0.5 * (hi - lo)
-    outside = abs(off) - half
-    finite_all = np.all(np.isfinite(params)) and np.all(np.isfinite(cov))
-    if not finite_all:
-        status = FitStatus.BAD_INPUT
-        reasons.insert(0, "non-finite fit (bad input)")
-    elif n_used < 3:
-        status = FitStatus.TOO_FEW_POINTS
-        reasons.insert(0, f"{n_used} echoes left after removing spikes")
-    elif ch.extra.get("overlap"):
-        status = FitStatus.UNRESOLVED
-        reasons.insert(0, str(ch.extra["overlap"]))
-    elif outside > math.radians(1.0) and _delay_span_us(batch, j, ch, cfg) > 3.0:
-        status = FitStatus.PARTIAL
-        reasons.insert(0, f"minimum of the U {math.degrees(outside):.1f} deg outside the arc "
-                          "covered by echoes: bearing bounded only")
-    elif sd_phi > math.radians(cfg.flat_bearing_sd_deg):
-        status = FitStatus.FLAT
-        reasons.insert(0, f"curve too flat for its bearing (SD {math.degrees(sd_phi):.1f} deg "
-                          f"> {cfg.flat_bearing_sd_deg:g} deg)")
-    ref_i = int(np.flatnonzero(finite)[-1])
-    return Landmark(
-        kind="point" if ch.kind == "point" else "line", params=params, cov=cov,
-        range_m=float(local[0]), bearing_rad=float(local[1]), n_readings=n_used,
-        ref_t_s=float(t[ref_i]), ref_pose=(float(x[ref_i]), float(y[ref_i]), float(yaw[ref_i])),
-        status=status, reason="; ".join(reasons), tier=ch.tier, rms_us=resid_us,
-        sensors=sensors, extra=extra)
-
-
-def _delay_span_us(batch: SegmentBatch, j: int, ch: _Choice, cfg: FitConfig) -> float:
-    """How much the fitted threshold delay varies over the used echoes [us]: a partial U
-    shows a clear arm, a flat curve (strong plane) does not."""
-    f = ch.fit
-    used = f.used[0]
-    if not used.any():
-        return 0.0
-    p = f.local[0]
-    geo = M.geometry(ch.kind, p[0], p[1], batch.px[j, used], batch.py[j, used],
-                     batch.yaw[j, used])
-    g, _, _ = M.beam_delay_factor(geo.theta, ch.tier, cfg.module, derivative=False)
-    d = np.minimum(p[2] * g, 1e6)
-    return float(d.max() - d.min())
-
-
-def _raw_rms(f: BatchFit) -> float:
-    """RMS of the standardised residuals of the used echoes (1 = as the jitter model says)."""
-    used = f.used[0]
-    if not used.any():
-        return math.nan
-    return float(np.sqrt(np.mean(f.resid[0][used] ** 2)))
+    mod = cfg.module
+    local = sel.local.copy()
+    local[:, 1] = M.wrap_angle(local[:, 1])
+    params = np.zeros((B, 3))
+    cov = np.zeros((B, 3, 3))
+    span = np.zeros(B)
+    for kind in ("point", "line"):
+        idx = np.flatnonzero(sel.kind == kind)
+        if idx.size == 0:
+            continue
+        params[idx], cov[idx], _ = M.to_frame(kind, local[idx], sel.cov[idx],
+                                              batch.ref_xy[idx])
+        # how much the fitted delay varies over the used echoes: a partial U shows a
+        # clear arm, a flat curve (strong plane) does not
+        for tier in set(sel.tier[idx]):
+            jdx = idx[sel.tier[idx] == tier]
+            sub = _take(batch, jdx)
+            geo = M.geometry(kind, local[jdx, 0:1], local[jdx, 1:2], sub.px, sub.py, sub.yaw)
+            g, _, _ = M.beam_delay_factor(geo.theta, str(tier), mod, derivative=False)
+            d = np.minimum(local[jdx, 2:3] * g, 1e6)
+            u = sel.used[jdx]
+            span[jdx] = (np.max(np.where(u, d, -np.inf), axis=1)
+                         - np.min(np.where(u, d, np.inf), axis=1))
+    sd = np.sqrt(np.maximum(np.einsum("bkk->bk", sel.cov), 0.0))
+    lo, hi = sel.arc[:, 0], sel.arc[:, 1]
+    outside = np.abs(M.wrap_angle(local[:, 1] - 0.5 * (lo + hi))) - 0.5 * (hi - lo)
+    finite = np.all(np.isfinite(params), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+    n_used = sel.n_used
+    rms = np.sqrt((sel.resid ** 2 * sel.used).sum(1) / np.maximum(n_used, 1))
+    strength = 20.0 * np.log10(mod.detection_limit_us / np.maximum(local[:, 2], 1e-12))
+    out = []
+    for j in range(B):
+        t, x, y, yaw, tof, sensor = arrs[j]
+        fin = np.isfinite(tof)
+        extra: dict[str, object] = dict(meta[j])
+        extra.update(sel.extra[j])
+        extra.update(
+            bearing_sd_deg=float(np.degrees(sd[j, 1])), range_sd_m=float(sd[j, 0]),
+            kappa_sd_us=float(sd[j, 2]), strength_db=float(strength[j]),
+            n_noecho=int((~fin).sum()), n_spikes=int(fin.sum()) - int(n_used[j]),
+            chi2=float(sel.chi2[j]), cost=float(sel.cost[j]))
+        status, reason = FitStatus.OK, ""
+        if not finite[j]:
+            status, reason = FitStatus.BAD_INPUT, "non-finite fit (bad input)"
+        elif n_used[j] < 3:
+            status = FitStatus.TOO_FEW_POINTS
+            reason = f"{n_used[j]} echoes left after removing spikes"
+        elif "overlap" in sel.extra[j]:
+            status, reason = FitStatus.UNRESOLVED, str(sel.extra[j]["overlap"])
+        elif outside[j] > math.radians(1.0) and span[j] > 3.0:
+            status = FitStatus.PARTIAL
+            reason = (f"minimum of the U {math.degrees(outside[j]):.1f} deg outside the arc "
+                      "covered by echoes: bearing bounded only")
+        elif sd[j, 1] > math.radians(cfg.flat_bearing_sd_deg):
+            status = FitStatus.FLAT
+            reason = (f"curve too flat for its bearing (SD {math.degrees(sd[j, 1]):.1f} deg "
+                      f"> {cfg.flat_bearing_sd_deg:g} deg)")
+        ref_i = int(np.flatnonzero(fin)[-1])
+        out.append(Landmark(
+            kind="point" if sel.kind[j] == "point" else "line", params=params[j],
+            cov=cov[j], range_m=float(local[j, 0]), bearing_rad=float(local[j, 1]),
+            n_readings=int(n_used[j]), ref_t_s=float(t[ref_i]),
+            ref_pose=(float(x[ref_i]), float(y[ref_i]), float(yaw[ref_i])),
+            status=status, reason=reason, tier=str(sel.tier[j]), rms_us=float(rms[j]),
+            sensors=tuple(sorted({int(s) for s in sensor[fin]})), extra=extra))
+    return out
 
 
 @dataclass

@@ -52,6 +52,12 @@ class FitConfig:
         (at most ``max_outlier_fraction`` of a segment's echoes).
     flat_bearing_sd_deg : a fit whose bearing SD exceeds this is ``FLAT``.
     kappa_min_us : lower bound of kappa.
+    kappa_lo_us, kappa_hi_us, kappa_soft_log_sd : a soft box prior on kappa: flat over
+        [lo, hi], rising like a Gaussian in ln kappa (SD ``kappa_soft_log_sd``) outside;
+        ``inf`` switches it off. Real reflectors lie between 0.15 us (plane) and the
+        detection limit (12 us: weaker ones are never detected), so the box costs no
+        fit anything, but keeps a partial arc from the degenerate "wall far off-axis"
+        reading (kappa -> 0).
     kappa_guess_us : kappa of the conventional fallback result.
     second_start_dcost : a second local minimum of the grid profile within this much
         (-2 log-likelihood) of the best is refined too, and the better result kept.
@@ -70,13 +76,17 @@ class FitConfig:
     max_outlier_fraction: float = 0.2
     flat_bearing_sd_deg: float = 3.0
     kappa_min_us: float = 1e-3
+    kappa_lo_us: float = 0.05
+    kappa_hi_us: float = 20.0
+    kappa_soft_log_sd: float = 0.5
     kappa_guess_us: float = 1.0
     second_start_dcost: float = 6.0
     chunk_readings: int = 65536
 
     def __post_init__(self) -> None:
         for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
-                     "kappa_min_us", "kappa_guess_us", "tolerance"):
+                     "kappa_min_us", "kappa_guess_us", "tolerance", "kappa_lo_us",
+                     "kappa_hi_us", "kappa_soft_log_sd"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
@@ -292,6 +302,7 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
         Jw = np.stack(cols, axis=1)                          # (B, 3, Nd)
         grad -= np.einsum("bkn,bn->bk", Jw, e)
         H += np.matmul(Jw, np.swapaxes(Jw, 1, 2))
+    F = F + _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
     if not det:
         return F, grad, H, e
     sa = M.sigma_a(mod)
@@ -321,6 +332,29 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
             grad -= np.einsum("bkn,bn->bk", dzn, dlpn * nv)
             H += np.matmul(dzn * (curvn * nv)[:, None, :], np.swapaxes(dzn, 1, 2))
     return F, grad, H, e
+
+
+def _kappa_penalty(K: Array, cfg: FitConfig) -> tuple[Array, Array, Array]:
+    """Soft box prior: (-2 log prior, its derivative by K, its curvature by K)."""
+    if not np.isfinite(cfg.kappa_soft_log_sd):
+        z = np.zeros(np.shape(K))
+        return z, z, z
+    v = cfg.kappa_soft_log_sd ** 2
+    lk = np.log(K)
+    d = np.maximum(lk - np.log(cfg.kappa_hi_us), 0.0) + np.minimum(
+        lk - np.log(cfg.kappa_lo_us), 0.0)                     # ln-distance outside the box
+    out = d != 0.0
+    return d * d / v, 2.0 * d / (v * K), np.where(out, 2.0 * (1.0 - d) / (v * K * K), 0.0)
+
+
+def _kappa_prior(K: Array, grad: Array, H: Array, cfg: FitConfig, want_derivs: bool
+                 ) -> Array:
+    """-2 log of the kappa prior (B,); adds its share to the gradient of F/2 and to H."""
+    pen, d1, d2 = _kappa_penalty(K, cfg)
+    if want_derivs:
+        grad[:, 2] += 0.5 * d1
+        H[:, 2, 2] += 0.5 * np.maximum(d2, 0.0)
+    return pen
 
 
 def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConfig) -> Array:
@@ -400,6 +434,7 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     T, Keff, sse = _profile_2x2(S0, S1, S2, Sy, Sgy, Syy, cfg.kappa_min_us * scale, kmax)
     cost = w0 * sse
     K = Keff / scale
+    cost = cost + _kappa_penalty(K, cfg)[0]
     if cfg.detection:
         # -log P(echo) of the echoes and -log P(no echo) of the others, in a cheap form
         # good to ~10% (a bracket needs only the shape): 0.35 max(z + 1.4, 0)^2

@@ -23,6 +23,7 @@ All functions broadcast over leading batch axes.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,23 +145,68 @@ def beam_delay_factor(theta: ArrayLike, tier: str, params: ModuleParams,
         dg = np.where(e < np.log(_G_MAX), g * t * inv_s2, 0.0) if derivative else g
         return g, dg, e
     if tier == "piston":
-        k = np.pi * params.diameter_m * params.carrier_hz / params.c_mps
-        x = k * np.sin(t)
-        small = np.abs(x) < 1e-4
-        xs = np.where(small, 1.0, x)
-        d = np.where(small, 1.0 - x * x / 8.0, 2.0 * j1(xs) / xs)
-        a = d * d
-        front = np.abs(t) < 0.5 * np.pi
-        ok = front & (a > 1.0 / _G_MAX)
-        g = np.where(ok, 1.0 / np.where(ok, a, 1.0), _G_MAX)
-        lng = np.log(g)
+        return _piston_table(params.diameter_m, params.carrier_hz, params.c_mps).lookup(
+            t, derivative)
+    raise ValueError(f"`tier` must be one of {', '.join(TIERS)}; got {tier!r}")
+
+
+def piston_delay_factor_exact(theta: ArrayLike, params: ModuleParams
+                              ) -> tuple[Array, Array, Array]:
+    """g = 1 / (2 J1(x) / x)^2, dg/dtheta and ln g from the Bessel functions (reference)."""
+    t = np.asarray(theta, dtype=float)
+    k = np.pi * params.diameter_m * params.carrier_hz / params.c_mps
+    x = k * np.sin(t)
+    small = np.abs(x) < 1e-4
+    xs = np.where(small, 1.0, x)
+    d = np.where(small, 1.0 - x * x / 8.0, 2.0 * j1(xs) / xs)
+    a = d * d
+    ok = (np.abs(t) < 0.5 * np.pi) & (a > 1.0 / _G_MAX)
+    g = np.where(ok, 1.0 / np.where(ok, a, 1.0), _G_MAX)
+    dd_dx = np.where(small, -x / 4.0, -2.0 * jv(2, xs) / xs)
+    da = 2.0 * d * dd_dx * k * np.cos(t)
+    return g, np.where(ok, -da * g * g, 0.0), np.log(g)
+
+
+@dataclass(frozen=True, eq=False)
+class _HermiteTable:
+    """ln g(|theta|) and its derivative on a uniform grid; cubic Hermite in between."""
+
+    step: float
+    f: Array
+    df: Array
+
+    def lookup(self, theta: Array, derivative: bool) -> tuple[Array, Array, Array]:
+        u = np.abs(theta) * (1.0 / self.step)
+        n = self.f.size - 1
+        i = np.minimum(u.astype(np.intp), n - 1)
+        s = u - i
+        f0, f1 = self.f[i], self.f[i + 1]
+        d0, d1 = self.df[i] * self.step, self.df[i + 1] * self.step
+        s2 = s * s
+        lng = f0 + s2 * (3.0 - 2.0 * s) * (f1 - f0) + s * (1.0 - s) * ((1.0 - s) * d0 - s * d1)
+        beyond = u >= n
+        lng = np.where(beyond, np.log(_G_MAX), lng)
+        g = np.exp(lng)
         if not derivative:
             return g, g, lng
-        dd_dx = np.where(small, -x / 4.0, -2.0 * jv(2, xs) / xs)
-        da = 2.0 * d * dd_dx * k * np.cos(t)
-        dg = np.where(ok, -da * g * g, 0.0)
+        dlng = ((6.0 * s * (1.0 - s)) * (f1 - f0) + (1.0 - s) * (1.0 - 3.0 * s) * d0
+                + s * (3.0 * s - 2.0) * d1) / self.step
+        dg = np.where(beyond, 0.0, g * dlng * np.sign(theta))
         return g, dg, lng
-    raise ValueError(f"`tier` must be one of {', '.join(TIERS)}; got {tier!r}")
+
+
+@functools.lru_cache(maxsize=16)
+def _piston_table(diameter_m: float, carrier_hz: float, c_mps: float) -> _HermiteTable:
+    """The piston delay factor tabulated once per transducer (Bessel functions are slow)."""
+    params = ModuleParams(diameter_m=diameter_m, carrier_hz=carrier_hz, c_mps=c_mps)
+    step = 2.5e-4
+    th = np.arange(0.0, 0.5 * np.pi, step)
+    g, dg, lng = piston_delay_factor_exact(th, params)
+    dlng = np.where(g < _G_MAX, dg / g, 0.0)
+    f, df = np.append(lng, np.log(_G_MAX)), np.append(dlng, 0.0)
+    f.setflags(write=False)
+    df.setflags(write=False)
+    return _HermiteTable(step, f, df)
 
 
 def sigma_a(params: ModuleParams) -> float:

@@ -20,7 +20,8 @@ Association of an echo with an open segment (the one that explains it best):
 
 A reading that covers a segment's last seen landmark direction (within
 ``miss_half_width_deg``) without being associated with it is a *miss*; ``miss_limit``
-consecutive misses close the segment (the landmark has left the beam or is hidden).
+consecutive misses, with the beam turned at least ``miss_angle_deg`` away from that
+direction, close the segment (the landmark has left the beam or is hidden).
 Isolated readings (spikes, cross-talk) open segments that never reach ``min_echoes``
 and are dropped, counted in :class:`SegmenterStats`. Readings next to a segment (same
 sensor, up to ``censor_window`` on each side) that show its landmark was *not*
@@ -60,7 +61,10 @@ class SegmenterConfig:
     beam_half_width_deg : off-axis angle within which a landmark may echo.
     miss_half_width_deg : a reading whose axis points within this angle of a segment's
         last seen landmark, and does not echo from it, counts as a miss.
-    miss_limit : consecutive misses that close a segment.
+    miss_limit : consecutive misses that close a segment, once the beam points at least
+        ``miss_angle_deg`` away from the landmark's last seen direction (so a strong
+        reflector's null between main and side lobe does not split it); 4 x
+        ``miss_limit`` misses close it anyway.
     max_gap_s : longest time without an echo inside one segment.
     min_echoes : segments with fewer echoes are dropped as spikes.
     max_readings : a segment is closed (and fitted) when it holds this many readings.
@@ -72,6 +76,7 @@ class SegmenterConfig:
     beam_half_width_deg: float = 25.0
     miss_half_width_deg: float = 10.0
     miss_limit: int = 4
+    miss_angle_deg: float = 5.0
     max_gap_s: float = 2.0
     min_echoes: int = 3
     max_readings: int = 400
@@ -79,7 +84,8 @@ class SegmenterConfig:
     max_open: int = 64
 
     def __post_init__(self) -> None:
-        for name in ("gate_us", "beam_half_width_deg", "miss_half_width_deg", "max_gap_s"):
+        for name in ("gate_us", "beam_half_width_deg", "miss_half_width_deg", "max_gap_s",
+                     "miss_angle_deg"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
@@ -174,6 +180,7 @@ class Segmenter:
         self._gate_m = cfg.gate_us * self._m_per_us
         self._beam = math.radians(cfg.beam_half_width_deg)
         self._miss = math.radians(cfg.miss_half_width_deg)
+        self._miss_angle = math.radians(cfg.miss_angle_deg)
         self._arc = [self._beam * k / 3.0 for k in range(-3, 4)]
 
     @property
@@ -218,14 +225,15 @@ class Segmenter:
             for s in list(self._open):
                 if s is best:
                     continue
-                if self._covers(s, x, y, yaw):
+                off = self._off_axis(s, x, y, yaw)
+                if off <= self._miss:
                     # a farther echo won: this landmark was not detected (censor)
                     if (R > s.last[4] + self._gate_m and sensor in s.sensors
                             and s.trailing < self.config.censor_window):
                         s.rows.append((t, x, y, yaw, math.nan, sensor))
                         s.trailing += 1
                     s.misses += 1
-                    if s.misses >= self.config.miss_limit:
+                    if self._gone(s, off):
                         closed += self._close(s, "misses")
             if self.config.censor_window:
                 self._remember(row, R)
@@ -243,12 +251,13 @@ class Segmenter:
         else:
             st.no_echo += 1
             for s in list(self._open):
-                if self._covers(s, x, y, yaw):
+                off = self._off_axis(s, x, y, yaw)
+                if off <= self._miss:
                     if sensor in s.sensors and s.trailing < self.config.censor_window:
                         s.rows.append(row)
                         s.trailing += 1
                     s.misses += 1
-                    if s.misses >= self.config.miss_limit:
+                    if self._gone(s, off):
                         closed += self._close(s, "misses")
             if self.config.censor_window:
                 self._remember(row, math.inf)
@@ -300,11 +309,18 @@ class Segmenter:
                 best = d
         return best / self._gate_m if best <= self._gate_m else math.inf
 
-    def _covers(self, s: _Open, x: float, y: float, yaw: float) -> bool:
-        """Whether a reading at (x, y, yaw) points at ``s``'s last seen landmark."""
+    def _off_axis(self, s: _Open, x: float, y: float, yaw: float) -> float:
+        """Off-axis angle [rad] of ``s``'s last seen landmark for a reading at (x, y, yaw)."""
         _, lx, ly, lyaw, lR, _ = s.last
         px, py = lx + lR * math.cos(lyaw), ly + lR * math.sin(lyaw)
-        return abs(_wrap(math.atan2(py - y, px - x) - yaw)) <= self._miss
+        return abs(_wrap(math.atan2(py - y, px - x) - yaw))
+
+    def _gone(self, s: _Open, off: float) -> bool:
+        """The landmark has left the beam: enough misses, and the beam has moved on by
+        ``miss_angle_deg`` (a strong reflector's null before its side lobe is bridged),
+        or a great many misses (a beam standing still)."""
+        lim = self.config.miss_limit
+        return (s.misses >= lim and off >= self._miss_angle) or s.misses >= 4 * lim
 
     def _start(self, row: tuple[float, float, float, float, float, int], R: float
                ) -> list[Segment]:

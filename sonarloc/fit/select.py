@@ -8,28 +8,30 @@ so a user can see what was chosen and whether the data could tell:
   equally well, or the segment was taken from one spot (a pan cannot tell a pole
   from a wall), the reflector strength decides: kappa below ``kappa_wall_us`` is a
   wall-like specular reflector (``kind_basis = "strength"``).
-* **tier**: the piston beam is fitted only where, at the Gaussian fit, the two beams
-  predict readings that differ by more than the tolerance the physics uses
-  (:data:`sonarloc.physics.tiers.GAUSS_TOLERANCE_US`) or detection probabilities
-  that differ; it is kept only if it explains the data better.
+* **tier**: the piston beam is fitted only where the data need it: the Gaussian fit
+  does not explain them (chi-square 3 SDs above its mean, or a 4-sigma echo/no-echo
+  event) and, at that fit, the two beams predict readings that differ by more than
+  the tolerance the physics uses (:data:`sonarloc.physics.tiers.GAUSS_TOLERANCE_US`)
+  or detection probabilities that differ; it is kept only if it fits better.
 * **overlap**: residuals that run in long same-sign blocks with an excess chi-square
   say two reflectors were merged; the result is then ``UNRESOLVED``.
+
+Everything is vectorised over the segments of a batch.
 """
 
 from __future__ import annotations
 
-import math
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import ndtr
 
 from sonarloc.fit import model as M
 from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _take, fit_batch
 from sonarloc.physics.tiers import GAUSS_TOLERANCE_US
 
-if TYPE_CHECKING:  # pragma: no cover
-    from sonarloc.fit.landmarks import _Choice
+Array = NDArray[np.float64]
 
 KAPPA_WALL_US = 0.32
 """Kappa [us] below which a reflector is taken for a wall when motion cannot tell
@@ -40,127 +42,245 @@ KIND_THRESHOLD = 9.0
 against line (a likelihood ratio of e^4.5 ~ 90)."""
 
 TIER_THRESHOLD = 4.0
-"""Difference of -2 log-likelihood for the piston beam to replace the Gaussian one."""
+"""Difference of -2 log-likelihood for another beam tier to replace the Gaussian one."""
+
+SURPRISE = 16.0
+"""An event whose probability under a fit is below exp(-SURPRISE/2) (a 4-sigma event)
+says the fit's model does not explain the data."""
+"""Difference of -2 log-likelihood for another beam tier to replace the Gaussian one."""
+
+MOTION_BASELINE_M = 0.02
+"""Transducer displacement within a segment above which point and line are both fitted."""
+
+_FIELDS = ("local", "cov", "cost", "chi2", "n_used", "used", "resid", "arc", "converged",
+           "robust_cost")
 
 
-def choose_kind(point: BatchFit, line: BatchFit | None, moving: NDArray[np.int64],
-                cfg: FitConfig, kappa_wall_us: float = KAPPA_WALL_US,
-                threshold: float = KIND_THRESHOLD
-                ) -> tuple[list[str], list[list[str]], list[dict[str, object]]]:
-    """Kind per segment, notes and extra fields (``kind_basis``, ``kind_dcost``)."""
-    B = point.local.shape[0]
-    row_of = {int(b): j for j, b in enumerate(moving.tolist())}
-    kinds: list[str] = []
-    notes: list[list[str]] = []
-    extra: list[dict[str, object]] = []
-    for b in range(B):
-        by_strength = "line" if point.local[b, 2] < kappa_wall_us else "point"
-        j = row_of.get(b)
-        if j is None or line is None:
-            kinds.append(by_strength)
-            notes.append([])
-            extra.append({"kind_basis": "strength",
-                          "kind_note": "one viewpoint: point and line give the same readings"})
-            continue
-        d = float(point.robust_cost[b] - line.robust_cost[j])   # > 0: line fits better
-        if d > threshold:
-            kinds.append("line")
-            extra.append({"kind_basis": "motion", "kind_dcost": d})
-        elif d < -threshold:
-            kinds.append("point")
-            extra.append({"kind_basis": "motion", "kind_dcost": d})
-        else:
-            kinds.append(by_strength)
-            extra.append({"kind_basis": "strength", "kind_dcost": d,
-                          "kind_note": "motion too small to tell point from line"})
-        notes.append([])
-    return kinds, notes, extra
+@dataclass
+class Selection:
+    """Per-segment results of the chosen models (arrays over the batch, as BatchFit).
+
+    ``kind``/``tier``: (B,) object arrays of strings; ``extra``: one dict per segment
+    with what was chosen and why.
+    """
+
+    kind: NDArray[np.object_]
+    tier: NDArray[np.object_]
+    local: Array
+    cov: Array
+    cost: Array
+    chi2: Array
+    n_used: NDArray[np.int64]
+    used: NDArray[np.bool_]
+    resid: Array
+    arc: Array
+    converged: NDArray[np.bool_]
+    robust_cost: Array
+    extra: list[dict[str, object]] = field(default_factory=list)
+
+    @classmethod
+    def from_fit(cls, fit: BatchFit) -> Selection:
+        B = fit.local.shape[0]
+        c = [getattr(fit, f).copy() for f in _FIELDS]
+        return cls(np.full(B, fit.kind, dtype=object), np.full(B, fit.tier, dtype=object),
+                   c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9],
+                   [{} for _ in range(B)])
+
+    def put(self, idx: NDArray[np.int64], fit: BatchFit) -> None:
+        """Take the rows of ``fit`` (one per entry of ``idx``) for segments ``idx``."""
+        self.kind[idx] = fit.kind
+        self.tier[idx] = fit.tier
+        for f in _FIELDS:
+            getattr(self, f)[idx] = getattr(fit, f)
+
+    def rows(self, idx: NDArray[np.int64]) -> BatchFit:
+        """Rows ``idx`` as a BatchFit (they must share kind and tier)."""
+        kinds, tiers = set(self.kind[idx]), set(self.tier[idx])
+        if len(kinds) > 1 or len(tiers) > 1:
+            raise ValueError("rows of mixed kind or tier")
+        return BatchFit(str(kinds.pop()), str(tiers.pop()),
+                        *(getattr(self, f)[idx] for f in _FIELDS))
 
 
-def _tier_differs(batch: SegmentBatch, j: int, fit: BatchFit, cfg: FitConfig) -> bool:
-    """Whether Gaussian and piston beams predict distinguishable data at this fit."""
+def motion_baseline_m(batch: SegmentBatch) -> Array:
+    """Largest distance (B,) of an echo's transducer position from the reference [m]."""
+    return np.max(np.hypot(batch.px, batch.py) * batch.valid, axis=1)
+
+
+def choose_kind(sel: Selection, line: BatchFit | None, moving: NDArray[np.int64],
+                kappa_wall_us: float = KAPPA_WALL_US,
+                threshold: float = KIND_THRESHOLD) -> None:
+    """Point (already in ``sel``) or line (``line``: fits of segments ``moving``)."""
+    by_strength = np.where(sel.local[:, 2] < kappa_wall_us, "line", "point")
+    basis = np.full(sel.kind.shape, "strength", dtype=object)
+    d = np.full(sel.kind.shape, np.nan)
+    if line is not None and moving.size:
+        d[moving] = sel.robust_cost[moving] - line.robust_cost   # > 0: line fits better
+        take_line = moving[d[moving] > threshold]
+        keep_point = moving[d[moving] < -threshold]
+        basis[take_line] = "motion"
+        basis[keep_point] = "motion"
+        # undecided moving segments whose strength says wall take the line fit too
+        undecided = moving[np.abs(d[moving]) <= threshold]
+        wall = undecided[by_strength[undecided] == "line"]
+        pick = np.concatenate([take_line, wall])
+        if pick.size:
+            rows = np.searchsorted(moving, pick)
+            sel.put(pick, line.take(rows))
+    for b, ex in enumerate(sel.extra):
+        ex["kind_basis"] = basis[b]
+        if np.isfinite(d[b]):
+            ex["kind_dcost"] = float(d[b])
+        if basis[b] == "strength":
+            ex["kind_note"] = ("motion too small to tell point from line" if np.isfinite(d[b])
+                               else "one viewpoint: point and line give the same readings")
+            if sel.kind[b] == "point" and by_strength[b] == "line" and not np.isfinite(d[b]):
+                sel.kind[b] = "line"   # one viewpoint: the same fit, read as a wall
+
+
+def _tier_differs(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: str,
+                  cfg: FitConfig) -> NDArray[np.bool_]:
+    """Whether Gaussian and piston beams predict distinguishable data at these fits."""
     mod = cfg.module
-    p = fit.local[0]
-    sel = fit.used[0]
-    geo = M.geometry(fit.kind, p[0], p[1], batch.px[j, sel], batch.py[j, sel], batch.yaw[j, sel])
+    sub = _take(batch, idx)
+    p = sel.local[idx]
+    geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.px, sub.py, sub.yaw)
     gg, _, _ = M.beam_delay_factor(geo.theta, "gauss", mod, derivative=False)
     gp, _, _ = M.beam_delay_factor(geo.theta, "piston", mod, derivative=False)
     lim = mod.detection_limit_us
-    dg = np.abs(np.minimum(p[2] * gg, lim) - np.minimum(p[2] * gp, lim))
-    if np.any(dg > GAUSS_TOLERANCE_US):
-        return True
-    nv = batch.ne_valid[j]
-    if cfg.detection and nv.any():
-        ng = M.geometry(fit.kind, p[0], p[1], batch.ne_px[j, nv], batch.ne_py[j, nv],
-                        batch.ne_yaw[j, nv])
+    K = p[:, 2:3]
+    dg = np.abs(np.minimum(K * gg, lim) - np.minimum(K * gp, lim))
+    need = np.any((dg > GAUSS_TOLERANCE_US) & sel.used[idx], axis=1)
+    if cfg.detection and sub.ne_valid.any():
+        ng = M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.ne_px, sub.ne_py, sub.ne_yaw)
         _, _, lg = M.beam_delay_factor(ng.theta, "gauss", mod, derivative=False)
         _, _, lp = M.beam_delay_factor(ng.theta, "piston", mod, derivative=False)
-        from scipy.special import ndtr
-
-        pg = ndtr(M.detection_z(p[2], lg, mod))
-        pp = ndtr(M.detection_z(p[2], lp, mod))
-        if np.any(np.abs(pg - pp) > 0.2):
-            return True
-    return False
+        dp = np.abs(ndtr(M.detection_z(K, lg, mod)) - ndtr(M.detection_z(K, lp, mod)))
+        need |= np.any((dp > 0.2) & sub.ne_valid, axis=1)
+    return need
 
 
-def choose_tier(batch: SegmentBatch, choices: list[_Choice], cfg: FitConfig,
+def misfit(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: str,
+           cfg: FitConfig, surprise: float = SURPRISE) -> NDArray[np.bool_]:
+    """Segments whose fit does not explain their data as the noise model says.
+
+    The TOF chi-square exceeds its mean by 3 SDs (dof + 3 sqrt(2 dof)), or some echo
+    or no-echo event had a probability below exp(-surprise / 2) under the fit.
+    """
+    mod = cfg.module
+    n = sel.n_used[idx]
+    dof = np.maximum(n - 3, 1)
+    bad = sel.chi2[idx] > dof + 3.0 * np.sqrt(2.0 * dof)
+    if not cfg.detection:
+        return bad
+    sub = _take(batch, idx)
+    p = sel.local[idx]
+    tier = sel.tier[idx]
+    for t in set(tier):
+        j = np.flatnonzero(tier == t)
+        s2 = _take(sub, j)
+        K = p[j, 2:3]
+        geo = M.geometry(kind, p[j, 0:1], p[j, 1:2], s2.px, s2.py, s2.yaw)
+        g, _, lg = M.beam_delay_factor(geo.theta, str(t), mod, derivative=False)
+        lp = M.echo_terms(K, g, M.detection_z(K, lg, mod), mod, want_info=False).log_p
+        worst = np.min(np.where(sel.used[idx][j], lp, 0.0), axis=1)
+        if s2.ne_valid.any():
+            ng = M.geometry(kind, p[j, 0:1], p[j, 1:2], s2.ne_px, s2.ne_py, s2.ne_yaw)
+            _, _, lgn = M.beam_delay_factor(ng.theta, str(t), mod, derivative=False)
+            lpn = M.noecho_terms(M.detection_z(K, lgn, mod), want_info=False)[0]
+            worst = np.minimum(worst, np.min(np.where(s2.ne_valid, lpn, 0.0), axis=1))
+        bad[j] |= -2.0 * worst > surprise
+    return bad
+
+
+def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                 threshold: float = TIER_THRESHOLD) -> None:
-    """Refit with the piston beam where it matters; keep it where it fits better."""
-    need = [j for j, ch in enumerate(choices) if _tier_differs(batch, j, ch.fit, cfg)]
-    for j, ch in enumerate(choices):
-        if j not in need:
-            ch.extra["tier_basis"] = "gauss suffices: beams agree within the data"
+    """Refit with the piston beam where the Gaussian fit does not explain the data and
+    the two beams differ there; keep it where it fits better."""
+    basis = np.full(sel.kind.shape, "gauss suffices: beams agree within the data",
+                    dtype=object)
+    fine = np.zeros(sel.kind.shape, dtype=bool)
+    dcost = np.full(sel.kind.shape, np.nan)
     for kind in ("point", "line"):
-        idx = np.array([j for j in need if choices[j].kind == kind], dtype=np.int64)
+        idx = np.flatnonzero(sel.kind == kind)
         if idx.size == 0:
             continue
-        pist = fit_batch(_take(batch, idx), kind, "piston", cfg)
-        for k, j in enumerate(idx.tolist()):
-            ch = choices[j]
-            d = float(ch.fit.robust_cost[0] - pist.robust_cost[k])  # > 0: piston better
-            ch.extra["tier_dcost"] = d
-            if d > threshold:
-                ch.fit = pist.take(np.array([k]))
-                ch.tier = "piston"
-                ch.extra["tier_basis"] = "piston fits the data better"
-            elif d < -threshold:
-                ch.extra["tier_basis"] = "gauss fits the data better"
-            else:
-                ch.extra["tier_basis"] = "data cannot tell gauss from piston: gauss kept"
+        differ = idx[_tier_differs(batch, sel, idx, kind, cfg)]
+        if differ.size == 0:
+            continue
+        bad = misfit(batch, sel, differ, kind, cfg)
+        fine[differ[~bad]] = True
+        need = differ[bad]
+        if need.size == 0:
+            continue
+        pist = fit_batch(_take(batch, need), kind, "piston", cfg)
+        d = sel.robust_cost[need] - pist.robust_cost                     # > 0: piston better
+        dcost[need] = d
+        better = d > threshold
+        basis[need] = np.where(better, "piston fits the data better",
+                               np.where(d < -threshold, "gauss fits the data better",
+                                        "data cannot tell gauss from piston: gauss kept"))
+        if better.any():
+            sel.put(need[better], pist.take(np.flatnonzero(better)))
+    basis[fine] = "gauss explains the data (no need to try piston)"
+    for b, ex in enumerate(sel.extra):
+        ex["tier_basis"] = basis[b]
+        if np.isfinite(dcost[b]):
+            ex["tier_dcost"] = float(dcost[b])
 
 
-def _runs_z(signs: NDArray[np.bool_]) -> float:
-    """Wald-Wolfowitz runs test statistic (negative: fewer runs than chance)."""
-    n = signs.size
-    n1 = int(signs.sum())
-    n2 = n - n1
-    if n1 == 0 or n2 == 0 or n < 8:
-        return 0.0
-    runs = 1 + int(np.count_nonzero(signs[1:] != signs[:-1]))
-    mu = 2.0 * n1 * n2 / n + 1.0
-    var = 2.0 * n1 * n2 * (2.0 * n1 * n2 - n) / (n * n * (n - 1.0))
-    return (runs - mu) / math.sqrt(var) if var > 0 else 0.0
+def runs_z(signs: NDArray[np.bool_], n: NDArray[np.int64]) -> Array:
+    """Wald-Wolfowitz runs statistic per row of the first ``n`` signs (negative: fewer
+    runs than chance, i.e. residuals in blocks); 0 where undefined."""
+    B, N = signs.shape
+    valid = np.arange(N)[None, :] < n[:, None]
+    n1 = (signs & valid).sum(1).astype(float)
+    n2 = n.astype(float) - n1
+    change = (signs[:, 1:] != signs[:, :-1]) & valid[:, 1:]
+    runs = 1.0 + change.sum(1)
+    nf = n.astype(float)
+    mu = 2.0 * n1 * n2 / np.maximum(nf, 1.0) + 1.0
+    var = 2.0 * n1 * n2 * (2.0 * n1 * n2 - nf) / np.maximum(nf * nf * (nf - 1.0), 1.0)
+    ok = (n1 > 0) & (n2 > 0) & (n >= 8) & (var > 0)
+    return np.where(ok, (runs - mu) / np.sqrt(np.where(ok, var, 1.0)), 0.0)
 
 
-def overlap_check(batch: SegmentBatch, choices: list[_Choice], cfg: FitConfig,
+def overlap_check(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                   runs_z_max: float = -4.0, chi2_ratio_min: float = 2.0) -> None:
     """Flag segments whose residuals show a second reflector (``extra['overlap']``)."""
-    for j, ch in enumerate(choices):
-        f = ch.fit
-        used = f.used[0]
-        n = int(used.sum())
-        if n < 8:
+    for kind in ("point", "line"):
+        idx = np.flatnonzero(sel.kind == kind)
+        if idx.size == 0:
             continue
-        # order the echoes by off-axis angle at the fit
-        p = f.local[0]
-        geo = M.geometry(f.kind, p[0], p[1], batch.px[j, used], batch.py[j, used],
-                         batch.yaw[j, used])
-        order = np.argsort(geo.theta)
-        r = f.resid[0][used][order]
-        z = _runs_z(r > 0)
-        ratio = float(f.chi2[0]) / max(n - 3, 1)
-        ch.extra["runs_z"] = z
-        if z < runs_z_max and ratio > chi2_ratio_min:
-            ch.extra["overlap"] = (f"residuals run in blocks (runs z = {z:.1f}, "
-                                   f"chi2/dof = {ratio:.1f}): two reflectors merged?")
+        sub = _take(batch, idx)
+        p = sel.local[idx]
+        geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.px, sub.py, sub.yaw)
+        used = sel.used[idx]
+        order = np.argsort(np.where(used, geo.theta, np.inf), axis=1)
+        signs = np.take_along_axis(sel.resid[idx] > 0, order, axis=1)
+        n = used.sum(1)
+        z = runs_z(signs, n)
+        ratio = sel.chi2[idx] / np.maximum(n - 3, 1)
+        flag = (z < runs_z_max) & (ratio > chi2_ratio_min)
+        for j, b in enumerate(idx.tolist()):
+            sel.extra[b]["runs_z"] = float(z[j])
+            if flag[j]:
+                sel.extra[b]["overlap"] = (f"residuals run in blocks (runs z = {z[j]:.1f}, "
+                                           f"chi2/dof = {ratio[j]:.1f}): two reflectors "
+                                           "merged?")
+
+
+def select_models(batch: SegmentBatch, cfg: FitConfig) -> Selection:
+    """Fit every segment and choose its model: kind, then tier, then the overlap check."""
+    point = fit_batch(batch, "point", "gauss", cfg)
+    sel = Selection.from_fit(point)
+    moving = np.flatnonzero(motion_baseline_m(batch) > MOTION_BASELINE_M)
+    line = fit_batch(_take(batch, moving), "line", "gauss", cfg) if moving.size else None
+    choose_kind(sel, line, moving)
+    choose_tier(batch, sel, cfg)
+    # one viewpoint: point and line are the same fit; the final kappa decides
+    still = np.array([ex["kind_basis"] == "strength" and "kind_dcost" not in ex
+                      for ex in sel.extra], dtype=bool)
+    sel.kind[still] = np.where(sel.local[still, 2] < KAPPA_WALL_US, "line", "point")
+    overlap_check(batch, sel, cfg)
+    return sel

@@ -154,3 +154,14 @@ def test_fast_detection_terms_match_reference():
     np.testing.assert_allclose(-et.dlogp_dz, e_mills, rtol=1e-6, atol=1e-10)
     np.testing.assert_allclose(et.info, e_info, rtol=1e-6, atol=1e-10)
     assert np.all(et.curv >= -1e-12) and np.all(curv >= -1e-12)
+
+
+def test_piston_table_matches_bessel_functions():
+    th = np.deg2rad(np.linspace(-60, 60, 4801))
+    g, dg, lng = M.beam_delay_factor(th, "piston", MOD)
+    ge, dge, lnge = M.piston_delay_factor_exact(th, MOD)
+    main = np.abs(th) < np.deg2rad(13.0)          # main lobe: tight
+    np.testing.assert_allclose(lng[main], lnge[main], rtol=0, atol=1e-7)
+    np.testing.assert_allclose(dg[main], dge[main], rtol=1e-5, atol=1e-6)
+    lobes = (np.abs(th) > np.deg2rad(15.0)) & (np.abs(th) < np.deg2rad(25.0))
+    np.testing.assert_allclose(lng[lobes], lnge[lobes], rtol=0, atol=1e-4)

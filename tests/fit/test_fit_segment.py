@@ -45,7 +45,11 @@ def test_segments_close_as_soon_as_the_landmark_leaves(rng):
     assert len(closed_at) == 1                 # the first pole, before the end of the scan
     i, s = closed_at[0]
     last_echo_yaw = s.readings.yaw_rad[np.isfinite(s.readings.tof_us)][-1]
-    assert scan.yaw_rad[i] - last_echo_yaw <= np.deg2rad(0.5 * seg.config.miss_limit) + 1e-9
+    cfg = seg.config
+    # closed once the beam has turned miss_angle_deg past the last echo (a strong
+    # reflector's null must not split it), not later
+    assert scan.yaw_rad[i] - last_echo_yaw <= np.deg2rad(
+        max(0.5 * cfg.miss_limit, cfg.miss_angle_deg + 0.5)) + 1e-9
     assert len(seg.flush()) == 1
 
 

@@ -117,7 +117,9 @@ def test_stop_pauses_and_start_resumes() -> None:
     with SimModule.on_tcp(stream, rate=4.0) as sim, open_driver(sim.url) as drv:
         assert drv.read(2.0) is not None
         drv.send(Stop())
-        time.sleep(0.2)
+        deadline = time.monotonic() + 5.0
+        while not any(a.command == 0x81 for a in drv.acks) and time.monotonic() < deadline:
+            time.sleep(0.01)
         while True:  # drain what was in flight
             try:
                 drv.read(0.2)
@@ -142,7 +144,7 @@ def test_timeout_when_module_waits_for_start() -> None:
 def test_tcp_disconnect_and_reconnect_mid_stream() -> None:
     stream = list(ring_stream(duration_s=3.0))
     sent = io.StringIO()
-    with SimModule.on_tcp(stream, rate=6.0, sent_log=LogWriter(sent)) as sim, \
+    with SimModule.on_tcp(stream, rate=3.0, sent_log=LogWriter(sent)) as sim, \
             open_driver(sim.url, backoff_s=(0.02, 0.1)) as drv:
         got = [drv.read(2.0) for _ in range(50)]
         sim.transport.drop_client()  # pull the cable
@@ -161,7 +163,7 @@ def test_tcp_disconnect_and_reconnect_mid_stream() -> None:
 def test_pty_unplug_and_replug(tmp_path) -> None:
     link = tmp_path / "ttySONAR0"
     stream = list(ring_stream(duration_s=3.0))
-    with SimModule.on_pty(stream, link=link, rate=6.0) as sim, \
+    with SimModule.on_pty(stream, link=link, rate=3.0) as sim, \
             open_driver(str(link), backoff_s=(0.02, 0.1)) as drv:
         first = [drv.read(2.0) for _ in range(30)]
         sim.transport.replug()

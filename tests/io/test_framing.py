@@ -51,6 +51,7 @@ def test_wire_format_of_an_echo() -> None:
     body = bytes([15, 0x10, 7, 0, 3, 0, 0xA5, 0x10, 0, 0, 0xE8, 0x03, 0, 0])
     crc = crc16_reference(body)
     assert pkt == b"\xfa\xfb" + body + bytes([crc >> 8, crc & 0xFF])
+    assert pkt.hex(" ").upper().endswith("E8 03 00 00 3C 62")  # as printed in PROTOCOL.md
 
 
 @FAST
