@@ -140,7 +140,7 @@ class _Tee:
 class _SegmentKeeper:
     """Keeps a few fitted segments with their readings, the best of each kind (bounded)."""
 
-    def __init__(self, per_kind: int = 4):
+    def __init__(self, per_kind: int = 6):
         self.per_kind = per_kind
         self.best: dict[str, list[tuple[float, int, SegmentView]]] = {}
         self._n = itertools.count()
