@@ -234,8 +234,8 @@ class SegmentFitSource:
     the poses), the direction a cylinder's fitted surface point faces.
     """
 
-    def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 8,
-                 max_wait_s: float = 0.5, max_readings: int | None = None) -> None:
+    def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 4,
+                 max_wait_s: float = 0.25, max_readings: int | None = None) -> None:
         from sonarloc.fit.lsq import FitConfig
         from sonarloc.fit.segment import Segmenter, SegmenterConfig
         from sonarloc.physics.tof import ModuleParams
@@ -498,7 +498,12 @@ class Localizer:
         span = b.t - a.t
         if span <= 0:
             return a.odom
-        return se2.interpolate(a.odom, b.odom, (t - a.t) / span)
+        f = (t - a.t) / span  # linear in x, y; the short way round in yaw
+        ax, ay, ath = (float(v) for v in a.odom)
+        bx, by, bth = (float(v) for v in b.odom)
+        dth = (bth - ath + math.pi) % (2.0 * math.pi) - math.pi
+        yaw = (ath + f * dth + math.pi) % (2.0 * math.pi) - math.pi
+        return np.array([ax + f * (bx - ax), ay + f * (by - ay), yaw])
 
     def _replay(self, start: int) -> None:
         noise = self.config.odom_noise
@@ -557,10 +562,12 @@ class Localizer:
                 if n is None:
                     n = 400 if r.pan_deg is not None else 8
                 self._source = SegmentFitSource(self._c_mps, max_readings=n)
-        pose = se2.compose(base, mount)
+        bx, by, bth = (float(v) for v in base)
+        mx, my, mth = (float(v) for v in mount)
+        c, s = math.cos(bth), math.sin(bth)
+        px, py, pth = bx + c * mx - s * my, by + s * mx + c * my, bth + mth  # base ⊕ mount
         tof = math.nan if r.tof_us is None else float(r.tof_us)
-        for lm in self._source.push(r.t_s, float(pose[0]), float(pose[1]), float(pose[2]),
-                                    tof, r.sensor):
+        for lm in self._source.push(r.t_s, px, py, pth, tof, r.sensor):
             self.add_landmark(lm)
 
     def _landmark_observation(self, lm: Landmark) -> Observation | None:
