@@ -232,21 +232,34 @@ class SegmentFitSource:
     delayed fits at their reference times anyway. Each landmark gets
     ``extra["view_xy"]``: the mean transducer position of its echoes (in the frame of
     the poses), the direction a cylinder's fitted surface point faces.
+
+    ``max_readings``: segment length limit; None lets the :class:`Localizer` choose at
+    the first reading (8 for fixed transducers, 400 for a panning one), or 400 when used
+    on its own.
     """
 
     def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 4,
                  max_wait_s: float = 0.25, max_readings: int | None = None) -> None:
         from sonarloc.fit.lsq import FitConfig
-        from sonarloc.fit.segment import Segmenter, SegmenterConfig
         from sonarloc.physics.tof import ModuleParams
 
         self.fit_config = FitConfig(module=ModuleParams(c_mps=speed_of_sound_mps))
-        seg_cfg = SegmenterConfig() if max_readings is None else \
-            SegmenterConfig(max_readings=max_readings)
-        self.segmenter = Segmenter(seg_cfg, self.fit_config.module)
+        self.max_readings = max_readings
+        self._segmenter: Any = None
         self.batch = batch
         self.max_wait_s = max_wait_s
         self._waiting: list[tuple[float, Any]] = []
+
+    @property
+    def segmenter(self) -> Any:
+        """The fitting stage's :class:`~sonarloc.fit.segment.Segmenter` (made at first use)."""
+        if self._segmenter is None:
+            from sonarloc.fit.segment import Segmenter, SegmenterConfig
+
+            cfg = SegmenterConfig() if self.max_readings is None else \
+                SegmenterConfig(max_readings=self.max_readings)
+            self._segmenter = Segmenter(cfg, self.fit_config.module)
+        return self._segmenter
 
     def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
              sensor: int) -> list[Landmark]:
@@ -555,12 +568,15 @@ class Localizer:
                                              mount, t_s=r.t_s), r.t_s)
             return
         if self._source is None:
+            n = self.config.segment_max_readings
+            if n is None:
+                n = 400 if r.pan_deg is not None else 8
             if self._source_factory is not None:
                 self._source = self._source_factory(self._c_mps)
+                if isinstance(self._source, SegmentFitSource) and \
+                        self._source.max_readings is None:
+                    self._source.max_readings = n
             else:
-                n = self.config.segment_max_readings
-                if n is None:
-                    n = 400 if r.pan_deg is not None else 8
                 self._source = SegmentFitSource(self._c_mps, max_readings=n)
         bx, by, bth = (float(v) for v in base)
         mx, my, mth = (float(v) for v in mount)
