@@ -282,7 +282,7 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
     g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=want_derivs)
     det = cfg.detection
     z = M.detection_z(K, lng, mod) if det else None
-    et = M.echo_terms(K, g, z, mod, want_info=False)
+    et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
     w = np.where(use, 1.0 / np.sqrt(s2), 0.0)               # 1/s, 0 where unused
     e = (y - tau * geo.R - et.delay) * w
     F = (e * e).sum(-1)
@@ -363,8 +363,8 @@ def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConf
     geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], batch.px, batch.py, batch.yaw)
     g, _, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
     z = M.detection_z(p[:, 2:3], lng, mod) if cfg.detection else None
-    et = M.echo_terms(p[:, 2:3], g, z, mod, want_info=False)
-    return M.tof_variance_us2(et.delay, mod)
+    et = M.echo_terms(p[:, 2:3], g, z, mod, want_info=False, tier=tier)
+    return M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform" else None)
 
 
 def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray,
@@ -550,9 +550,13 @@ def _full_cost(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, us
     return F + np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
 
 
-def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig
-           ) -> tuple[Array, NDArray[np.bool_], Array]:
-    """Grid bracket + refinement (from a second start where the grid is ambiguous)."""
+def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
+           start_fit: BatchFit | None = None) -> tuple[Array, NDArray[np.bool_], Array]:
+    """Grid bracket + refinement (from a second start where the grid is ambiguous), or
+    refinement from another model's fit of the same segments (``start_fit``)."""
+    if start_fit is not None:
+        p, conv = _refine(kind, tier, start_fit.local.copy(), batch, y, use, cfg, cfg.rounds)
+        return p, conv, start_fit.arc.copy()
     start, start2, second, arc = _grid_start(kind, tier, batch, y, use, cfg)
     p, conv = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
     idx = np.flatnonzero(second)
@@ -580,17 +584,20 @@ def _covariance(H: Array) -> Array:
 
 def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
               config: FitConfig | None = None, offsets_us: Array | None = None,
-              use: NDArray[np.bool_] | None = None) -> BatchFit:
+              use: NDArray[np.bool_] | None = None, start: BatchFit | None = None
+              ) -> BatchFit:
     """Fit one landmark model to each of ``B`` segments.
 
     Parameters
     ----------
     batch : padded readings (see :func:`pack_segments`).
     kind : ``"point"`` (x, y, kappa) or ``"line"`` (rho, alpha, kappa).
-    tier : beam model ``"gauss"`` or ``"piston"``.
+    tier : model tier, one of :data:`sonarloc.fit.model.TIERS`.
     config : fitter settings (speed of sound, detection model, ...).
-    offsets_us : (B, Nd) known additive offsets of readings (ripple jumps), subtracted.
+    offsets_us : (B, Nd) known additive offsets of readings, subtracted.
     use : (B, Nd) echoes to use (default: all valid).
+    start : another model's fit of the same segments (same kind): refine from it instead
+        of bracketing on the grid (for a second tier, whose optimum is near the first's).
 
     Returns
     -------
@@ -612,7 +619,8 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
             parts.append(fit_batch(
                 _take(batch, idx), kind, tier, cfg,
                 None if offsets_us is None else offsets_us[idx],
-                None if use is None else use[idx]))
+                None if use is None else use[idx],
+                None if start is None else start.take(idx)))
         return BatchFit(kind, tier, *(np.concatenate([getattr(f, name) for f in parts])
                                       for name in ("local", "cov", "cost", "chi2", "n_used",
                                                    "used", "resid", "arc", "converged",
@@ -626,7 +634,9 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
         use0 = use0 & use
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
-    p, conv, arc = _solve(kind, tier, batch, y, use0, cfg)
+    if start is not None and start.kind != kind:
+        raise ValueError(f"`start` is a {start.kind} fit, expected {kind}")
+    p, conv, arc = _solve(kind, tier, batch, y, use0, cfg, start)
     s2 = _variances(kind, tier, p, batch, cfg)
     F, _, H, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg)
     # spikes: drop the worst echoes beyond outlier_sigma, then fit those segments again
