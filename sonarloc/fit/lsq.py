@@ -147,53 +147,74 @@ def pack_segments(
     The reference of each segment is its last reading with a finite echo (its last
     reading if it has none). Non-finite TOFs (NaN, inf) are no-echo readings.
     """
-    B = len(segments)
-    n_det = np.zeros(B, dtype=np.int64)
-    n_ne = np.zeros(B, dtype=np.int64)
-    det_masks = []
+    cols = []
+    lengths = np.zeros(len(segments), dtype=np.int64)
     for b, seg in enumerate(segments):
-        t, x, y, yaw, tof = (np.asarray(a, dtype=float) for a in seg)
-        n = len(t)
-        if not (len(x) == len(y) == len(yaw) == len(tof) == n):
-            raise ValueError(f"segment {b}: arrays of unequal length")
-        det = np.isfinite(tof)
-        det_masks.append(det)
-        n_det[b] = int(det.sum())
-        n_ne[b] = n - n_det[b]
-    Nd = max(int(n_det.max(initial=0)), 1)
-    Nn = max(int(n_ne.max(initial=0)), 1)
+        arrs = [np.asarray(a, dtype=float).reshape(-1) for a in seg]
+        if len(arrs) != 5 or len({a.size for a in arrs}) != 1:
+            raise ValueError(f"segment {b}: expected 5 arrays of equal length")
+        lengths[b] = arrs[0].size
+        cols.append(arrs)
+    f = [np.concatenate([c[k] for c in cols]) if cols else np.zeros(0) for k in range(5)]
+    return pack_flat(np.repeat(np.arange(len(segments)), lengths), f[0], f[1], f[2], f[3],
+                     f[4], n_segments=len(segments))
+
+
+def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array,
+              tof_us: Array, n_segments: int | None = None) -> SegmentBatch:
+    """Pad readings given as flat arrays with a segment index (non-decreasing) into a batch.
+
+    Vectorised form of :func:`pack_segments`: ``seg`` (n,) the segment of each reading,
+    sorted; the other arrays (n,) as there.
+    """
+    seg = np.asarray(seg, dtype=np.int64)
+    B = int(n_segments if n_segments is not None else (seg.max() + 1 if seg.size else 0))
+    det = np.isfinite(tof_us)
+    n = seg.size
+    idx = np.arange(n)
+    start = np.searchsorted(seg, np.arange(B))
+    # reference: the last echo of each segment (its last reading if it has none)
+    last_echo = np.full(B, -1, dtype=np.int64)
+    np.maximum.at(last_echo, seg[det], idx[det])
+    end = np.searchsorted(seg, np.arange(B), side="right")
+    ref = np.where(last_echo >= 0, last_echo, np.maximum(end - 1, 0))
+    has = end > start
+    ref_xy = np.zeros((B, 2))
+    ref_yaw = np.zeros(B)
+    ref_t = np.zeros(B)
+    if n:
+        rr = np.where(has, ref, 0)
+        ref_xy = np.where(has[:, None], np.stack([x_m[rr], y_m[rr]], axis=1), 0.0)
+        ref_yaw = np.where(has, yaw_rad[rr], 0.0)
+        ref_t = np.where(has, t_s[rr], 0.0)
+
+    def pad(mask: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+        s = seg[mask]
+        count = np.bincount(s, minlength=B)
+        first = np.cumsum(count) - count
+        col = np.arange(s.size) - first[s]
+        return s, col, max(int(count.max(initial=0)), 1)
+
+    sd, cd, Nd = pad(det)
+    sn, cn, Nn = pad(~det)
     px = np.zeros((B, Nd))
     py = np.zeros((B, Nd))
     yw = np.zeros((B, Nd))
     tof = np.full((B, Nd), np.nan)
     valid = np.zeros((B, Nd), dtype=bool)
+    px[sd, cd] = x_m[det] - ref_xy[sd, 0]
+    py[sd, cd] = y_m[det] - ref_xy[sd, 1]
+    yw[sd, cd] = yaw_rad[det]
+    tof[sd, cd] = tof_us[det]
+    valid[sd, cd] = True
     npx = np.zeros((B, Nn))
     npy = np.zeros((B, Nn))
     nyw = np.zeros((B, Nn))
     nvalid = np.zeros((B, Nn), dtype=bool)
-    ref_xy = np.zeros((B, 2))
-    ref_yaw = np.zeros(B)
-    ref_t = np.zeros(B)
-    for b, seg in enumerate(segments):
-        t, x, y, yaw, tofs = (np.asarray(a, dtype=float) for a in seg)
-        det = det_masks[b]
-        if len(t) == 0:
-            continue
-        ref = int(np.flatnonzero(det)[-1]) if det.any() else len(t) - 1
-        ref_xy[b] = (x[ref], y[ref])
-        ref_yaw[b] = yaw[ref]
-        ref_t[b] = t[ref]
-        k = n_det[b]
-        px[b, :k] = x[det] - x[ref]
-        py[b, :k] = y[det] - y[ref]
-        yw[b, :k] = yaw[det]
-        tof[b, :k] = tofs[det]
-        valid[b, :k] = True
-        m = n_ne[b]
-        npx[b, :m] = x[~det] - x[ref]
-        npy[b, :m] = y[~det] - y[ref]
-        nyw[b, :m] = yaw[~det]
-        nvalid[b, :m] = True
+    npx[sn, cn] = x_m[~det] - ref_xy[sn, 0]
+    npy[sn, cn] = y_m[~det] - ref_xy[sn, 1]
+    nyw[sn, cn] = yaw_rad[~det]
+    nvalid[sn, cn] = True
     return SegmentBatch(px, py, yw, tof, valid, npx, npy, nyw, nvalid, ref_xy, ref_yaw, ref_t)
 
 
@@ -332,6 +353,24 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
             grad -= np.einsum("bkn,bn->bk", dzn, dlpn * nv)
             H += np.matmul(dzn * (curvn * nv)[:, None, :], np.swapaxes(dzn, 1, 2))
     return F, grad, H, e
+
+
+def tof_jacobian(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConfig
+                 ) -> tuple[Array, Array, Array]:
+    """Whitened TOF Jacobian (B, 3, Nd), mean delays (B, Nd) and SDs (B, Nd) at ``p``."""
+    mod = cfg.module
+    tau = M.us_per_m(mod)
+    r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
+    geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw)
+    g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod)
+    z = M.detection_z(K, lng, mod) if cfg.detection else None
+    et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
+    sd = np.sqrt(M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform"
+                                    else None))
+    a = et.ddelay_du * K * dg
+    J = np.stack([tau * geo.dR_dr + a * geo.dtheta_dr, tau * geo.dR_dphi + a * geo.dtheta_dphi,
+                  np.broadcast_to(et.ddelay_du * g, g.shape)], axis=1) / sd[:, None, :]
+    return J, et.delay, sd
 
 
 def _kappa_penalty(K: Array, cfg: FitConfig) -> tuple[Array, Array, Array]:

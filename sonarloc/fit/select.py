@@ -13,8 +13,9 @@ so a user can see what was chosen and whether the data could tell:
   also the model of the simulator's ``auto`` tier) where, at the Gaussian fit, its
   predicted readings differ by more than the tolerance the physics uses
   (:data:`sonarloc.physics.tiers.GAUSS_TOLERANCE_US`) or its detection probabilities
-  differ; ``piston`` (side lobes) where they differ and the Gaussian fit does not
-  explain the data (chi-square 3 SDs above its mean, or a 4-sigma echo/no-echo event).
+  differ, and a score test says the residuals lean towards it; ``piston`` (side
+  lobes) where they differ and the Gaussian fit does not explain the data (chi-square
+  3 SDs above its mean, or a 4-sigma echo/no-echo event) or leans towards it.
   Another tier replaces ``gauss`` only if it fits better by ``TIER_THRESHOLD``.
 * **overlap**: residuals that run in long same-sign blocks with an excess chi-square
   say two reflectors were merged; the result is then ``UNRESOLVED``.
@@ -31,7 +32,7 @@ from numpy.typing import NDArray
 from scipy.special import ndtr
 
 from sonarloc.fit import model as M
-from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _take, fit_batch
+from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _take, fit_batch, tof_jacobian
 from sonarloc.physics.tiers import GAUSS_TOLERANCE_US
 
 Array = NDArray[np.float64]
@@ -46,6 +47,11 @@ against line (a likelihood ratio of e^4.5 ~ 90)."""
 
 TIER_THRESHOLD = 4.0
 """Difference of -2 log-likelihood for another beam tier to replace the Gaussian one."""
+
+SCORE_Z = 2.0
+"""Score-test statistic above which the residuals of a Gaussian fit are taken to lean
+towards another tier (its likelihood-ratio gain would be about SCORE_Z^2 = the
+``TIER_THRESHOLD``, so weaker evidence could not make it win anyway)."""
 
 SURPRISE = 16.0
 """An event whose probability under a fit is below exp(-SURPRISE/2) (a 4-sigma event)
@@ -167,6 +173,36 @@ def _tiers_differ(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], k
     return need
 
 
+def score_z(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: str,
+            tier_a: str, tier_b: str, cfg: FitConfig) -> Array:
+    """Score (Lagrange multiplier) test of tier ``tier_b`` against the fit in ``tier_a``.
+
+    With the mean readings of the two tiers m_a, m_b at the fit, the test asks whether
+    moving the model from m_a towards m_b would explain the residuals: z = e.d / |d|
+    with e the standardised residuals and d = (m_b - m_a)/s with the directions the fit
+    already has (its Jacobian) projected out. z ~ N(0, 1) when ``tier_a`` is right;
+    large z says the data lean towards ``tier_b``. Costs one model evaluation.
+    """
+    mod = cfg.module
+    sub = _take(batch, idx)
+    p = sel.local[idx]
+    J, da, sd = tof_jacobian(kind, tier_a, p, sub, cfg)
+    geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.px, sub.py, sub.yaw)
+    g, _, lg = M.beam_delay_factor(geo.theta, tier_b, mod, derivative=False)
+    K = p[:, 2:3]
+    z = M.detection_z(K, lg, mod) if cfg.detection else None
+    db = M.echo_terms(K, g, z, mod, want_info=False, tier=tier_b).delay
+    used = sel.used[idx]
+    d = np.where(used, (db - da) / sd, 0.0)
+    J = J * used[:, None, :]
+    JJ = np.matmul(J, np.swapaxes(J, 1, 2)) + 1e-12 * np.eye(3)[None]
+    coef = np.linalg.solve(JJ, np.einsum("bkn,bn->bk", J, d)[..., None])[..., 0]
+    d_perp = d - np.einsum("bk,bkn->bn", coef, J)
+    norm = np.sqrt((d_perp * d_perp).sum(1))
+    e = sel.resid[idx] * used
+    return np.where(norm > 1e-9, (e * d_perp).sum(1) / np.maximum(norm, 1e-9), 0.0)
+
+
 def misfit(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: str,
            cfg: FitConfig, surprise: float = SURPRISE) -> NDArray[np.bool_]:
     """Segments whose fit does not explain their data as the noise model says.
@@ -205,10 +241,11 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     """Try the other tiers where the data can tell them from the Gaussian fit.
 
     ``waveform`` (the simulated module: ripple jumps, late weak echoes) is fitted where
-    its predictions differ from the Gaussian fit's; ``piston`` (eq. 3 with side lobes)
-    where they differ and the Gaussian fit does not explain the data. A tier replaces
-    ``gauss`` only if it lowers -2 log-likelihood by more than ``threshold``; the best
-    such tier wins.
+    its predictions differ from the Gaussian fit's and the residuals lean towards it
+    (:func:`score_z` above ``SCORE_Z``); ``piston`` (eq. 3 with side lobes) where its
+    predictions differ and the Gaussian fit does not explain the data or leans towards
+    it. A tier replaces ``gauss`` only if it lowers -2 log-likelihood by more than
+    ``threshold``; the best such tier wins.
     """
     B = sel.kind.shape[0]
     basis = np.full(B, "gauss: the tiers agree within the data", dtype=object)
@@ -222,9 +259,14 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         best: list[tuple[str, BatchFit, NDArray[np.int64]]] = []
         choice = np.full(idx.size, -1)
         try_w = _tiers_differ(batch, sel, idx, kind, "gauss", "waveform", cfg)
+        if try_w.any():   # and the residuals lean towards it (score test)
+            try_w[try_w] = score_z(batch, sel, idx[try_w], kind, "gauss", "waveform",
+                                   cfg) > SCORE_Z
         try_p = _tiers_differ(batch, sel, idx, kind, "gauss", "piston", cfg)
         if try_p.any():
-            try_p[try_p] = misfit(batch, sel, idx[try_p], kind, cfg)
+            rows = idx[try_p]
+            try_p[try_p] = misfit(batch, sel, rows, kind, cfg) | (np.abs(score_z(
+                batch, sel, rows, kind, "gauss", "piston", cfg)) > SCORE_Z)
         for tier, mask in (("waveform", try_w), ("piston", try_p)):
             rows = np.flatnonzero(mask)
             if rows.size == 0:
