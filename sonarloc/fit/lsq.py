@@ -648,22 +648,69 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     if tier not in M.TIERS:
         raise ValueError(f"`tier` must be one of {', '.join(M.TIERS)}; got {tier!r}")
     cfg = config or FitConfig()
+    if start is not None and start.kind != kind:
+        raise ValueError(f"`start` is a {start.kind} fit, expected {kind}")
     B = batch.size
-    chunk = int(np.clip(cfg.chunk_readings // max(batch.px.shape[1] + batch.ne_px.shape[1], 1),
-                        16, 8192))
-    if B > chunk:   # stay in cache: fit in chunks
-        parts = []
-        for i in range(0, B, chunk):
-            idx = np.arange(i, min(i + chunk, B))
-            parts.append(fit_batch(
-                _take(batch, idx), kind, tier, cfg,
-                None if offsets_us is None else offsets_us[idx],
-                None if use is None else use[idx],
-                None if start is None else start.take(idx)))
-        return BatchFit(kind, tier, *(np.concatenate([getattr(f, name) for f in parts])
-                                      for name in ("local", "cov", "cost", "chi2", "n_used",
-                                                   "used", "resid", "arc", "converged",
-                                                   "robust_cost")))
+    n_d = batch.valid.sum(1)
+    n_n = batch.ne_valid.sum(1)
+    width = batch.px.shape[1] + batch.ne_px.shape[1]
+    if B <= 1 or (B * width <= cfg.chunk_readings
+                  and B * width <= 1.3 * max(int((n_d + n_n).sum()), 1)):
+        return _fit_direct(batch, kind, tier, cfg, offsets_us, use, start)
+    # sort by size and fit in chunks of about chunk_readings padded readings, each
+    # trimmed to its own widest segment: no work on padding, arrays stay in cache
+    order = np.lexsort((n_n, n_d))
+    out_local = np.zeros((B, 3))
+    out_cov = np.zeros((B, 3, 3))
+    out_vec = {name: np.zeros(B) for name in ("cost", "chi2", "robust_cost")}
+    out_n = np.zeros(B, dtype=np.int64)
+    out_conv = np.zeros(B, dtype=bool)
+    out_arc = np.zeros((B, 2))
+    Nd = batch.px.shape[1]
+    out_used = np.zeros((B, Nd), dtype=bool)
+    out_resid = np.zeros((B, Nd))
+    a = 0
+    while a < B:
+        b = a + 1
+        while b < B and (b + 1 - a) * int(n_d[order[b]] + n_n[order[b]] + 2) <= cfg.chunk_readings:
+            b += 1
+        idx = order[a:b]
+        wd = max(int(n_d[idx].max()), 1)
+        wn = max(int(n_n[idx].max()), 1)
+        sub = _trim(_take(batch, idx), wd, wn)
+        part = _fit_direct(
+            sub, kind, tier, cfg,
+            None if offsets_us is None else offsets_us[idx][:, :wd],
+            None if use is None else use[idx][:, :wd],
+            None if start is None else _trim_fit(start.take(idx), wd))
+        out_local[idx], out_cov[idx] = part.local, part.cov
+        for name in out_vec:
+            out_vec[name][idx] = getattr(part, name)
+        out_n[idx], out_conv[idx], out_arc[idx] = part.n_used, part.converged, part.arc
+        out_used[idx, :wd], out_resid[idx, :wd] = part.used, part.resid
+        a = b
+    return BatchFit(kind, tier, out_local, out_cov, out_vec["cost"], out_vec["chi2"], out_n,
+                    out_used, out_resid, out_arc, out_conv, out_vec["robust_cost"])
+
+
+def _trim(batch: SegmentBatch, wd: int, wn: int) -> SegmentBatch:
+    """The batch with its echo arrays cut to ``wd`` columns and no-echo arrays to ``wn``."""
+    return SegmentBatch(batch.px[:, :wd], batch.py[:, :wd], batch.yaw[:, :wd],
+                        batch.tof_us[:, :wd], batch.valid[:, :wd], batch.ne_px[:, :wn],
+                        batch.ne_py[:, :wn], batch.ne_yaw[:, :wn], batch.ne_valid[:, :wn],
+                        batch.ref_xy, batch.ref_yaw, batch.ref_t_s)
+
+
+def _trim_fit(fit: BatchFit, wd: int) -> BatchFit:
+    return BatchFit(fit.kind, fit.tier, fit.local, fit.cov, fit.cost, fit.chi2, fit.n_used,
+                    fit.used[:, :wd], fit.resid[:, :wd], fit.arc, fit.converged,
+                    fit.robust_cost)
+
+
+def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
+                offsets_us: Array | None, use: NDArray[np.bool_] | None,
+                start: BatchFit | None) -> BatchFit:
+    """:func:`fit_batch` on one chunk."""
     mod = cfg.module
     y = batch.tof_us - 0.5 * mod.count_period_us
     if offsets_us is not None:
@@ -673,8 +720,6 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
         use0 = use0 & use
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
-    if start is not None and start.kind != kind:
-        raise ValueError(f"`start` is a {start.kind} fit, expected {kind}")
     p, conv, arc = _solve(kind, tier, batch, y, use0, cfg, start)
     s2 = _variances(kind, tier, p, batch, cfg)
     F, _, H, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg)
