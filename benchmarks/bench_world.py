@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
+import os
 import platform
 import sys
 import time
@@ -202,7 +203,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"({ping_rate * 0.03 / 4:.0f}x real time for ring16's 133 pings/s).",
         "",
         f"Machine: {platform.machine()} {platform.processor() or ''}, Python "
-        f"{platform.python_version()}, numpy {np.__version__}; "
+        f"{platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, load "
+        f"average {os.getloadavg()[0]:.1f} at the end (absolute rates scale with load; the "
+        "ratios are measured interleaved); "
         f"{datetime.date.today().isoformat()}; {'--quick' if args.quick else 'full run'}.",
     ]
     text = "\n".join(lines) + "\n"

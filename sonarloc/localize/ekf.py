@@ -184,10 +184,33 @@ def predict(state: Gaussian, increment: ArrayLike, noise: OdomNoise = OdomNoise(
         ``mean ⊕ increment`` with ``P' = F P Fᵀ + G Q Gᵀ`` (F, G: Jacobians of ⊕).
     """
     u = np.asarray(increment, dtype=float)
+    if state.mean.ndim == 1 and u.shape == (3,) and increment_cov is None:
+        return _predict_one(state, u, noise)
     q = noise.cov(u) if increment_cov is None else np.asarray(increment_cov, dtype=float)
     mean = se2.compose(state.mean, u)
     f, g = se2.compose_jacobians(state.mean, u)
     cov = f @ state.cov @ _t(f) + g @ q @ _t(g)
+    return Gaussian(mean, symmetrize(cov))
+
+
+def _predict_one(state: Gaussian, u: Array, noise: OdomNoise) -> Gaussian:
+    """:func:`predict` for one filter, in scalar arithmetic (same numbers, less overhead)."""
+    x, y, th = (float(v) for v in state.mean)
+    dx, dy, dth = (float(v) for v in u)
+    c, s = math.cos(th), math.sin(th)
+    d = math.hypot(dx, dy)
+    turn = abs(float(se2.wrap_angle(dth)))
+    qx = noise.along_var_per_m * d + noise.xy_var_per_rad * turn
+    qy = noise.cross_var_per_m * d + noise.xy_var_per_rad * turn
+    qt = noise.yaw_var_per_m * d + noise.yaw_var_per_rad * turn
+    f = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+    # G Q Gᵀ with G = rot(th) ⊕ 1 and Q diagonal
+    gq = np.array([[c * c * qx + s * s * qy, c * s * (qx - qy), 0.0],
+                   [c * s * (qx - qy), s * s * qx + c * c * qy, 0.0],
+                   [0.0, 0.0, qt]])
+    cov = f @ state.cov @ f.T + gq
+    mean = np.array([x + c * dx - s * dy, y + s * dx + c * dy,
+                     float(se2.wrap_angle(th + dth))])
     return Gaussian(mean, symmetrize(cov))
 
 

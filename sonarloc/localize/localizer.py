@@ -232,21 +232,34 @@ class SegmentFitSource:
     delayed fits at their reference times anyway. Each landmark gets
     ``extra["view_xy"]``: the mean transducer position of its echoes (in the frame of
     the poses), the direction a cylinder's fitted surface point faces.
+
+    ``max_readings``: segment length limit; None lets the :class:`Localizer` choose at
+    the first reading (8 for fixed transducers, 400 for a panning one), or 400 when used
+    on its own.
     """
 
-    def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 8,
-                 max_wait_s: float = 0.5, max_readings: int | None = None) -> None:
+    def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 4,
+                 max_wait_s: float = 0.25, max_readings: int | None = None) -> None:
         from sonarloc.fit.lsq import FitConfig
-        from sonarloc.fit.segment import Segmenter, SegmenterConfig
         from sonarloc.physics.tof import ModuleParams
 
         self.fit_config = FitConfig(module=ModuleParams(c_mps=speed_of_sound_mps))
-        seg_cfg = SegmenterConfig() if max_readings is None else \
-            SegmenterConfig(max_readings=max_readings)
-        self.segmenter = Segmenter(seg_cfg, self.fit_config.module)
+        self.max_readings = max_readings
+        self._segmenter: Any = None
         self.batch = batch
         self.max_wait_s = max_wait_s
         self._waiting: list[tuple[float, Any]] = []
+
+    @property
+    def segmenter(self) -> Any:
+        """The fitting stage's :class:`~sonarloc.fit.segment.Segmenter` (made at first use)."""
+        if self._segmenter is None:
+            from sonarloc.fit.segment import Segmenter, SegmenterConfig
+
+            cfg = SegmenterConfig() if self.max_readings is None else \
+                SegmenterConfig(max_readings=self.max_readings)
+            self._segmenter = Segmenter(cfg, self.fit_config.module)
+        return self._segmenter
 
     def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
              sensor: int) -> list[Landmark]:
@@ -498,7 +511,12 @@ class Localizer:
         span = b.t - a.t
         if span <= 0:
             return a.odom
-        return se2.interpolate(a.odom, b.odom, (t - a.t) / span)
+        f = (t - a.t) / span  # linear in x, y; the short way round in yaw
+        ax, ay, ath = (float(v) for v in a.odom)
+        bx, by, bth = (float(v) for v in b.odom)
+        dth = (bth - ath + math.pi) % (2.0 * math.pi) - math.pi
+        yaw = (ath + f * dth + math.pi) % (2.0 * math.pi) - math.pi
+        return np.array([ax + f * (bx - ax), ay + f * (by - ay), yaw])
 
     def _replay(self, start: int) -> None:
         noise = self.config.odom_noise
@@ -550,17 +568,22 @@ class Localizer:
                                              mount, t_s=r.t_s), r.t_s)
             return
         if self._source is None:
+            n = self.config.segment_max_readings
+            if n is None:
+                n = 400 if r.pan_deg is not None else 8
             if self._source_factory is not None:
                 self._source = self._source_factory(self._c_mps)
+                if isinstance(self._source, SegmentFitSource) and \
+                        self._source.max_readings is None:
+                    self._source.max_readings = n
             else:
-                n = self.config.segment_max_readings
-                if n is None:
-                    n = 400 if r.pan_deg is not None else 8
                 self._source = SegmentFitSource(self._c_mps, max_readings=n)
-        pose = se2.compose(base, mount)
+        bx, by, bth = (float(v) for v in base)
+        mx, my, mth = (float(v) for v in mount)
+        c, s = math.cos(bth), math.sin(bth)
+        px, py, pth = bx + c * mx - s * my, by + s * mx + c * my, bth + mth  # base ⊕ mount
         tof = math.nan if r.tof_us is None else float(r.tof_us)
-        for lm in self._source.push(r.t_s, float(pose[0]), float(pose[1]), float(pose[2]),
-                                    tof, r.sensor):
+        for lm in self._source.push(r.t_s, px, py, pth, tof, r.sensor):
             self.add_landmark(lm)
 
     def _landmark_observation(self, lm: Landmark) -> Observation | None:

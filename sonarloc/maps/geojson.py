@@ -42,7 +42,7 @@ from shapely.geometry import LineString, Point, Polygon, mapping, shape
 from shapely.geometry.base import BaseGeometry
 
 from sonarloc.errors import MapError
-from sonarloc.physics import constants
+from sonarloc.physics import reflectors as physics_reflectors
 
 POINT_KINDS = ("pole", "rod", "corner", "edge", "point")
 LINE_KINDS = ("wall", "plane", "route")
@@ -54,13 +54,22 @@ VERTEX_MODES = ("auto", "corner", "edge", "none")
 STRAIGHT_TURN_DEG = 10.0
 """Wall vertices turning less than this are treated as straight (no vertex reflector)."""
 
+MIN_RADIUS_M = 1e-6
+"""Smallest non-zero cylinder radius accepted (thinner is no sonar reflector; use 0)."""
+
 SNAP_M = 0.01
 """An explicit corner/edge Point this close to a wall vertex replaces the derived one."""
 
 
 def default_kappa_us(kind: str, radius_m: float = 0.0) -> float:
-    """Default reflecting strength tau/A0 [us] of a reflector kind (physics constants)."""
-    return float(constants.KAPPA_US[kind])
+    """Default reflecting strength tau/A0 [us] at 1.5 m of a reflector kind and radius.
+
+    :func:`sonarloc.physics.reflectors.default_kappa_us`: planes, walls, corners 0.15;
+    edges 2.68; cylinders with a radius by the physics radius rule (the paper's 0.67 us
+    for the 8.9 cm pole, 2.68 us for the 8 mm rod), without one 0.67 (pole, point) or
+    2.68 (rod).
+    """
+    return float(physics_reflectors.default_kappa_us(kind, radius_m))
 
 
 @dataclass(frozen=True)
@@ -88,7 +97,8 @@ class Reflector:
     kind : ``wall``/``plane`` (a segment), ``pole``/``rod``/``point`` (a cylinder of
         ``radius_m``, 0 = point), ``corner``/``edge`` (a vertex).
     geometry : 2-point LineString for segments, Point (centre or vertex) otherwise.
-    kappa_us : reflecting strength tau/A0 (smaller = stronger).
+    kappa_us : reflecting strength tau/A0 at the reference range 1.5 m (smaller =
+        stronger); a cylinder's grows with range (physics ``kappa_at_range_us``).
     radius_m : cylinder radius (0 for other kinds).
     id : the feature's ``id`` property (None if absent).
     feature : index of the source feature in the FeatureCollection.
@@ -292,6 +302,8 @@ def _validate(index: int, feat: MapFeature) -> None:
             r = 0.0
         if not _finite_number(r) or r < 0:
             raise _fail(index, f"`radius_m` must be a non-negative number, got {r!r}")
+        if 0 < r < MIN_RADIUS_M:
+            raise _fail(index, f"`radius_m` must be 0 or at least {MIN_RADIUS_M:g} m, got {r!r}")
         if kind in VERTEX_KINDS and r != 0:
             raise _fail(index, f"a {kind} has no radius, got radius_m={r!r}")
         return

@@ -6,6 +6,8 @@ echo candidate (reflecting point q, range |q - p|, off-axis angle theta):
 * a wall/plane segment echoes only from its normal-incidence point (the foot of the
   perpendicular from p), and only if that lies within the segment;
 * a cylinder (pole, rod, point) from its nearest surface point, range |c - p| - radius;
+  its strength (kappa at 1.5 m in the map) falls off with range as the physics
+  radius rule says (:func:`~sonarloc.physics.reflectors.kappa_at_range_us`);
 * a corner like a plane-strength point at the vertex, seen from inside its angle;
 * an edge like a weak point at the vertex, seen from outside its angle and only within
   ``EDGE_MAX_RANGE_M`` (about 0.5 m);
@@ -26,11 +28,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sonarloc.maps.geojson import CYLINDER_KINDS, Map
-from sonarloc.physics import constants
+from sonarloc.physics import reflectors as physics_reflectors
 from sonarloc.physics.beam import gaussian_echo, piston_echo
 from sonarloc.physics.sound import tof_from_range_us
 from sonarloc.physics.tiers import Tier, echo_delays_us
 from sonarloc.physics.tof import ModuleParams, apply_module
+
+_DEFAULT_RADIUS_M = {"pole": physics_reflectors.POLE_RADIUS_M,
+                     "rod": physics_reflectors.ROD_RADIUS_M}
 
 SEGMENT, CYLINDER, CORNER, EDGE = 0, 1, 2, 3
 """Geometry codes of reflectors in :class:`Scene` arrays."""
@@ -65,21 +70,24 @@ def reach_half_angle_rad(kappa_us: float, params: ModuleParams = ModuleParams(),
 
 def sector_bounds(x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike, radius_m: float,
                   half_angle_rad: float) -> NDArray[np.float64]:
-    """Axis-aligned bounding boxes of beam sectors, shape (K, 4) ``minx, miny, maxx, maxy``."""
-    x, y, yaw = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (x_m, y_m, yaw_rad))
-    x, y, yaw = np.broadcast_arrays(x, y, yaw)
+    """Axis-aligned bounding boxes of beam sectors, shape (K, 4) ``minx, miny, maxx, maxy``.
+
+    The box of the apex, the two arc ends and every axis direction (0, 90, 180, 270
+    deg) the sector spans: exact for any half-angle up to pi.
+    """
+    x, y, yaw = np.broadcast_arrays(*(np.atleast_1d(np.asarray(a, dtype=float))
+                                      for a in (x_m, y_m, yaw_rad)))
     h = min(float(half_angle_rad), math.pi)
     r = float(radius_m)
-    xs = [x, x + r * np.cos(yaw - h), x + r * np.cos(yaw + h)]
-    ys = [y, y + r * np.sin(yaw - h), y + r * np.sin(yaw + h)]
-
-    def covers(direction: float) -> NDArray[np.bool_]:
-        return np.abs(_wrap(direction - yaw)) <= h
-
-    xs += [np.where(covers(0.0), x + r, x), np.where(covers(math.pi), x - r, x)]
-    ys += [np.where(covers(math.pi / 2), y + r, y), np.where(covers(-math.pi / 2), y - r, y)]
-    return np.column_stack([np.min(xs, axis=0), np.min(ys, axis=0),
-                            np.max(xs, axis=0), np.max(ys, axis=0)])
+    # directions: arc ends, then the four axis directions where the sector spans them
+    ends = yaw[:, None] + np.array([-h, h])
+    axes = np.array([0.0, 0.5, 1.0, 1.5]) * math.pi
+    spans = np.abs(_wrap(axes[None, :] - yaw[:, None])) <= h
+    apex = np.zeros((yaw.shape[0], 1))  # unspanned axes also fall back to the apex
+    ux = np.concatenate([np.cos(ends), np.where(spans, np.cos(axes), 0.0), apex], axis=1)
+    uy = np.concatenate([np.sin(ends), np.where(spans, np.sin(axes), 0.0), apex], axis=1)
+    return np.column_stack([x + r * ux.min(axis=1), y + r * uy.min(axis=1),
+                            x + r * ux.max(axis=1), y + r * uy.max(axis=1)])
 
 
 def _wrap(a: ArrayLike) -> NDArray[np.float64]:
@@ -99,7 +107,7 @@ class EchoCandidates:
     reflector : index into ``Map.reflectors``.
     range_m : distance from the transducer to the reflecting point.
     theta_rad : off-axis angle of the reflecting point, in [-pi, pi).
-    kappa_us : reflector strength.
+    kappa_us : reflector strength at this range [us].
     qx_m, qy_m : reflecting point in the map frame.
     """
 
@@ -158,6 +166,8 @@ class Scene:
         self.ax, self.ay, self.bx, self.by = (np.zeros(n) for _ in range(4))
         self.radius = np.zeros(n)
         self.kappa = np.zeros(n)
+        # radius that sets a cylinder's range fall-off (the kind's default when none given)
+        self.falloff_radius = np.zeros(n)
         self.has_cone = np.zeros(n, dtype=bool)
         self.u1 = np.zeros((n, 2))
         self.u2 = np.zeros((n, 2))
@@ -173,6 +183,8 @@ class Scene:
             if r.kind in CYLINDER_KINDS:
                 self.code[i] = CYLINDER
                 self.radius[i] = r.radius_m
+                self.falloff_radius[i] = r.radius_m if r.radius_m > 0 else \
+                    _DEFAULT_RADIUS_M.get(r.kind, 0.0)
             else:
                 self.code[i] = CORNER if r.kind == "corner" else EDGE
                 if r.cone_rad is not None:
@@ -181,11 +193,20 @@ class Scene:
                     self.u2[i] = math.cos(r.cone_rad[1]), math.sin(r.cone_rad[1])
         self.occluder = (self.code == SEGMENT) | ((self.code == CYLINDER) & (self.radius > 0))
         if half_angle_rad is None:
-            half_angle_rad = reach_half_angle_rad(float(self.kappa.min()) if n else 1.0, params)
+            # strongest echo the map can give: cylinders are strongest at the nearest
+            # range the module sees (blanking)
+            near_m = max(params.blanking_us * 1e-6 * params.c_mps / 2, 0.01)
+            strongest = self.kappa.copy()
+            cyl = self.code == CYLINDER
+            if np.any(cyl):
+                strongest[cyl] = physics_reflectors.kappa_at_range_us(
+                    self.kappa[cyl], "point", near_m, self.falloff_radius[cyl])
+            half_angle_rad = reach_half_angle_rad(float(strongest.min()) if n else 1.0, params)
         if not (math.isfinite(half_angle_rad) and 0 < half_angle_rad <= math.pi):
             raise ValueError(f"`half_angle_rad` must be in (0, pi], got {half_angle_rad!r}")
         self.half_angle_rad = float(half_angle_rad)
-        self.edge_max_range_m = constants.EDGE_MAX_RANGE_M
+        self.cylinder = self.code == CYLINDER
+        self.edge_max_range_m = physics_reflectors.max_range_m("edge")
 
     def with_params(self, params: ModuleParams) -> Scene:
         """The same scene (arrays shared) with another module (e.g. a rig's range gate)."""
@@ -255,8 +276,15 @@ class Scene:
         if keep.size:
             blocked = self._blocked(k, i, keep, px[keep], py[keep], qx[keep], qy[keep])
             keep = keep[~blocked]
-        return EchoCandidates(k[keep], i[keep], rng_m[keep], theta[keep], self.kappa[i[keep]],
-                              qx[keep], qy[keep])
+        ik, rk = i[keep], rng_m[keep]
+        kappa = self.kappa[ik]
+        cyl = self.cylinder[ik]
+        if np.any(cyl):
+            kappa = kappa.copy()
+            # every cylinder as kind "point" with its fall-off radius filled in above
+            kappa[cyl] = physics_reflectors.kappa_at_range_us(
+                kappa[cyl], "point", rk[cyl], self.falloff_radius[ik[cyl]])
+        return EchoCandidates(k[keep], ik, rk, theta[keep], kappa, qx[keep], qy[keep])
 
     def _inside_cone(self, i: NDArray[np.int64], dx: NDArray[np.float64],
                      dy: NDArray[np.float64]) -> NDArray[np.bool_]:

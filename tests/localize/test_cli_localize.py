@@ -1,12 +1,19 @@
+import io
 import json
 import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
+from sonarloc.commands.localize import parse_init
 from sonarloc.io.logfile import LogWriter, OdomRecord, TruthRecord, iter_log
 from sonarloc.io.posescsv import COLUMNS, read_poses_csv
+from sonarloc.localize.ekf import Gaussian
 from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.localizer import PoseEstimate
+from sonarloc.localize.replay import PoseCsvWriter
 from sonarloc.maps.geojson import load_map
 from sonarloc.world.rig import ring16
 from sonarloc.world.simulate import simulate_records
@@ -130,3 +137,34 @@ def test_specular_and_conventional_both_run(run_cli, room_log, tmp_path):
         run_cli("localize", str(room_log), "--map", ROOM, "--out", str(out), "--method",
                 method, check=True)
         assert len(read_poses_csv(out)) > 200
+
+
+finite = st.floats(-1e6, 1e6, allow_nan=False)
+
+
+@given(finite, finite, finite)
+def test_parse_init_round_trip(x, y, yaw):
+    assert parse_init(f"{x!r},{y!r},{yaw!r}") == (x, y, yaw)
+
+
+@given(st.text(max_size=30))
+def test_parse_init_garbage_names_the_flag(text):
+    try:
+        parse_init(text)
+    except ValueError as err:
+        assert "--init" in str(err)
+
+
+def test_pose_writer_round_trips_through_the_reader(rng):
+    buf = io.StringIO()
+    w = PoseCsvWriter(buf, with_status=True)
+    states = []
+    for k in range(20):
+        a = rng.normal(size=(3, 3))
+        g = Gaussian(rng.normal(size=3) * [5, 5, 1], a @ a.T + np.eye(3) * 1e-3)
+        states.append(g)
+        w.write(OdomRecord(0.05 * k, 0, 0, 0),
+                PoseEstimate(0.05 * k, g, np.zeros(3), np.zeros(3), "tracking", "ok"))
+    track = read_poses_csv(io.StringIO(buf.getvalue()))
+    assert np.allclose(track.cov, np.array([g.cov for g in states]), rtol=1e-12, atol=0)
+    assert np.allclose(track.yaw_rad, [g.mean[2] for g in states], atol=1e-12)

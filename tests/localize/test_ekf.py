@@ -235,3 +235,14 @@ def test_axis_range_wall_jacobian_and_values(rng, poses, sensors):
     assert np.allclose(z1, [1.9 / math.cos(math.radians(30)), 0.0])
     z2, _ = ekf.axis_range_wall([1, 0, 0], [0.1, 0.0, math.pi], [3.0, 0.0])
     assert np.isinf(z2[0])
+
+
+def test_single_filter_predict_matches_batched(rng):
+    noise = OdomNoise()
+    for _ in range(50):
+        g = Gaussian.from_pose(*rng.uniform(-3, 3, 3), 0.05, 0.03)
+        u = rng.normal(0, [0.2, 0.05, 0.5])
+        one = ekf.predict(g, u, noise)
+        batch = ekf.predict(Gaussian(g.mean[None], g.cov[None]), u[None], noise)
+        assert np.allclose(one.mean, batch.mean[0], atol=1e-14, rtol=0)
+        assert np.allclose(one.cov, batch.cov[0], atol=1e-16, rtol=1e-12)

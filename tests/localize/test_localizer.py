@@ -119,3 +119,23 @@ def test_config_validation():
         LocalizerConfig(method="magic")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="history_s"):
         LocalizerConfig(history_s=0.0)
+
+
+def test_segment_length_chosen_for_the_rig():
+    from sonarloc.localize.localizer import SegmentFitSource
+
+    made = []
+
+    def factory(c):
+        made.append(SegmentFitSource(c))
+        return made[-1]
+
+    for pan, expect in ((None, 8), (10.0, 400)):
+        lc = Localizer(room_map(), LocalizerConfig(), landmark_source=factory)
+        lc.handle(make_drive(n=3).records[0])
+        lc.set_prior(0.0, 2.0, 1.0, 0.0, 0.05, 0.05)
+        lc.on_odom(0.0, 0.0, 0.0, 0.0)
+        lc.on_tof(0.01, 0, 5000.0, None if pan is None else math.radians(pan))
+        lc.on_odom(0.05, 0.01, 0.0, 0.0)
+        assert made[-1].max_readings == expect
+        assert made[-1].segmenter.config.max_readings == expect

@@ -91,6 +91,7 @@ def test_vertices_property_and_explicit_corner_override():
          "feature 1: unknown kind 'pole' for a Polygon"),
         (fc(feat("Point", [0, 0], kind="pole", radius_m=-0.1)), "feature 0: `radius_m`.*-0.1"),
         (fc(feat("Point", [0, 0], kind="pole", kappa_us=0)), "feature 0: `kappa_us`"),
+        (fc(feat("Point", [0, 0], kind="rod", radius_m=1e-300)), "feature 0: `radius_m` must be 0"),
         (fc(feat("Point", [0, 0], kind="corner", radius_m=0.1)), "feature 0: a corner has no"),
         (fc(feat("Point", [0, float("nan")], kind="pole")), "feature 0: coordinates must be"),
         (fc(feat("Point", [0, float("inf")], kind="rod")), "feature 0: coordinates must be finite"),
@@ -134,7 +135,7 @@ point_feature = st.builds(
                                 **({"radius_m": r} if kind not in ("corner", "edge") else {}),
                                 **({"kappa_us": k} if k else {})),
     st.tuples(coord, coord), st.sampled_from(["pole", "rod", "point", "corner", "edge"]),
-    st.floats(0, 1, allow_nan=False), st.one_of(st.none(), st.floats(0.01, 20)))
+    st.one_of(st.just(0.0), st.floats(1e-3, 1)), st.one_of(st.none(), st.floats(0.01, 20)))
 wall_feature = st.builds(
     lambda x, y, dx, dy, kind: feat("LineString", [[x, y], [x + dx, y + dy]], kind=kind),
     coord, coord, st.floats(0.1, 5).map(lambda v: round(v, 3)),

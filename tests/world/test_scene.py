@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from sonarloc.maps import build_map, load_map, map_from_geojson
+from sonarloc.physics.reflectors import kappa_at_range_us
 from sonarloc.physics.tiers import Tier
 from sonarloc.physics.tof import ModuleParams
 from sonarloc.world.rig import pan_angles_deg
@@ -71,10 +72,30 @@ def test_fig5_scene_minima_and_occlusion(rng):
 
 
 def test_arrival_time_is_two_range_over_c():
-    m = map_from_geojson(fc(pt(1.5, 0.0, "pole", radius_m=0.05, kappa_us=0.67)))
+    m = map_from_geojson(fc(pt(1.55, 0.0, "pole", radius_m=0.05, kappa_us=0.67)))
     tm, winner = Scene(m, QUIET).predict_tof_us(0.0, 0.0, 0.0, Tier.GAUSS)
     assert winner[0] == 0
-    assert tm[0] == pytest.approx(2 * 1.45 / 343.0 * 1e6 + 0.67, abs=1e-6)
+    assert tm[0] == pytest.approx(2 * 1.5 / 343.0 * 1e6 + 0.67, abs=1e-6)  # kappa at 1.5 m
+
+
+def test_cylinder_strength_falls_off_with_range():
+    # the map's kappa holds at 1.5 m; nearer cylinders are stronger, farther weaker
+    m = map_from_geojson(fc(pt(0.0, 0.0, "rod", radius_m=0.004), pt(0.0, 10.0, "pole")))
+    scene = Scene(m, QUIET)
+    for dist in (0.5, 1.504, 3.0):
+        cand = scene.candidates(dist, 0.0, math.pi)
+        assert cand.reflector.tolist() == [0]
+        expect = kappa_at_range_us(2.68, "rod", dist - 0.004, 0.004)
+        assert cand.kappa_us[0] == pytest.approx(float(expect))
+    assert scene.candidates(1.504, 0.0, math.pi).kappa_us[0] == pytest.approx(2.68)
+    assert scene.candidates(0.5, 0.0, math.pi).kappa_us[0] < 2.68
+    # a radius-less pole falls off like the paper's pole; a plane does not change
+    cand = scene.candidates(0.0, 9.5, math.pi / 2)
+    assert cand.reflector.tolist() == [1]
+    assert cand.kappa_us[0] == pytest.approx(float(kappa_at_range_us(0.67, "pole", 0.5)))
+    wall = Scene(map_from_geojson(fc(line([[1.0, -1.0], [1.0, 1.0]], vertices="none"))), QUIET)
+    assert wall.candidates(0.0, 0.0, 0.0).kappa_us[0] == pytest.approx(0.15)
+    assert wall.candidates(-2.0, 0.0, 0.0).kappa_us[0] == pytest.approx(0.15)
 
 
 def test_line_of_sight_blocked_by_nearer_geometry():
@@ -175,7 +196,7 @@ def test_index_and_brute_force_agree(rng):
 
 def test_winner_tier_recorded(rng):
     fig5 = load_map(MAPS / "paper_fig5.geojson")
-    for tier in (Tier.GAUSS, Tier.PISTON):
+    for tier in (Tier.GAUSS, Tier.PISTON, Tier.WAVEFORM):
         _, res = pan_scan(Scene(fig5), rng, tier=tier)
         got = set(res.tier[res.reflector >= 0].tolist())
         assert got == {int(tier)}
