@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sonarloc.fit import model as M
-from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_segments
+from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_flat
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig, SegmenterStats
 from sonarloc.fit.select import Selection, select_models
@@ -115,40 +115,64 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     """
     cfg = config or FitConfig()
     n = len(segments)
-    out: list[Landmark | None] = [None] * n
-    cleaned: list[_Cleaned] = []
+    if n == 0:
+        return []
+    parts = [_arrays(s) for s in segments]
+    lengths = np.array([p[0].size for p in parts], dtype=np.int64)
+    seg = np.repeat(np.arange(n), lengths)
+    t, x, y, yaw, tof = (np.concatenate([np.asarray(p[k], dtype=float) for p in parts])
+                         for k in range(5))
+    sensor = np.concatenate([np.asarray(p[5], dtype=np.int64) for p in parts])
+    ok, _ = _clean(t, x, y, yaw, tof)
+    n_bad = np.bincount(seg[~ok], minlength=n)
+    seg, t, x, y, tof, sensor = seg[ok], t[ok], x[ok], y[ok], tof[ok], sensor[ok]
+    yaw = M.wrap_angle(yaw[ok])
+    echo = np.isfinite(tof)
+    n_echo = np.bincount(seg[echo], minlength=n)
+    n_noecho = np.bincount(seg[~echo], minlength=n)
+    bounds = np.searchsorted(seg, np.arange(n + 1))
     meta: list[dict[str, object]] = []
-    for seg in segments:
-        t, x, y, yaw, tof, sensor = _arrays(seg)
-        ok, n_bad = _clean(t, x, y, yaw, tof)
-        cleaned.append((t[ok], x[ok], y[ok], M.wrap_angle(yaw[ok]), tof[ok], sensor[ok]))
-        m: dict[str, object] = {"n_bad_input": n_bad}
-        if isinstance(seg, Segment):
-            m.update(seg_id=seg.seg_id, closed_by=seg.closed_by)
+    for i, s in enumerate(segments):
+        m: dict[str, object] = {"n_bad_input": int(n_bad[i])}
+        if isinstance(s, Segment):
+            m.update(seg_id=s.seg_id, closed_by=s.closed_by)
         meta.append(m)
-    todo = []
-    for i, arrs in enumerate(cleaned):
-        n_echo = int(np.isfinite(arrs[4]).sum())
-        if n_echo == 0:
-            out[i] = _fallback(arrs, FitStatus.NO_ECHO, "no echo in the segment", cfg,
-                               meta[i])
-        elif n_echo < 3:
-            out[i] = _fallback(arrs, FitStatus.TOO_FEW_POINTS,
-                               f"{n_echo} echo(es); at least 3 are needed for "
-                               "(range, bearing, kappa)", cfg, meta[i])
+    out: list[Landmark | None] = [None] * n
+    for i in np.flatnonzero(n_echo < 3).tolist():
+        a, b = bounds[i], bounds[i + 1]
+        arrs = (t[a:b], x[a:b], y[a:b], yaw[a:b], tof[a:b], sensor[a:b])
+        if n_echo[i] == 0:
+            out[i] = _fallback(arrs, FitStatus.NO_ECHO, "no echo in the segment", cfg, meta[i])
         else:
-            todo.append(i)
-    if todo:
-        batch = pack_segments([cleaned[i][:5] for i in todo])
+            out[i] = _fallback(arrs, FitStatus.TOO_FEW_POINTS,
+                               f"{n_echo[i]} echo(es); at least 3 are needed for "
+                               "(range, bearing, kappa)", cfg, meta[i])
+    todo = np.flatnonzero(n_echo >= 3)
+    if todo.size:
+        remap = np.full(n, -1, dtype=np.int64)
+        remap[todo] = np.arange(todo.size)
+        keep = remap[seg] >= 0
+        batch = pack_flat(remap[seg[keep]], t[keep], x[keep], y[keep], yaw[keep], tof[keep],
+                          n_segments=todo.size)
+        # transducers that contributed echoes, per segment
+        e = keep & echo
+        s_lo = int(sensor[e].min(initial=0))
+        width = int(sensor[e].max(initial=0)) - s_lo + 1
+        keys = np.unique(remap[seg[e]] * width + (sensor[e] - s_lo))
+        cut = np.searchsorted(keys // width, np.arange(todo.size + 1))
+        sensors = [tuple(int(v) + s_lo for v in keys[cut[j]:cut[j + 1]] % width)
+                   for j in range(todo.size)]
         sel = select_models(batch, cfg)
-        lms = _landmarks(batch, sel, [cleaned[i] for i in todo], cfg, [meta[i] for i in todo])
-        for j, i in enumerate(todo):
+        lms = _landmarks(batch, sel, cfg, [meta[i] for i in todo.tolist()], sensors,
+                         n_echo[todo], n_noecho[todo])
+        for j, i in enumerate(todo.tolist()):
             out[i] = lms[j]
     return [lm for lm in out if lm is not None]
 
 
-def _landmarks(batch: SegmentBatch, sel: Selection, arrs: list[_Cleaned], cfg: FitConfig,
-               meta: list[dict[str, object]]) -> list[Landmark]:
+def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
+               meta: list[dict[str, object]], sensors: list[tuple[int, ...]],
+               n_echo: NDArray[np.int64], n_noecho: NDArray[np.int64]) -> list[Landmark]:
     """Landmarks with statuses from the selected fits (vectorised, then one object each)."""
     B = batch.size
     mod = cfg.module
@@ -181,16 +205,15 @@ def _landmarks(batch: SegmentBatch, sel: Selection, arrs: list[_Cleaned], cfg: F
     n_used = sel.n_used
     rms = np.sqrt((sel.resid ** 2 * sel.used).sum(1) / np.maximum(n_used, 1))
     strength = 20.0 * np.log10(mod.detection_limit_us / np.maximum(local[:, 2], 1e-12))
+    flat_sd = math.radians(cfg.flat_bearing_sd_deg)
     out = []
     for j in range(B):
-        t, x, y, yaw, tof, sensor = arrs[j]
-        fin = np.isfinite(tof)
         extra: dict[str, object] = dict(meta[j])
         extra.update(sel.extra[j])
         extra.update(
-            bearing_sd_deg=float(np.degrees(sd[j, 1])), range_sd_m=float(sd[j, 0]),
+            bearing_sd_deg=math.degrees(sd[j, 1]), range_sd_m=float(sd[j, 0]),
             kappa_sd_us=float(sd[j, 2]), strength_db=float(strength[j]),
-            n_noecho=int((~fin).sum()), n_spikes=int(fin.sum()) - int(n_used[j]),
+            n_noecho=int(n_noecho[j]), n_spikes=int(n_echo[j] - n_used[j]),
             chi2=float(sel.chi2[j]), cost=float(sel.cost[j]))
         status, reason = FitStatus.OK, ""
         if not finite[j]:
@@ -204,18 +227,18 @@ def _landmarks(batch: SegmentBatch, sel: Selection, arrs: list[_Cleaned], cfg: F
             status = FitStatus.PARTIAL
             reason = (f"minimum of the U {math.degrees(outside[j]):.1f} deg outside the arc "
                       "covered by echoes: bearing bounded only")
-        elif sd[j, 1] > math.radians(cfg.flat_bearing_sd_deg):
+        elif sd[j, 1] > flat_sd:
             status = FitStatus.FLAT
             reason = (f"curve too flat for its bearing (SD {math.degrees(sd[j, 1]):.1f} deg "
                       f"> {cfg.flat_bearing_sd_deg:g} deg)")
-        ref_i = int(np.flatnonzero(fin)[-1])
         out.append(Landmark(
             kind="point" if sel.kind[j] == "point" else "line", params=params[j],
             cov=cov[j], range_m=float(local[j, 0]), bearing_rad=float(local[j, 1]),
-            n_readings=int(n_used[j]), ref_t_s=float(t[ref_i]),
-            ref_pose=(float(x[ref_i]), float(y[ref_i]), float(yaw[ref_i])),
+            n_readings=int(n_used[j]), ref_t_s=float(batch.ref_t_s[j]),
+            ref_pose=(float(batch.ref_xy[j, 0]), float(batch.ref_xy[j, 1]),
+                      float(batch.ref_yaw[j])),
             status=status, reason=reason, tier=str(sel.tier[j]), rms_us=float(rms[j]),
-            sensors=tuple(sorted({int(s) for s in sensor[fin]})), extra=extra))
+            sensors=sensors[j], extra=extra))
     return out
 
 

@@ -212,3 +212,24 @@ def test_paper_fig5_scene_from_the_world_map():
     assert plane.kind == "line" and abs(plane.range_m - 1.5) < 2e-3
     assert plane.status in (FitStatus.OK, FitStatus.FLAT)
     assert plane.kappa_us < pole.kappa_us < rod.kappa_us
+
+
+@pytest.mark.parametrize("data_tier", ["waveform", "auto"])
+def test_ripple_jumps_and_late_weak_echoes(rng, data_tier):
+    # waveform-tier readings: half-period ripple jumps and weak echoes up to tens of us
+    # late at the arc edges; the fitter must pick the waveform model where it matters
+    refl = [Reflector.polar(1.46, -17, 0.67), Reflector.polar(2.0, 20, 2.68)]
+    tiers = []
+    for _ in range(4):
+        scan = pan_scan(refl, rng, -40, 40, 0.3, tier=data_tier)
+        lms = fit_scan(scan).landmarks
+        check_invariants(lms)
+        ok = [lm for lm in lms if lm.ok]
+        assert len(ok) == 2
+        pole, rod = sorted(ok, key=lambda lm: lm.bearing_rad)
+        assert near(pole, 1.46, -17) and near(rod, 2.0, 20)
+        assert pole.kappa_us < rod.kappa_us
+        tiers.append(rod.tier)
+        if rod.tier == "waveform":
+            assert rod.kappa_us == pytest.approx(2.68, rel=0.25)
+    assert tiers.count("waveform") >= 3
