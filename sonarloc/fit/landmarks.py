@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2 as chi2_dist
 
 from sonarloc.fit import model as M
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_flat
@@ -206,6 +207,7 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     rms = np.sqrt((sel.resid ** 2 * sel.used).sum(1) / np.maximum(n_used, 1))
     strength = 20.0 * np.log10(mod.detection_limit_us / np.maximum(local[:, 2], 1e-12))
     flat_sd = math.radians(cfg.flat_bearing_sd_deg)
+    p_fit = chi2_dist.sf(sel.chi2, np.maximum(n_used - 3, 1))
     out = []
     for j in range(B):
         extra: dict[str, object] = dict(meta[j])
@@ -218,11 +220,16 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         status, reason = FitStatus.OK, ""
         if not finite[j]:
             status, reason = FitStatus.BAD_INPUT, "non-finite fit (bad input)"
-        elif n_used[j] < 3:
+        elif n_used[j] < cfg.min_echoes:
             status = FitStatus.TOO_FEW_POINTS
-            reason = f"{n_used[j]} echoes left after removing spikes"
+            reason = (f"{n_used[j]} echoes (after removing spikes); {cfg.min_echoes} are "
+                      "needed to check a 3-parameter fit")
         elif "overlap" in sel.extra[j]:
             status, reason = FitStatus.UNRESOLVED, str(sel.extra[j]["overlap"])
+        elif p_fit[j] < cfg.min_fit_p:
+            status = FitStatus.UNRESOLVED
+            reason = (f"no single landmark explains the readings (chi2 {sel.chi2[j]:.0f} for "
+                      f"{n_used[j]} echoes, p = {p_fit[j]:.1e}): several reflectors merged?")
         elif outside[j] > math.radians(1.0) and span[j] > 3.0:
             status = FitStatus.PARTIAL
             reason = (f"minimum of the U {math.degrees(outside[j]):.1f} deg outside the arc "

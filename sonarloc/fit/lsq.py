@@ -51,6 +51,10 @@ class FitConfig:
     outlier_sigma : standardised residual beyond which an echo is dropped as a spike
         (at most ``max_outlier_fraction`` of a segment's echoes).
     flat_bearing_sd_deg : a fit whose bearing SD exceeds this is ``FLAT``.
+    min_echoes : fewer echoes (after spikes) make a result ``TOO_FEW_POINTS``: three
+        determine the three parameters exactly, leaving nothing to check the fit.
+    min_fit_p : a fit whose TOF chi-square has a p-value below this is ``UNRESOLVED``
+        (no single landmark explains the readings: merged reflectors, wall + corner).
     kappa_min_us : lower bound of kappa.
     kappa_lo_us, kappa_hi_us, kappa_soft_log_sd : a soft box prior on kappa: flat over
         [lo, hi], rising like a Gaussian in ln kappa (SD ``kappa_soft_log_sd``) outside;
@@ -75,6 +79,8 @@ class FitConfig:
     outlier_sigma: float = 4.5
     max_outlier_fraction: float = 0.2
     flat_bearing_sd_deg: float = 3.0
+    min_echoes: int = 5
+    min_fit_p: float = 1e-4
     kappa_min_us: float = 1e-3
     kappa_lo_us: float = 0.05
     kappa_hi_us: float = 20.0
@@ -90,7 +96,7 @@ class FitConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
-        for name in ("rounds", "iterations", "chunk_readings"):
+        for name in ("rounds", "iterations", "chunk_readings", "min_echoes"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"`{name}` must be a positive integer, got {v!r}")

@@ -285,6 +285,22 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             if pick.size:
                 sel.put(idx[rows[pick]], alt.take(pick))
                 basis[idx[rows[pick]]] = f"{tier} fits the data better"
+        # piston chosen (side lobes seen): its weak side-lobe echoes may be late as the
+        # module's waveform makes them; try waveform from the piston fit where it leans so
+        pst = idx[(sel.tier[idx] == "piston") & ~try_w]
+        if pst.size:
+            lean = misfit(batch, sel, pst, kind, cfg) | (score_z(
+                batch, sel, pst, kind, "piston", "waveform", cfg) > SCORE_Z)
+            rows2 = pst[lean]
+            if rows2.size:
+                alt = fit_batch(_take(batch, rows2), kind, "waveform", cfg,
+                                start=sel.rows(rows2))
+                d = sel.robust_cost[rows2] - alt.robust_cost
+                dcost["waveform"][rows2] = d
+                win = d > threshold
+                if win.any():
+                    sel.put(rows2[win], alt.take(np.flatnonzero(win)))
+                    basis[rows2[win]] = "waveform fits the data better (after piston)"
     for b, ex in enumerate(sel.extra):
         ex["tier_basis"] = basis[b]
         for t, d in dcost.items():

@@ -233,3 +233,30 @@ def test_ripple_jumps_and_late_weak_echoes(rng, data_tier):
         if rod.tier == "waveform":
             assert rod.kappa_us == pytest.approx(2.68, rel=0.25)
     assert tiers.count("waveform") >= 3
+
+
+def test_ring16_driving_through_the_room():
+    # the world simulator's default rig and tier on a moving robot: every OK landmark
+    # sits on a reflector of the map (poses in the map frame here)
+    from shapely.geometry import Point
+
+    from sonarloc.maps.geojson import load_map
+    from sonarloc.world.rig import rig_by_name
+    from sonarloc.world.simulate import simulate_scan
+
+    room = load_map(MAPS / "room.geojson")
+    sim = simulate_scan(room, rig_by_name("ring16"), duration_s=20.0, seed=5)
+    lms = fit_scan(sim.readings).landmarks
+    check_invariants(lms)
+    ok = [lm for lm in lms if lm.ok]
+    assert len(ok) >= 10
+    errs = []
+    for lm in ok:
+        rx, ry = lm.ref_pose[0], lm.ref_pose[1]
+        q = Point(rx + lm.range_m * math.cos(lm.bearing_rad),
+                  ry + lm.range_m * math.sin(lm.bearing_rad))
+        errs.append(min(q.distance(r.geometry) - (r.radius_m if lm.kind == "point" else 0.0)
+                        for r in room.reflectors))
+    errs_a = np.abs(np.array(errs))
+    assert np.percentile(errs_a, 90) < 0.01 and errs_a.max() < 0.05
+    assert any(lm.extra.get("kind_basis") == "motion" for lm in ok)
