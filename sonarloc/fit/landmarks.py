@@ -23,7 +23,7 @@ from sonarloc.fit import model as M
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_flat
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig, SegmenterStats
-from sonarloc.fit.select import Selection, select_models
+from sonarloc.fit.select import KAPPA_WALL_US, Selection, select_models
 from sonarloc.io.scancsv import ScanReadings
 
 Array = NDArray[np.float64]
@@ -226,6 +226,14 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                       "needed to check a 3-parameter fit")
         elif "overlap" in sel.extra[j]:
             status, reason = FitStatus.UNRESOLVED, str(sel.extra[j]["overlap"])
+        elif not (0.5 * cfg.kappa_lo_us <= local[j, 2] <= 2.0 * cfg.kappa_hi_us):
+            status = FitStatus.UNRESOLVED
+            reason = (f"kappa {local[j, 2]:.3g} us is outside any real reflector's range "
+                      f"({cfg.kappa_lo_us:g}..{cfg.kappa_hi_us:g} us): merged or misread echoes?")
+        elif sel.kind[j] == "line" and local[j, 2] > 3.0 * KAPPA_WALL_US:
+            status = FitStatus.UNRESOLVED
+            reason = (f"a wall with kappa {local[j, 2]:.2f} us: walls echo strongly at normal "
+                      "incidence (kappa ~0.15 us); corner or merged echoes?")
         elif p_fit[j] < cfg.min_fit_p:
             status = FitStatus.UNRESOLVED
             reason = (f"no single landmark explains the readings (chi2 {sel.chi2[j]:.0f} for "
@@ -249,6 +257,67 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     return out
 
 
+def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
+                     config: FitConfig | None = None, n_cuts: int = 8) -> list[Landmark]:
+    """Try to split segments that no single landmark explains into two landmarks.
+
+    For each ``UNRESOLVED`` segment with at least ``2 * min_echoes`` echoes, cut it in
+    time at ``n_cuts`` places (each part keeping ``min_echoes`` echoes), fit both parts,
+    and keep the best cut if both parts are ``OK`` and -2 log-likelihood drops by more
+    than the BIC price of three more parameters; the two landmarks then replace the
+    one (``extra["split_of"]`` = the segment id). Returns the landmarks in order.
+    """
+    cfg = config or FitConfig()
+    cand: list[tuple[int, Segment, Segment]] = []
+    for i, (seg, lm) in enumerate(zip(segments, landmarks, strict=True)):
+        if lm.status is not FitStatus.UNRESOLVED:
+            continue
+        r = seg.readings
+        echo = np.flatnonzero(np.isfinite(r.tof_us))
+        n = echo.size
+        if n < 2 * cfg.min_echoes:
+            continue
+        cuts = np.unique(np.linspace(cfg.min_echoes, n - cfg.min_echoes, n_cuts).astype(int))
+        for c in cuts.tolist():
+            pos = int(echo[c])
+            cand.append((i, Segment(r.select(slice(0, pos)), seg.seg_id, seg.closed_by),
+                         Segment(r.select(slice(pos, None)), seg.seg_id, seg.closed_by)))
+    if not cand:
+        return list(landmarks)
+    fits = fit_segments([c[1] for c in cand] + [c[2] for c in cand], cfg)
+    half = len(cand)
+    best: dict[int, tuple[float, Landmark, Landmark]] = {}
+    for k, (i, _, _) in enumerate(cand):
+        a, b = fits[k], fits[half + k]
+        # each part must fit well on its own (a stricter test than for whole segments:
+        # cutting at the best of several places favours chance fits)
+        if not (a.ok and b.ok and _fit_p(a) > 0.01 and _fit_p(b) > 0.01):
+            continue
+        total = float(a.extra["cost"]) + float(b.extra["cost"])  # type: ignore[arg-type]
+        if i not in best or total < best[i][0]:
+            best[i] = (total, a, b)
+    out: list[Landmark] = []
+    for i, lm in enumerate(landmarks):
+        if i in best:
+            total, a, b = best[i]
+            n = a.n_readings + b.n_readings
+            gain = float(lm.extra.get("cost", np.inf)) - total  # type: ignore[arg-type]
+            if gain > 3.0 * math.log(max(n, 2)):
+                for part in (a, b):
+                    part.extra["split_of"] = lm.extra.get("seg_id", i)
+                    part.extra["split_gain"] = gain
+                out += [a, b]
+                continue
+        out.append(lm)
+    return out
+
+
+def _fit_p(lm: Landmark) -> float:
+    """p-value of a landmark's TOF chi-square."""
+    return float(chi2_dist.sf(float(lm.extra["chi2"]),  # type: ignore[arg-type]
+                              max(lm.n_readings - 3, 1)))
+
+
 @dataclass
 class FitReport:
     """Landmarks of a scan, with the segmenter's counters."""
@@ -267,7 +336,7 @@ def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
     cfg = config or FitConfig()
     seg = Segmenter(segmenter, cfg.module)
     segments = list(seg.feed(scan))
-    return FitReport(fit_segments(segments, cfg), seg.stats)
+    return FitReport(split_unresolved(segments, fit_segments(segments, cfg), cfg), seg.stats)
 
 
 class OnlineFitter:
@@ -290,8 +359,11 @@ class OnlineFitter:
     def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
              sensor: int = 0) -> list[Landmark]:
         closed = self.segmenter.push(t_s, x_m, y_m, yaw_rad, tof_us, sensor)
-        return fit_segments(closed, self.config) if closed else []
+        return self._fit(closed) if closed else []
 
     def flush(self) -> list[Landmark]:
         closed = self.segmenter.flush()
-        return fit_segments(closed, self.config) if closed else []
+        return self._fit(closed) if closed else []
+
+    def _fit(self, closed: list[Segment]) -> list[Landmark]:
+        return split_unresolved(closed, fit_segments(closed, self.config), self.config)
