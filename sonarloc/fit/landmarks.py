@@ -242,6 +242,14 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             status = FitStatus.PARTIAL
             reason = (f"minimum of the U {math.degrees(outside[j]):.1f} deg outside the arc "
                       "covered by echoes: bearing bounded only")
+        elif local[j, 2] < 1.5 * cfg.kappa_lo_us and (
+                sel.kind[j] == "point" or sel.extra[j].get("kind_basis") != "motion"):
+            # a bearing read off the U's shape (a point, or anything seen from one spot);
+            # pinned at the prior's bound, the shape did not fix it (a wall whose normal
+            # comes from the motion's range trend survives this)
+            status = FitStatus.FLAT
+            reason = (f"kappa {local[j, 2]:.3f} us sits at the lower bound of the prior: "
+                      "the curve is too flat to fix strength and bearing")
         elif sd[j, 1] > flat_sd:
             status = FitStatus.FLAT
             reason = (f"curve too flat for its bearing (SD {math.degrees(sd[j, 1]):.1f} deg "
