@@ -242,6 +242,14 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             status = FitStatus.PARTIAL
             reason = (f"minimum of the U {math.degrees(outside[j]):.1f} deg outside the arc "
                       "covered by echoes: bearing bounded only")
+        elif local[j, 2] < 1.5 * cfg.kappa_lo_us and (
+                sel.kind[j] == "point" or sel.extra[j].get("kind_basis") != "motion"):
+            # a bearing read off the U's shape (a point, or anything seen from one spot);
+            # pinned at the prior's bound, the shape did not fix it (a wall whose normal
+            # comes from the motion's range trend survives this)
+            status = FitStatus.FLAT
+            reason = (f"kappa {local[j, 2]:.3f} us sits at the lower bound of the prior: "
+                      "the curve is too flat to fix strength and bearing")
         elif sd[j, 1] > flat_sd:
             status = FitStatus.FLAT
             reason = (f"curve too flat for its bearing (SD {math.degrees(sd[j, 1]):.1f} deg "
@@ -262,7 +270,8 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     """Try to split segments that no single landmark explains into two landmarks.
 
     For each ``UNRESOLVED`` segment with at least ``2 * min_echoes`` echoes, cut it in
-    time at ``n_cuts`` places (each part keeping ``min_echoes`` echoes), fit both parts,
+    time at ``n_cuts`` evenly spaced places and at its four largest steps between
+    consecutive echoes (each part keeping ``min_echoes`` echoes), fit both parts,
     and keep the best cut if both parts are ``OK`` and -2 log-likelihood drops by more
     than the BIC price of three more parameters; the two landmarks then replace the
     one (``extra["split_of"]`` = the segment id). Returns the landmarks in order.
@@ -277,7 +286,13 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
         n = echo.size
         if n < 2 * cfg.min_echoes:
             continue
-        cuts = np.unique(np.linspace(cfg.min_echoes, n - cfg.min_echoes, n_cuts).astype(int))
+        # evenly spaced cuts, and cuts at the largest steps between consecutive echoes
+        # (where one reflector's echoes give way to the other's)
+        even = np.linspace(cfg.min_echoes, n - cfg.min_echoes, n_cuts).astype(int)
+        step = np.abs(np.diff(r.tof_us[echo]))
+        order = np.argsort(-step) + 1
+        jumps = order[(order >= cfg.min_echoes) & (order <= n - cfg.min_echoes)][:4]
+        cuts = np.unique(np.concatenate([even, jumps]))
         for c in cuts.tolist():
             pos = int(echo[c])
             cand.append((i, Segment(r.select(slice(0, pos)), seg.seg_id, seg.closed_by),

@@ -233,6 +233,9 @@ _Z_LOW = -10.0
 def probit_terms(v: ArrayLike, want_info: bool = True) -> tuple[Array, Array, Array]:
     """log Phi(v), its derivative phi(v)/Phi(v), and the Bernoulli Fisher information.
 
+    The general reference form; the fitter's hot path uses :func:`echo_terms` and
+    :func:`noecho_terms`, which tests check against this.
+
     The information of an event of probability Phi(v) per unit v^2 is
     phi(v)^2 / (Phi(v) Phi(-v)). Exact (``scipy.special.log_ndtr``) for -10 < v < 7;
     beyond, Phi(v) = 1 to 2e-12, or the asymptotic series of the Mills ratio (relative
@@ -264,11 +267,6 @@ def probit_terms(v: ArrayLike, want_info: bool = True) -> tuple[Array, Array, Ar
         if want_info:
             info[mid] = np.exp(2.0 * lpdf - lp - log_ndtr(-vm))
     return logp, mills, info
-
-
-def bernoulli_info(z: ArrayLike) -> Array:
-    """Fisher information phi(z)^2 / (Phi(z) Phi(-z)) of a probit event per unit z^2."""
-    return probit_terms(z)[2]
 
 
 @dataclass(frozen=True)
@@ -443,32 +441,15 @@ def noecho_terms(z: ArrayLike, want_info: bool = True
 
 
 def mean_delay(kappa: ArrayLike, g: ArrayLike, params: ModuleParams,
-               z: ArrayLike | None = None) -> tuple[Array, Array]:
+               z: ArrayLike | None = None, tier: str = "gauss") -> tuple[Array, Array]:
     """Mean threshold delay [us] of a *detected* echo and its derivative by u = kappa g.
 
-    With a log-normal gain the delay is u / G; its mean is u exp(s^2/2) and, given
+    With a log-normal gain the eq. 3 delay is u / G; its mean is u exp(s^2/2) and, given
     detection (delay <= L, pass the detection margin ``z``), the truncated mean
-    u exp(s^2/2) Phi(-z - s) / Phi(-z).
+    u exp(s^2/2) Phi(-z - s) / Phi(-z). (The ``delay`` fields of :func:`echo_terms`.)
     """
-    s = sigma_a(params)
-    u = np.asarray(kappa, float) * np.asarray(g, float)
-    scale = np.exp(0.5 * s * s)
-    if z is None:
-        return u * scale, np.full(u.shape, scale)
-    z = np.asarray(z, dtype=float)
-    ratio = np.ones(u.shape)
-    dratio = np.zeros(u.shape)
-    act = z > -_Z_HIGH
-    if act.any():
-        za = z[act]
-        l0 = log_ndtr(-za)
-        ra = np.exp(log_ndtr(-za - s) - l0)
-        # R'(z) = -phi(z+s)/Phi(-z) + R phi(z)/Phi(-z)
-        m1 = np.exp(-0.5 * (za + s) ** 2 - _LOG_SQRT_2PI - l0)
-        m0 = np.exp(-0.5 * za * za - _LOG_SQRT_2PI - l0)
-        ratio[act] = ra
-        dratio[act] = -m1 + ra * m0
-    return u * scale * ratio, scale * (ratio + dratio / s)
+    et = echo_terms(kappa, g, z, params, want_info=False, tier=tier)
+    return et.delay, et.ddelay_du
 
 
 def tof_variance_us2(delay_us: ArrayLike, params: ModuleParams,

@@ -260,3 +260,23 @@ def test_ring16_driving_through_the_room():
     errs_a = np.abs(np.array(errs))
     assert np.percentile(errs_a, 90) < 0.01 and errs_a.max() < 0.05
     assert any(lm.extra.get("kind_basis") == "motion" for lm in ok)
+
+
+def test_merged_pair_is_split_into_two_landmarks(rng):
+    # two poles 20 deg apart, 5 mm apart in range: one segment (the TOF step is inside
+    # the association gate) that no single landmark explains -> cut in two
+    refl = [Reflector.polar(1.500, -10.0, 0.67), Reflector.polar(1.505, 10.0, 0.67)]
+    two = 0
+    for _ in range(3):
+        lms = fit_scan(pan_scan(refl, rng, -40, 40, 0.3)).landmarks
+        check_invariants(lms)
+        ok = [lm for lm in lms if lm.ok]
+        for lm in ok:
+            assert any(abs(math.degrees(lm.bearing_rad) - b) < 3.0 and abs(lm.range_m - r) < 3e-3
+                       for r, b in ((1.5, -10.0), (1.505, 10.0)))
+        if len(ok) == 2:
+            two += 1
+            assert all("split_of" in lm.extra for lm in ok)
+        else:
+            assert all(lm.status is FitStatus.UNRESOLVED for lm in lms)
+    assert two >= 2
