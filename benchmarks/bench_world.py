@@ -151,26 +151,33 @@ def main(argv: Sequence[str] | None = None) -> int:
     rng = np.random.default_rng(2003)
     params = module_for_rig(ring16())
     rows: list[Row] = []
+    configs: dict[str, tuple[Scene, np.ndarray, Tier]] = {}
+    sides: dict[int, float] = {}
     for n in sizes:
-        m, side = random_map(n, rng)
-        poses = group_poses(side, n_calls, rng)
+        m, sides[n] = random_map(n, rng)
+        poses = group_poses(sides[n], n_calls, rng)
         fast, slow = Scene(m, params), Scene(m, params, use_index=False)
         m.tree  # build the index outside the timing  # noqa: B018
         brute_calls = poses if n <= 1000 else poses[: max(10, n_calls // 5)]
-        configs = {"auto": (fast, poses, Tier.AUTO), "gauss": (fast, poses, Tier.GAUSS),
-                   "piston": (fast, poses, Tier.PISTON),
-                   "waveform": (fast, poses, Tier.WAVEFORM),
-                   "brute": (slow, brute_calls, Tier.AUTO)}
+        tiers = {"auto": Tier.AUTO, "gauss": Tier.GAUSS, "piston": Tier.PISTON,
+                 "waveform": Tier.WAVEFORM}
+        for name, tier in tiers.items():
+            configs[f"{n}/{name}"] = (fast, poses, tier)
+        configs[f"{n}/brute"] = (slow, brute_calls, Tier.AUTO)
         try:
-            one_run(fast, poses[:2], Tier.WAVEFORM, 0)
+            one_run(fast, poses[:2], Tier.WAVEFORM, 0)  # also warms the tier tables
         except NotImplementedError:
-            del configs["waveform"]
-        got = time_configs(configs, repeats)
-        (idx_rate, cands), (gauss_rate, _) = got["auto"], got["gauss"]
-        piston_rate, brute_rate = got["piston"][0], got["brute"][0]
-        wave_rate = got["waveform"][0] if "waveform" in got else float("nan")
-        rows.append((n, side, cands, idx_rate, gauss_rate, piston_rate, wave_rate, brute_rate))
-        print(f"{n:>6} reflectors ({side:.0f} m square): indexed {idx_rate:8.0f} pings/s, "
+            del configs[f"{n}/waveform"]
+    # every size and configuration in each round, so changing load hits all alike
+    got = time_configs(configs, repeats)
+    for n in sizes:
+        (idx_rate, cands), (gauss_rate, _) = got[f"{n}/auto"], got[f"{n}/gauss"]
+        piston_rate, brute_rate = got[f"{n}/piston"][0], got[f"{n}/brute"][0]
+        wave = got.get(f"{n}/waveform")
+        wave_rate = wave[0] if wave is not None else float("nan")
+        rows.append((n, sides[n], cands, idx_rate, gauss_rate, piston_rate, wave_rate,
+                     brute_rate))
+        print(f"{n:>6} reflectors ({sides[n]:.0f} m square): indexed {idx_rate:8.0f} pings/s, "
               f"brute force {brute_rate:8.0f} pings/s, {cands:.1f} candidates/ping",
               file=sys.stderr)
     rec_rate, ping_rate = time_records(5.0 if args.quick else 30.0, repeats)
@@ -183,7 +190,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "30 ms slot = 5.1 m range gate) at a random pose inside a map of randomly "
         f"scattered reflectors at constant density ({DENSITY_PER_M2} per m², 70 % "
         "cylinders, 30 % wall segments). Median of "
-        f"{repeats} runs of {n_calls} calls. *indexed* = STRtree candidates "
+        f"{repeats} rounds of {n_calls} calls (every size and column in each round). "
+        "*indexed* = STRtree candidates "
         "(`Scene`), *brute force* = every reflector tested (`Scene(use_index=False)`), "
         "same readings. Tier columns use the index.",
         "",

@@ -15,8 +15,9 @@ from pathlib import Path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true",
-                        help="pass --quick to each benchmark (fewer repeats; for a smoke "
-                             "test: the tables it writes are not the committed ones)")
+                        help="pass --quick to each benchmark (fewer repeats): a smoke test "
+                             "whose tables are printed, after which the results/ files of "
+                             "the last full run are put back")
     parser.add_argument("--only", action="append", metavar="NAME", default=[],
                         help="run only this benchmark (topic name, e.g. `fit` for "
                              "bench_fit.py); repeatable")
@@ -50,6 +51,10 @@ def run(args: argparse.Namespace) -> int:
                          f"{', '.join(available)})")
     chosen = {n: available[n] for n in (wanted or available)}
     failed = []
+    results = bench_dir / "results"
+    saved = ({p: p.read_bytes() for p in results.iterdir() if p.is_file()}
+             if args.quick and results.is_dir() and not args.no_run else {})
+    quick_tables: list[str] = []
     if not args.no_run:
         tty = sys.stderr.isatty()
         for i, (name, script) in enumerate(chosen.items(), start=1):
@@ -63,7 +68,19 @@ def run(args: argparse.Namespace) -> int:
             if result.status != 0:
                 failed.append(name)
                 print(f"    {result.error.strip()}", file=sys.stderr)
-    results = bench_dir / "results"
+            table = results / f"{name}.md"
+            if args.quick and table.exists():
+                quick_tables.append(table.read_text(encoding="utf-8"))
+    if args.quick and not args.no_run:
+        for path, data in saved.items():  # the committed full-run results come back
+            path.write_bytes(data)
+        print("\n".join(quick_tables))
+        print(f"quick run: tables above; {results} keeps the last full run's results",
+              file=sys.stderr)
+        if failed:
+            print(f"sonarloc bench: {len(failed)} benchmark(s) failed: {', '.join(failed)}",
+                  file=sys.stderr)
+        return 1 if failed else 0
     results.mkdir(exist_ok=True)
     text = collect_results(bench_dir)
     (results / README_NAME).write_text(text, encoding="utf-8")

@@ -82,12 +82,11 @@ def run(args: argparse.Namespace) -> int:
     landmarks = [lm for lm in report.landmarks if lm.ok or not args.only_ok]
     if args.json:
         st = report.stats
-        json.dump({"landmarks": [landmark_to_json(lm) for lm in landmarks],
-                   "readings": {"total": st.readings, "echoes": st.echoes,
-                                "no_echo": st.no_echo, "bad": st.bad, "spikes": st.spikes,
-                                "segments": st.segments}},
-                  sys.stdout, allow_nan=False)
-        sys.stdout.write("\n")
+        sys.stdout.write(json.dumps(
+            {"landmarks": [landmark_to_json(lm) for lm in landmarks],
+             "readings": {"total": st.readings, "echoes": st.echoes, "no_echo": st.no_echo,
+                          "bad": st.bad, "spikes": st.spikes, "segments": st.segments}},
+            allow_nan=False) + "\n")
         return 0
     print(f"{len(landmarks)} landmark(s) from {report.stats.readings} readings "
           f"({report.stats.echoes} echoes, {report.stats.spikes} spike echoes dropped)")

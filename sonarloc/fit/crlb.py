@@ -81,7 +81,7 @@ def fisher_information(kind: str, local: ArrayLike, px: ArrayLike, py: ArrayLike
     local : (..., 3) (r [m], phi [rad], kappa [us]) seen from the reference position.
     px, py, yaw : (..., n) planned transducer positions relative to the reference [m]
         and axis directions [rad].
-    tier : beam model of the fitter (``gauss`` or ``piston``).
+    tier : model tier of the fitter (``gauss``, ``piston`` or ``waveform``).
     detection : include the information of the echo/no-echo events (and, like the
         fitter with ``FitConfig.detection``, model detected delays as truncated at the
         detection limit); False: the TOF-only bound of eq. 3 with untruncated delays.
@@ -93,9 +93,9 @@ def fisher_information(kind: str, local: ArrayLike, px: ArrayLike, py: ArrayLike
     geo = M.geometry(kind, r, phi, px, py, yaw)
     g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod)
     z = M.detection_z(K, lng, mod)
-    et = M.echo_terms(K, g, z if cfg.detection else None, mod)
+    et = M.echo_terms(K, g, z if cfg.detection else None, mod, tier=tier)
     delay, ddu = et.delay, et.ddelay_du
-    s2 = M.tof_variance_us2(delay, mod)
+    s2 = M.tof_variance_us2(delay, mod, et.delay_var if tier == "waveform" else None)
     tau = M.us_per_m(mod)
     Jm = np.stack([tau * geo.dR_dr + ddu * K * dg * geo.dtheta_dr,
                    tau * geo.dR_dphi + ddu * K * dg * geo.dtheta_dphi,
@@ -124,7 +124,7 @@ def crlb(kind: str, params: ArrayLike, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: 
     x_m, y_m, yaw_rad : (..., n) planned transducer poses in the frame (a pan from one
         spot, a ring on a moving robot, ...), every ping, echo or not.
     config : the fitter's settings (module: speed of sound, jitter, detection limit).
-    tier : ``gauss`` or ``piston`` beam.
+    tier : ``gauss``, ``piston`` or ``waveform`` (see :data:`sonarloc.fit.model.TIERS`).
     detection : include what echo/no-echo events say (the fitter uses it).
     ref_index : the reading whose position is the reference of range and bearing
         (the fitter uses the segment's last echo).

@@ -17,12 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2 as chi2_dist
 
 from sonarloc.fit import model as M
-from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_segments
+from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_flat
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig, SegmenterStats
-from sonarloc.fit.select import Selection, select_models
+from sonarloc.fit.select import KAPPA_WALL_US, Selection, select_models
 from sonarloc.io.scancsv import ScanReadings
 
 Array = NDArray[np.float64]
@@ -115,40 +116,64 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     """
     cfg = config or FitConfig()
     n = len(segments)
-    out: list[Landmark | None] = [None] * n
-    cleaned: list[_Cleaned] = []
+    if n == 0:
+        return []
+    parts = [_arrays(s) for s in segments]
+    lengths = np.array([p[0].size for p in parts], dtype=np.int64)
+    seg = np.repeat(np.arange(n), lengths)
+    t, x, y, yaw, tof = (np.concatenate([np.asarray(p[k], dtype=float) for p in parts])
+                         for k in range(5))
+    sensor = np.concatenate([np.asarray(p[5], dtype=np.int64) for p in parts])
+    ok, _ = _clean(t, x, y, yaw, tof)
+    n_bad = np.bincount(seg[~ok], minlength=n)
+    seg, t, x, y, tof, sensor = seg[ok], t[ok], x[ok], y[ok], tof[ok], sensor[ok]
+    yaw = M.wrap_angle(yaw[ok])
+    echo = np.isfinite(tof)
+    n_echo = np.bincount(seg[echo], minlength=n)
+    n_noecho = np.bincount(seg[~echo], minlength=n)
+    bounds = np.searchsorted(seg, np.arange(n + 1))
     meta: list[dict[str, object]] = []
-    for seg in segments:
-        t, x, y, yaw, tof, sensor = _arrays(seg)
-        ok, n_bad = _clean(t, x, y, yaw, tof)
-        cleaned.append((t[ok], x[ok], y[ok], M.wrap_angle(yaw[ok]), tof[ok], sensor[ok]))
-        m: dict[str, object] = {"n_bad_input": n_bad}
-        if isinstance(seg, Segment):
-            m.update(seg_id=seg.seg_id, closed_by=seg.closed_by)
+    for i, s in enumerate(segments):
+        m: dict[str, object] = {"n_bad_input": int(n_bad[i])}
+        if isinstance(s, Segment):
+            m.update(seg_id=s.seg_id, closed_by=s.closed_by)
         meta.append(m)
-    todo = []
-    for i, arrs in enumerate(cleaned):
-        n_echo = int(np.isfinite(arrs[4]).sum())
-        if n_echo == 0:
-            out[i] = _fallback(arrs, FitStatus.NO_ECHO, "no echo in the segment", cfg,
-                               meta[i])
-        elif n_echo < 3:
-            out[i] = _fallback(arrs, FitStatus.TOO_FEW_POINTS,
-                               f"{n_echo} echo(es); at least 3 are needed for "
-                               "(range, bearing, kappa)", cfg, meta[i])
+    out: list[Landmark | None] = [None] * n
+    for i in np.flatnonzero(n_echo < 3).tolist():
+        a, b = bounds[i], bounds[i + 1]
+        arrs = (t[a:b], x[a:b], y[a:b], yaw[a:b], tof[a:b], sensor[a:b])
+        if n_echo[i] == 0:
+            out[i] = _fallback(arrs, FitStatus.NO_ECHO, "no echo in the segment", cfg, meta[i])
         else:
-            todo.append(i)
-    if todo:
-        batch = pack_segments([cleaned[i][:5] for i in todo])
+            out[i] = _fallback(arrs, FitStatus.TOO_FEW_POINTS,
+                               f"{n_echo[i]} echo(es); at least 3 are needed for "
+                               "(range, bearing, kappa)", cfg, meta[i])
+    todo = np.flatnonzero(n_echo >= 3)
+    if todo.size:
+        remap = np.full(n, -1, dtype=np.int64)
+        remap[todo] = np.arange(todo.size)
+        keep = remap[seg] >= 0
+        batch = pack_flat(remap[seg[keep]], t[keep], x[keep], y[keep], yaw[keep], tof[keep],
+                          n_segments=todo.size)
+        # transducers that contributed echoes, per segment
+        e = keep & echo
+        s_lo = int(sensor[e].min(initial=0))
+        width = int(sensor[e].max(initial=0)) - s_lo + 1
+        keys = np.unique(remap[seg[e]] * width + (sensor[e] - s_lo))
+        cut = np.searchsorted(keys // width, np.arange(todo.size + 1))
+        sensors = [tuple(int(v) + s_lo for v in keys[cut[j]:cut[j + 1]] % width)
+                   for j in range(todo.size)]
         sel = select_models(batch, cfg)
-        lms = _landmarks(batch, sel, [cleaned[i] for i in todo], cfg, [meta[i] for i in todo])
-        for j, i in enumerate(todo):
+        lms = _landmarks(batch, sel, cfg, [meta[i] for i in todo.tolist()], sensors,
+                         n_echo[todo], n_noecho[todo])
+        for j, i in enumerate(todo.tolist()):
             out[i] = lms[j]
     return [lm for lm in out if lm is not None]
 
 
-def _landmarks(batch: SegmentBatch, sel: Selection, arrs: list[_Cleaned], cfg: FitConfig,
-               meta: list[dict[str, object]]) -> list[Landmark]:
+def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
+               meta: list[dict[str, object]], sensors: list[tuple[int, ...]],
+               n_echo: NDArray[np.int64], n_noecho: NDArray[np.int64]) -> list[Landmark]:
     """Landmarks with statuses from the selected fits (vectorised, then one object each)."""
     B = batch.size
     mod = cfg.module
@@ -181,42 +206,131 @@ def _landmarks(batch: SegmentBatch, sel: Selection, arrs: list[_Cleaned], cfg: F
     n_used = sel.n_used
     rms = np.sqrt((sel.resid ** 2 * sel.used).sum(1) / np.maximum(n_used, 1))
     strength = 20.0 * np.log10(mod.detection_limit_us / np.maximum(local[:, 2], 1e-12))
+    flat_sd = math.radians(cfg.flat_bearing_sd_deg)
+    p_fit = chi2_dist.sf(sel.chi2, np.maximum(n_used - 3, 1))
     out = []
     for j in range(B):
-        t, x, y, yaw, tof, sensor = arrs[j]
-        fin = np.isfinite(tof)
         extra: dict[str, object] = dict(meta[j])
         extra.update(sel.extra[j])
         extra.update(
-            bearing_sd_deg=float(np.degrees(sd[j, 1])), range_sd_m=float(sd[j, 0]),
+            bearing_sd_deg=math.degrees(sd[j, 1]), range_sd_m=float(sd[j, 0]),
             kappa_sd_us=float(sd[j, 2]), strength_db=float(strength[j]),
-            n_noecho=int((~fin).sum()), n_spikes=int(fin.sum()) - int(n_used[j]),
+            n_noecho=int(n_noecho[j]), n_spikes=int(n_echo[j] - n_used[j]),
             chi2=float(sel.chi2[j]), cost=float(sel.cost[j]))
         status, reason = FitStatus.OK, ""
         if not finite[j]:
             status, reason = FitStatus.BAD_INPUT, "non-finite fit (bad input)"
-        elif n_used[j] < 3:
+        elif n_used[j] < cfg.min_echoes:
             status = FitStatus.TOO_FEW_POINTS
-            reason = f"{n_used[j]} echoes left after removing spikes"
+            reason = (f"{n_used[j]} echoes (after removing spikes); {cfg.min_echoes} are "
+                      "needed to check a 3-parameter fit")
         elif "overlap" in sel.extra[j]:
             status, reason = FitStatus.UNRESOLVED, str(sel.extra[j]["overlap"])
+        elif not (0.5 * cfg.kappa_lo_us <= local[j, 2] <= 2.0 * cfg.kappa_hi_us):
+            status = FitStatus.UNRESOLVED
+            reason = (f"kappa {local[j, 2]:.3g} us is outside any real reflector's range "
+                      f"({cfg.kappa_lo_us:g}..{cfg.kappa_hi_us:g} us): merged or misread echoes?")
+        elif sel.kind[j] == "line" and local[j, 2] > 3.0 * KAPPA_WALL_US:
+            status = FitStatus.UNRESOLVED
+            reason = (f"a wall with kappa {local[j, 2]:.2f} us: walls echo strongly at normal "
+                      "incidence (kappa ~0.15 us); corner or merged echoes?")
+        elif p_fit[j] < cfg.min_fit_p:
+            status = FitStatus.UNRESOLVED
+            reason = (f"no single landmark explains the readings (chi2 {sel.chi2[j]:.0f} for "
+                      f"{n_used[j]} echoes, p = {p_fit[j]:.1e}): several reflectors merged?")
         elif outside[j] > math.radians(1.0) and span[j] > 3.0:
             status = FitStatus.PARTIAL
             reason = (f"minimum of the U {math.degrees(outside[j]):.1f} deg outside the arc "
                       "covered by echoes: bearing bounded only")
-        elif sd[j, 1] > math.radians(cfg.flat_bearing_sd_deg):
+        elif local[j, 2] < 1.5 * cfg.kappa_lo_us and (
+                sel.kind[j] == "point" or sel.extra[j].get("kind_basis") != "motion"):
+            # a bearing read off the U's shape (a point, or anything seen from one spot);
+            # pinned at the prior's bound, the shape did not fix it (a wall whose normal
+            # comes from the motion's range trend survives this)
+            status = FitStatus.FLAT
+            reason = (f"kappa {local[j, 2]:.3f} us sits at the lower bound of the prior: "
+                      "the curve is too flat to fix strength and bearing")
+        elif sd[j, 1] > flat_sd:
             status = FitStatus.FLAT
             reason = (f"curve too flat for its bearing (SD {math.degrees(sd[j, 1]):.1f} deg "
                       f"> {cfg.flat_bearing_sd_deg:g} deg)")
-        ref_i = int(np.flatnonzero(fin)[-1])
         out.append(Landmark(
             kind="point" if sel.kind[j] == "point" else "line", params=params[j],
             cov=cov[j], range_m=float(local[j, 0]), bearing_rad=float(local[j, 1]),
-            n_readings=int(n_used[j]), ref_t_s=float(t[ref_i]),
-            ref_pose=(float(x[ref_i]), float(y[ref_i]), float(yaw[ref_i])),
+            n_readings=int(n_used[j]), ref_t_s=float(batch.ref_t_s[j]),
+            ref_pose=(float(batch.ref_xy[j, 0]), float(batch.ref_xy[j, 1]),
+                      float(batch.ref_yaw[j])),
             status=status, reason=reason, tier=str(sel.tier[j]), rms_us=float(rms[j]),
-            sensors=tuple(sorted({int(s) for s in sensor[fin]})), extra=extra))
+            sensors=sensors[j], extra=extra))
     return out
+
+
+def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
+                     config: FitConfig | None = None, n_cuts: int = 8) -> list[Landmark]:
+    """Try to split segments that no single landmark explains into two landmarks.
+
+    For each ``UNRESOLVED`` segment with at least ``2 * min_echoes`` echoes, cut it in
+    time at ``n_cuts`` evenly spaced places and at its four largest steps between
+    consecutive echoes (each part keeping ``min_echoes`` echoes), fit both parts,
+    and keep the best cut if both parts are ``OK`` and -2 log-likelihood drops by more
+    than the BIC price of three more parameters; the two landmarks then replace the
+    one (``extra["split_of"]`` = the segment id). Returns the landmarks in order.
+    """
+    cfg = config or FitConfig()
+    cand: list[tuple[int, Segment, Segment]] = []
+    for i, (seg, lm) in enumerate(zip(segments, landmarks, strict=True)):
+        if lm.status is not FitStatus.UNRESOLVED:
+            continue
+        r = seg.readings
+        echo = np.flatnonzero(np.isfinite(r.tof_us))
+        n = echo.size
+        if n < 2 * cfg.min_echoes:
+            continue
+        # evenly spaced cuts, and cuts at the largest steps between consecutive echoes
+        # (where one reflector's echoes give way to the other's)
+        even = np.linspace(cfg.min_echoes, n - cfg.min_echoes, n_cuts).astype(int)
+        step = np.abs(np.diff(r.tof_us[echo]))
+        order = np.argsort(-step) + 1
+        jumps = order[(order >= cfg.min_echoes) & (order <= n - cfg.min_echoes)][:4]
+        cuts = np.unique(np.concatenate([even, jumps]))
+        for c in cuts.tolist():
+            pos = int(echo[c])
+            cand.append((i, Segment(r.select(slice(0, pos)), seg.seg_id, seg.closed_by),
+                         Segment(r.select(slice(pos, None)), seg.seg_id, seg.closed_by)))
+    if not cand:
+        return list(landmarks)
+    fits = fit_segments([c[1] for c in cand] + [c[2] for c in cand], cfg)
+    half = len(cand)
+    best: dict[int, tuple[float, Landmark, Landmark]] = {}
+    for k, (i, _, _) in enumerate(cand):
+        a, b = fits[k], fits[half + k]
+        # each part must fit well on its own (a stricter test than for whole segments:
+        # cutting at the best of several places favours chance fits)
+        if not (a.ok and b.ok and _fit_p(a) > 0.01 and _fit_p(b) > 0.01):
+            continue
+        total = float(a.extra["cost"]) + float(b.extra["cost"])  # type: ignore[arg-type]
+        if i not in best or total < best[i][0]:
+            best[i] = (total, a, b)
+    out: list[Landmark] = []
+    for i, lm in enumerate(landmarks):
+        if i in best:
+            total, a, b = best[i]
+            n = a.n_readings + b.n_readings
+            gain = float(lm.extra.get("cost", np.inf)) - total  # type: ignore[arg-type]
+            if gain > 3.0 * math.log(max(n, 2)):
+                for part in (a, b):
+                    part.extra["split_of"] = lm.extra.get("seg_id", i)
+                    part.extra["split_gain"] = gain
+                out += [a, b]
+                continue
+        out.append(lm)
+    return out
+
+
+def _fit_p(lm: Landmark) -> float:
+    """p-value of a landmark's TOF chi-square."""
+    return float(chi2_dist.sf(float(lm.extra["chi2"]),  # type: ignore[arg-type]
+                              max(lm.n_readings - 3, 1)))
 
 
 @dataclass
@@ -237,7 +351,7 @@ def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
     cfg = config or FitConfig()
     seg = Segmenter(segmenter, cfg.module)
     segments = list(seg.feed(scan))
-    return FitReport(fit_segments(segments, cfg), seg.stats)
+    return FitReport(split_unresolved(segments, fit_segments(segments, cfg), cfg), seg.stats)
 
 
 class OnlineFitter:
@@ -260,8 +374,11 @@ class OnlineFitter:
     def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
              sensor: int = 0) -> list[Landmark]:
         closed = self.segmenter.push(t_s, x_m, y_m, yaw_rad, tof_us, sensor)
-        return fit_segments(closed, self.config) if closed else []
+        return self._fit(closed) if closed else []
 
     def flush(self) -> list[Landmark]:
         closed = self.segmenter.flush()
-        return fit_segments(closed, self.config) if closed else []
+        return self._fit(closed) if closed else []
+
+    def _fit(self, closed: list[Segment]) -> list[Landmark]:
+        return split_unresolved(closed, fit_segments(closed, self.config), self.config)

@@ -51,6 +51,10 @@ class FitConfig:
     outlier_sigma : standardised residual beyond which an echo is dropped as a spike
         (at most ``max_outlier_fraction`` of a segment's echoes).
     flat_bearing_sd_deg : a fit whose bearing SD exceeds this is ``FLAT``.
+    min_echoes : fewer echoes (after spikes) make a result ``TOO_FEW_POINTS``: three
+        determine the three parameters exactly, leaving nothing to check the fit.
+    min_fit_p : a fit whose TOF chi-square has a p-value below this is ``UNRESOLVED``
+        (no single landmark explains the readings: merged reflectors, wall + corner).
     kappa_min_us : lower bound of kappa.
     kappa_lo_us, kappa_hi_us, kappa_soft_log_sd : a soft box prior on kappa: flat over
         [lo, hi], rising like a Gaussian in ln kappa (SD ``kappa_soft_log_sd``) outside;
@@ -75,6 +79,8 @@ class FitConfig:
     outlier_sigma: float = 4.5
     max_outlier_fraction: float = 0.2
     flat_bearing_sd_deg: float = 3.0
+    min_echoes: int = 5
+    min_fit_p: float = 1e-4
     kappa_min_us: float = 1e-3
     kappa_lo_us: float = 0.05
     kappa_hi_us: float = 20.0
@@ -90,7 +96,7 @@ class FitConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
-        for name in ("rounds", "iterations", "chunk_readings"):
+        for name in ("rounds", "iterations", "chunk_readings", "min_echoes"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"`{name}` must be a positive integer, got {v!r}")
@@ -147,53 +153,74 @@ def pack_segments(
     The reference of each segment is its last reading with a finite echo (its last
     reading if it has none). Non-finite TOFs (NaN, inf) are no-echo readings.
     """
-    B = len(segments)
-    n_det = np.zeros(B, dtype=np.int64)
-    n_ne = np.zeros(B, dtype=np.int64)
-    det_masks = []
+    cols = []
+    lengths = np.zeros(len(segments), dtype=np.int64)
     for b, seg in enumerate(segments):
-        t, x, y, yaw, tof = (np.asarray(a, dtype=float) for a in seg)
-        n = len(t)
-        if not (len(x) == len(y) == len(yaw) == len(tof) == n):
-            raise ValueError(f"segment {b}: arrays of unequal length")
-        det = np.isfinite(tof)
-        det_masks.append(det)
-        n_det[b] = int(det.sum())
-        n_ne[b] = n - n_det[b]
-    Nd = max(int(n_det.max(initial=0)), 1)
-    Nn = max(int(n_ne.max(initial=0)), 1)
+        arrs = [np.asarray(a, dtype=float).reshape(-1) for a in seg]
+        if len(arrs) != 5 or len({a.size for a in arrs}) != 1:
+            raise ValueError(f"segment {b}: expected 5 arrays of equal length")
+        lengths[b] = arrs[0].size
+        cols.append(arrs)
+    f = [np.concatenate([c[k] for c in cols]) if cols else np.zeros(0) for k in range(5)]
+    return pack_flat(np.repeat(np.arange(len(segments)), lengths), f[0], f[1], f[2], f[3],
+                     f[4], n_segments=len(segments))
+
+
+def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array,
+              tof_us: Array, n_segments: int | None = None) -> SegmentBatch:
+    """Pad readings given as flat arrays with a segment index (non-decreasing) into a batch.
+
+    Vectorised form of :func:`pack_segments`: ``seg`` (n,) the segment of each reading,
+    sorted; the other arrays (n,) as there.
+    """
+    seg = np.asarray(seg, dtype=np.int64)
+    B = int(n_segments if n_segments is not None else (seg.max() + 1 if seg.size else 0))
+    det = np.isfinite(tof_us)
+    n = seg.size
+    idx = np.arange(n)
+    start = np.searchsorted(seg, np.arange(B))
+    # reference: the last echo of each segment (its last reading if it has none)
+    last_echo = np.full(B, -1, dtype=np.int64)
+    np.maximum.at(last_echo, seg[det], idx[det])
+    end = np.searchsorted(seg, np.arange(B), side="right")
+    ref = np.where(last_echo >= 0, last_echo, np.maximum(end - 1, 0))
+    has = end > start
+    ref_xy = np.zeros((B, 2))
+    ref_yaw = np.zeros(B)
+    ref_t = np.zeros(B)
+    if n:
+        rr = np.where(has, ref, 0)
+        ref_xy = np.where(has[:, None], np.stack([x_m[rr], y_m[rr]], axis=1), 0.0)
+        ref_yaw = np.where(has, yaw_rad[rr], 0.0)
+        ref_t = np.where(has, t_s[rr], 0.0)
+
+    def pad(mask: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+        s = seg[mask]
+        count = np.bincount(s, minlength=B)
+        first = np.cumsum(count) - count
+        col = np.arange(s.size) - first[s]
+        return s, col, max(int(count.max(initial=0)), 1)
+
+    sd, cd, Nd = pad(det)
+    sn, cn, Nn = pad(~det)
     px = np.zeros((B, Nd))
     py = np.zeros((B, Nd))
     yw = np.zeros((B, Nd))
     tof = np.full((B, Nd), np.nan)
     valid = np.zeros((B, Nd), dtype=bool)
+    px[sd, cd] = x_m[det] - ref_xy[sd, 0]
+    py[sd, cd] = y_m[det] - ref_xy[sd, 1]
+    yw[sd, cd] = yaw_rad[det]
+    tof[sd, cd] = tof_us[det]
+    valid[sd, cd] = True
     npx = np.zeros((B, Nn))
     npy = np.zeros((B, Nn))
     nyw = np.zeros((B, Nn))
     nvalid = np.zeros((B, Nn), dtype=bool)
-    ref_xy = np.zeros((B, 2))
-    ref_yaw = np.zeros(B)
-    ref_t = np.zeros(B)
-    for b, seg in enumerate(segments):
-        t, x, y, yaw, tofs = (np.asarray(a, dtype=float) for a in seg)
-        det = det_masks[b]
-        if len(t) == 0:
-            continue
-        ref = int(np.flatnonzero(det)[-1]) if det.any() else len(t) - 1
-        ref_xy[b] = (x[ref], y[ref])
-        ref_yaw[b] = yaw[ref]
-        ref_t[b] = t[ref]
-        k = n_det[b]
-        px[b, :k] = x[det] - x[ref]
-        py[b, :k] = y[det] - y[ref]
-        yw[b, :k] = yaw[det]
-        tof[b, :k] = tofs[det]
-        valid[b, :k] = True
-        m = n_ne[b]
-        npx[b, :m] = x[~det] - x[ref]
-        npy[b, :m] = y[~det] - y[ref]
-        nyw[b, :m] = yaw[~det]
-        nvalid[b, :m] = True
+    npx[sn, cn] = x_m[~det] - ref_xy[sn, 0]
+    npy[sn, cn] = y_m[~det] - ref_xy[sn, 1]
+    nyw[sn, cn] = yaw_rad[~det]
+    nvalid[sn, cn] = True
     return SegmentBatch(px, py, yw, tof, valid, npx, npy, nyw, nvalid, ref_xy, ref_yaw, ref_t)
 
 
@@ -282,7 +309,7 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
     g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=want_derivs)
     det = cfg.detection
     z = M.detection_z(K, lng, mod) if det else None
-    et = M.echo_terms(K, g, z, mod, want_info=False)
+    et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
     w = np.where(use, 1.0 / np.sqrt(s2), 0.0)               # 1/s, 0 where unused
     e = (y - tau * geo.R - et.delay) * w
     F = (e * e).sum(-1)
@@ -334,6 +361,24 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
     return F, grad, H, e
 
 
+def tof_jacobian(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConfig
+                 ) -> tuple[Array, Array, Array]:
+    """Whitened TOF Jacobian (B, 3, Nd), mean delays (B, Nd) and SDs (B, Nd) at ``p``."""
+    mod = cfg.module
+    tau = M.us_per_m(mod)
+    r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
+    geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw)
+    g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod)
+    z = M.detection_z(K, lng, mod) if cfg.detection else None
+    et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
+    sd = np.sqrt(M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform"
+                                    else None))
+    a = et.ddelay_du * K * dg
+    J = np.stack([tau * geo.dR_dr + a * geo.dtheta_dr, tau * geo.dR_dphi + a * geo.dtheta_dphi,
+                  np.broadcast_to(et.ddelay_du * g, g.shape)], axis=1) / sd[:, None, :]
+    return J, et.delay, sd
+
+
 def _kappa_penalty(K: Array, cfg: FitConfig) -> tuple[Array, Array, Array]:
     """Soft box prior: (-2 log prior, its derivative by K, its curvature by K)."""
     if not np.isfinite(cfg.kappa_soft_log_sd):
@@ -363,8 +408,8 @@ def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConf
     geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], batch.px, batch.py, batch.yaw)
     g, _, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
     z = M.detection_z(p[:, 2:3], lng, mod) if cfg.detection else None
-    et = M.echo_terms(p[:, 2:3], g, z, mod, want_info=False)
-    return M.tof_variance_us2(et.delay, mod)
+    et = M.echo_terms(p[:, 2:3], g, z, mod, want_info=False, tier=tier)
+    return M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform" else None)
 
 
 def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray,
@@ -550,9 +595,13 @@ def _full_cost(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, us
     return F + np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
 
 
-def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig
-           ) -> tuple[Array, NDArray[np.bool_], Array]:
-    """Grid bracket + refinement (from a second start where the grid is ambiguous)."""
+def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
+           start_fit: BatchFit | None = None) -> tuple[Array, NDArray[np.bool_], Array]:
+    """Grid bracket + refinement (from a second start where the grid is ambiguous), or
+    refinement from another model's fit of the same segments (``start_fit``)."""
+    if start_fit is not None:
+        p, conv = _refine(kind, tier, start_fit.local.copy(), batch, y, use, cfg, cfg.rounds)
+        return p, conv, start_fit.arc.copy()
     start, start2, second, arc = _grid_start(kind, tier, batch, y, use, cfg)
     p, conv = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
     idx = np.flatnonzero(second)
@@ -580,17 +629,20 @@ def _covariance(H: Array) -> Array:
 
 def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
               config: FitConfig | None = None, offsets_us: Array | None = None,
-              use: NDArray[np.bool_] | None = None) -> BatchFit:
+              use: NDArray[np.bool_] | None = None, start: BatchFit | None = None
+              ) -> BatchFit:
     """Fit one landmark model to each of ``B`` segments.
 
     Parameters
     ----------
     batch : padded readings (see :func:`pack_segments`).
     kind : ``"point"`` (x, y, kappa) or ``"line"`` (rho, alpha, kappa).
-    tier : beam model ``"gauss"`` or ``"piston"``.
+    tier : model tier, one of :data:`sonarloc.fit.model.TIERS`.
     config : fitter settings (speed of sound, detection model, ...).
-    offsets_us : (B, Nd) known additive offsets of readings (ripple jumps), subtracted.
+    offsets_us : (B, Nd) known additive offsets of readings, subtracted.
     use : (B, Nd) echoes to use (default: all valid).
+    start : another model's fit of the same segments (same kind): refine from it instead
+        of bracketing on the grid (for a second tier, whose optimum is near the first's).
 
     Returns
     -------
@@ -602,21 +654,69 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     if tier not in M.TIERS:
         raise ValueError(f"`tier` must be one of {', '.join(M.TIERS)}; got {tier!r}")
     cfg = config or FitConfig()
+    if start is not None and start.kind != kind:
+        raise ValueError(f"`start` is a {start.kind} fit, expected {kind}")
     B = batch.size
-    chunk = int(np.clip(cfg.chunk_readings // max(batch.px.shape[1] + batch.ne_px.shape[1], 1),
-                        16, 8192))
-    if B > chunk:   # stay in cache: fit in chunks
-        parts = []
-        for i in range(0, B, chunk):
-            idx = np.arange(i, min(i + chunk, B))
-            parts.append(fit_batch(
-                _take(batch, idx), kind, tier, cfg,
-                None if offsets_us is None else offsets_us[idx],
-                None if use is None else use[idx]))
-        return BatchFit(kind, tier, *(np.concatenate([getattr(f, name) for f in parts])
-                                      for name in ("local", "cov", "cost", "chi2", "n_used",
-                                                   "used", "resid", "arc", "converged",
-                                                   "robust_cost")))
+    n_d = batch.valid.sum(1)
+    n_n = batch.ne_valid.sum(1)
+    width = batch.px.shape[1] + batch.ne_px.shape[1]
+    if B <= 1 or (B * width <= cfg.chunk_readings
+                  and B * width <= 1.3 * max(int((n_d + n_n).sum()), 1)):
+        return _fit_direct(batch, kind, tier, cfg, offsets_us, use, start)
+    # sort by size and fit in chunks of about chunk_readings padded readings, each
+    # trimmed to its own widest segment: no work on padding, arrays stay in cache
+    order = np.lexsort((n_n, n_d))
+    out_local = np.zeros((B, 3))
+    out_cov = np.zeros((B, 3, 3))
+    out_vec = {name: np.zeros(B) for name in ("cost", "chi2", "robust_cost")}
+    out_n = np.zeros(B, dtype=np.int64)
+    out_conv = np.zeros(B, dtype=bool)
+    out_arc = np.zeros((B, 2))
+    Nd = batch.px.shape[1]
+    out_used = np.zeros((B, Nd), dtype=bool)
+    out_resid = np.zeros((B, Nd))
+    a = 0
+    while a < B:
+        b = a + 1
+        while b < B and (b + 1 - a) * int(n_d[order[b]] + n_n[order[b]] + 2) <= cfg.chunk_readings:
+            b += 1
+        idx = order[a:b]
+        wd = max(int(n_d[idx].max()), 1)
+        wn = max(int(n_n[idx].max()), 1)
+        sub = _trim(_take(batch, idx), wd, wn)
+        part = _fit_direct(
+            sub, kind, tier, cfg,
+            None if offsets_us is None else offsets_us[idx][:, :wd],
+            None if use is None else use[idx][:, :wd],
+            None if start is None else _trim_fit(start.take(idx), wd))
+        out_local[idx], out_cov[idx] = part.local, part.cov
+        for name in out_vec:
+            out_vec[name][idx] = getattr(part, name)
+        out_n[idx], out_conv[idx], out_arc[idx] = part.n_used, part.converged, part.arc
+        out_used[idx, :wd], out_resid[idx, :wd] = part.used, part.resid
+        a = b
+    return BatchFit(kind, tier, out_local, out_cov, out_vec["cost"], out_vec["chi2"], out_n,
+                    out_used, out_resid, out_arc, out_conv, out_vec["robust_cost"])
+
+
+def _trim(batch: SegmentBatch, wd: int, wn: int) -> SegmentBatch:
+    """The batch with its echo arrays cut to ``wd`` columns and no-echo arrays to ``wn``."""
+    return SegmentBatch(batch.px[:, :wd], batch.py[:, :wd], batch.yaw[:, :wd],
+                        batch.tof_us[:, :wd], batch.valid[:, :wd], batch.ne_px[:, :wn],
+                        batch.ne_py[:, :wn], batch.ne_yaw[:, :wn], batch.ne_valid[:, :wn],
+                        batch.ref_xy, batch.ref_yaw, batch.ref_t_s)
+
+
+def _trim_fit(fit: BatchFit, wd: int) -> BatchFit:
+    return BatchFit(fit.kind, fit.tier, fit.local, fit.cov, fit.cost, fit.chi2, fit.n_used,
+                    fit.used[:, :wd], fit.resid[:, :wd], fit.arc, fit.converged,
+                    fit.robust_cost)
+
+
+def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
+                offsets_us: Array | None, use: NDArray[np.bool_] | None,
+                start: BatchFit | None) -> BatchFit:
+    """:func:`fit_batch` on one chunk."""
     mod = cfg.module
     y = batch.tof_us - 0.5 * mod.count_period_us
     if offsets_us is not None:
@@ -626,7 +726,7 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
         use0 = use0 & use
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
-    p, conv, arc = _solve(kind, tier, batch, y, use0, cfg)
+    p, conv, arc = _solve(kind, tier, batch, y, use0, cfg, start)
     s2 = _variances(kind, tier, p, batch, cfg)
     F, _, H, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg)
     # spikes: drop the worst echoes beyond outlier_sigma, then fit those segments again

@@ -34,8 +34,11 @@ from sonarloc.physics.tof import ModuleParams
 
 Array = NDArray[np.float64]
 
-TIERS = ("gauss", "piston")
-"""Beam tiers the fitter can use (``gauss``: eq. 3; ``piston``: nulls and side lobes)."""
+TIERS = ("gauss", "piston", "waveform")
+"""Model tiers the fitter can use: ``gauss`` (eq. 3, Gaussian main lobe), ``piston``
+(eq. 3 with nulls and side lobes), ``waveform`` (piston beam and the simulated 6500
+module's threshold crossing: ripple jumps, late weak echoes; also the model of the
+simulator's ``auto`` tier, which agrees with it within 1 us)."""
 
 KINDS = ("point", "line")
 
@@ -144,7 +147,7 @@ def beam_delay_factor(theta: ArrayLike, tier: str, params: ModuleParams,
         g = np.exp(e)
         dg = np.where(e < np.log(_G_MAX), g * t * inv_s2, 0.0) if derivative else g
         return g, dg, e
-    if tier == "piston":
+    if tier in ("piston", "waveform"):
         return _piston_table(params.diameter_m, params.carrier_hz, params.c_mps).lookup(
             t, derivative)
     raise ValueError(f"`tier` must be one of {', '.join(TIERS)}; got {tier!r}")
@@ -230,6 +233,9 @@ _Z_LOW = -10.0
 def probit_terms(v: ArrayLike, want_info: bool = True) -> tuple[Array, Array, Array]:
     """log Phi(v), its derivative phi(v)/Phi(v), and the Bernoulli Fisher information.
 
+    The general reference form; the fitter's hot path uses :func:`echo_terms` and
+    :func:`noecho_terms`, which tests check against this.
+
     The information of an event of probability Phi(v) per unit v^2 is
     phi(v)^2 / (Phi(v) Phi(-v)). Exact (``scipy.special.log_ndtr``) for -10 < v < 7;
     beyond, Phi(v) = 1 to 2e-12, or the asymptotic series of the Mills ratio (relative
@@ -263,11 +269,6 @@ def probit_terms(v: ArrayLike, want_info: bool = True) -> tuple[Array, Array, Ar
     return logp, mills, info
 
 
-def bernoulli_info(z: ArrayLike) -> Array:
-    """Fisher information phi(z)^2 / (Phi(z) Phi(-z)) of a probit event per unit z^2."""
-    return probit_terms(z)[2]
-
-
 @dataclass(frozen=True)
 class EchoTerms:
     """Detection-model terms of detected echoes (shape of the inputs).
@@ -276,7 +277,8 @@ class EchoTerms:
     ``info``: Bernoulli (expected) information per unit z^2; ``curv``: the observed
     curvature d^2(-log P)/dz^2 (larger than ``info`` for unlikely echoes);
     ``delay``: mean delay of a detected echo [us]; ``ddelay_du``: its derivative by
-    the eq. 3 delay u = kappa g.
+    the eq. 3 delay u = kappa g; ``delay_var``: the delay's variance [us^2] (amplitude
+    fluctuation; the reading adds jitter and counting).
     """
 
     log_p: Array
@@ -285,22 +287,28 @@ class EchoTerms:
     curv: Array
     delay: Array
     ddelay_du: Array
+    delay_var: Array
 
 
 def echo_terms(kappa: ArrayLike, g: ArrayLike, z: ArrayLike | None, params: ModuleParams,
-               want_info: bool = True) -> EchoTerms:
+               want_info: bool = True, tier: str = "gauss") -> EchoTerms:
     """Mean delay and detection terms of detected echoes in one pass (the fit's hot path).
 
     ``z`` = :func:`detection_z`; None = no detection model (untruncated mean, P = 1).
     Exact where z > -7; deeper inside the arc P(echo) = 1 and the truncation vanish
-    to 1e-12 and the constants are used.
+    to 1e-12 and the constants are used. ``tier="waveform"``: the delay moments of the
+    simulated module (:func:`waveform_delay_table`) instead of eq. 3's.
     """
     s = sigma_a(params)
     u = np.asarray(kappa, float) * np.asarray(g, float)
     scale = np.exp(0.5 * s * s)
     zeros = np.zeros(u.shape)
     if z is None:
-        return EchoTerms(zeros, zeros, zeros, zeros, u * scale, np.full(u.shape, scale))
+        if tier == "waveform":
+            m, dm, var = waveform_delay_table(params).lookup(u)
+            return EchoTerms(zeros, zeros, zeros, zeros, m, dm, var)
+        d = u * scale
+        return EchoTerms(zeros, zeros, zeros, zeros, d, np.full(u.shape, scale), (s * d) ** 2)
     z = np.asarray(z, dtype=float)
     log_p = np.zeros(u.shape)
     dlogp = np.zeros(u.shape)
@@ -314,19 +322,94 @@ def echo_terms(kappa: ArrayLike, g: ArrayLike, z: ArrayLike | None, params: Modu
         l0 = log_ndtr(-za)                        # log P(echo)
         lpdf = -0.5 * za * za - _LOG_SQRT_2PI
         m0 = np.exp(lpdf - l0)                    # phi(z) / Phi(-z)
-        ra = np.exp(log_ndtr(-za - s) - l0)       # Phi(-z-s) / Phi(-z)
-        m1 = np.exp(-0.5 * (za + s) ** 2 - _LOG_SQRT_2PI - l0)
         log_p[act] = l0
         dlogp[act] = -m0
         curv[act] = m0 * (m0 - za)
-        ratio[act] = ra
-        dratio[act] = -m1 + ra * m0
+        if tier != "waveform":
+            ra = np.exp(log_ndtr(-za - s) - l0)       # Phi(-z-s) / Phi(-z)
+            m1 = np.exp(-0.5 * (za + s) ** 2 - _LOG_SQRT_2PI - l0)
+            ratio[act] = ra
+            dratio[act] = -m1 + ra * m0
         if want_info:
             with np.errstate(divide="ignore"):
                 lq = np.log(-np.expm1(l0))        # log Phi(z), accurate for all z
             info[act] = np.exp(2.0 * lpdf - l0 - lq)
-    return EchoTerms(log_p, dlogp, info, curv, u * scale * ratio,
-                     scale * (ratio + dratio / s))
+    if tier == "waveform":
+        m, dm, var = waveform_delay_table(params).lookup(u)
+        return EchoTerms(log_p, dlogp, info, curv, m, dm, var)
+    d = u * scale * ratio
+    return EchoTerms(log_p, dlogp, info, curv, d, scale * (ratio + dratio / s), (s * d) ** 2)
+
+
+@dataclass(frozen=True, eq=False)
+class _DelayTable:
+    """Moments of a detected echo's delay against x = ln u on a uniform grid."""
+
+    x0: float
+    dx: float
+    mean: Array
+    dmean_dx: Array
+    var: Array
+    small_scale: float
+
+    def lookup(self, u: Array) -> tuple[Array, Array, Array]:
+        """Mean delay, its derivative by u, and the delay variance at eq. 3 delays u."""
+        x = np.log(np.maximum(u, 1e-300))
+        n = self.mean.size - 1
+        t = (x - self.x0) / self.dx
+        below = t < 0.0
+        tc = np.clip(t, 0.0, n)
+        i = np.minimum(tc.astype(np.intp), n - 1)
+        s = tc - i
+        f0, f1 = self.mean[i], self.mean[i + 1]
+        d0, d1 = self.dmean_dx[i] * self.dx, self.dmean_dx[i + 1] * self.dx
+        s2 = s * s
+        m = f0 + s2 * (3.0 - 2.0 * s) * (f1 - f0) + s * (1.0 - s) * ((1.0 - s) * d0 - s * d1)
+        dm_dx = ((6.0 * s * (1.0 - s)) * (f1 - f0) + (1.0 - s) * (1.0 - 3.0 * s) * d0
+                 + s * (3.0 * s - 2.0) * d1) / self.dx
+        dm_dx = np.where(t > n, 0.0, dm_dx)
+        var = self.var[i] + s * (self.var[i + 1] - self.var[i])
+        # below the table (u < 1e-3 us) the module is eq. 3 with a log-normal gain
+        m = np.where(below, u * self.small_scale, m)
+        dm_du = np.where(below, self.small_scale, dm_dx / np.maximum(u, 1e-300))
+        var = np.where(below, (0.25 * u) ** 2, var)
+        return m, dm_du, var
+
+
+@functools.lru_cache(maxsize=8)
+def waveform_delay_table(params: ModuleParams) -> _DelayTable:
+    """Mean, derivative and variance of the waveform tier's delay given detection.
+
+    For an eq. 3 delay u (median over the amplitude gain), the reading's delay is
+    W(u / G) (:func:`sonarloc.physics.waveform.crossing_delay_us`) with log-normal G,
+    detected when u / G is below the detection limit. Its moments are kernel sums over
+    a fixed grid of v = u / G (finest towards the limit, where W climbs steeply), so
+    they are smooth in u and the derivative is exact; computed once per module.
+    """
+    from sonarloc.physics.waveform import crossing_delay_us, waveform_template
+
+    s = sigma_a(params)
+    peak = float(waveform_template(params).running_max[-1])
+    top = np.log(peak)
+    span = np.log(peak / 1e-3)
+    edges = np.unique(top - np.concatenate([[span], np.geomspace(span, 1e-9, 2500), [0.0]]))
+    y = 0.5 * (edges[1:] + edges[:-1])
+    dy = np.diff(edges)
+    W = crossing_delay_us(np.exp(y), params)
+    W = np.where(np.isfinite(W), W, 0.0)
+    x = np.linspace(np.log(1e-3), np.log(params.detection_limit_us) + 6.0 * s, 512)
+    a = (x[:, None] - y[None, :]) / s
+    k = np.exp(-0.5 * a * a) * dy[None, :]
+    dk = -a / s * k
+    D, N, E2 = k.sum(1), (k * W).sum(1), (k * W * W).sum(1)
+    Dp, Np = dk.sum(1), (dk * W).sum(1)
+    mean = N / D
+    dmean = (Np * D - N * Dp) / (D * D)
+    var = np.maximum(E2 / D - mean * mean, 0.0)
+    for arr in (mean, dmean, var):
+        arr.setflags(write=False)
+    return _DelayTable(float(x[0]), float(x[1] - x[0]), mean, dmean, var,
+                       float(np.exp(0.5 * s * s)))
 
 
 def noecho_terms(z: ArrayLike, want_info: bool = True
@@ -358,43 +441,32 @@ def noecho_terms(z: ArrayLike, want_info: bool = True
 
 
 def mean_delay(kappa: ArrayLike, g: ArrayLike, params: ModuleParams,
-               z: ArrayLike | None = None) -> tuple[Array, Array]:
+               z: ArrayLike | None = None, tier: str = "gauss") -> tuple[Array, Array]:
     """Mean threshold delay [us] of a *detected* echo and its derivative by u = kappa g.
 
-    With a log-normal gain the delay is u / G; its mean is u exp(s^2/2) and, given
+    With a log-normal gain the eq. 3 delay is u / G; its mean is u exp(s^2/2) and, given
     detection (delay <= L, pass the detection margin ``z``), the truncated mean
-    u exp(s^2/2) Phi(-z - s) / Phi(-z).
+    u exp(s^2/2) Phi(-z - s) / Phi(-z). (The ``delay`` fields of :func:`echo_terms`.)
     """
-    s = sigma_a(params)
-    u = np.asarray(kappa, float) * np.asarray(g, float)
-    scale = np.exp(0.5 * s * s)
-    if z is None:
-        return u * scale, np.full(u.shape, scale)
-    z = np.asarray(z, dtype=float)
-    ratio = np.ones(u.shape)
-    dratio = np.zeros(u.shape)
-    act = z > -_Z_HIGH
-    if act.any():
-        za = z[act]
-        l0 = log_ndtr(-za)
-        ra = np.exp(log_ndtr(-za - s) - l0)
-        # R'(z) = -phi(z+s)/Phi(-z) + R phi(z)/Phi(-z)
-        m1 = np.exp(-0.5 * (za + s) ** 2 - _LOG_SQRT_2PI - l0)
-        m0 = np.exp(-0.5 * za * za - _LOG_SQRT_2PI - l0)
-        ratio[act] = ra
-        dratio[act] = -m1 + ra * m0
-    return u * scale * ratio, scale * (ratio + dratio / s)
+    et = echo_terms(kappa, g, z, params, want_info=False, tier=tier)
+    return et.delay, et.ddelay_du
 
 
-def tof_variance_us2(delay_us: ArrayLike, params: ModuleParams) -> Array:
+def tof_variance_us2(delay_us: ArrayLike, params: ModuleParams,
+                     delay_var: ArrayLike | None = None) -> Array:
     """Variance [us^2] of a reading with mean delay ``delay_us``: jitter model + counting.
 
     ``jitter_sd_us(delay)^2 + period^2 / 12`` with :func:`sonarloc.physics.jitter_sd_us`
-    written out (no square root) because it runs in the fitter's inner loop.
+    written out (no square root) because it runs in the fitter's inner loop; with
+    ``delay_var`` (a model's own delay variance, e.g. the waveform tier's), the timing
+    jitter, that variance and counting.
     """
+    base = params.jitter_sd_us ** 2 + params.count_period_us ** 2 / 12.0
+    if delay_var is not None:
+        return base + np.asarray(delay_var, dtype=float)
     d = np.asarray(delay_us, dtype=float)
     a = params.amplitude_fluctuation
-    return (params.jitter_sd_us ** 2 + params.count_period_us ** 2 / 12.0) + (a * a) * (d * d)
+    return base + (a * a) * (d * d)
 
 
 def us_per_m(params: ModuleParams) -> float:

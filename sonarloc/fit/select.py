@@ -8,11 +8,15 @@ so a user can see what was chosen and whether the data could tell:
   equally well, or the segment was taken from one spot (a pan cannot tell a pole
   from a wall), the reflector strength decides: kappa below ``kappa_wall_us`` is a
   wall-like specular reflector (``kind_basis = "strength"``).
-* **tier**: the piston beam is fitted only where the data need it: the Gaussian fit
-  does not explain them (chi-square 3 SDs above its mean, or a 4-sigma echo/no-echo
-  event) and, at that fit, the two beams predict readings that differ by more than
-  the tolerance the physics uses (:data:`sonarloc.physics.tiers.GAUSS_TOLERANCE_US`)
-  or detection probabilities that differ; it is kept only if it fits better.
+* **tier**: other models are fitted only where the data can tell them from the
+  Gaussian one: ``waveform`` (the simulated module: ripple jumps, late weak echoes;
+  also the model of the simulator's ``auto`` tier) where, at the Gaussian fit, its
+  predicted readings differ by more than the tolerance the physics uses
+  (:data:`sonarloc.physics.tiers.GAUSS_TOLERANCE_US`) or its detection probabilities
+  differ, and a score test says the residuals lean towards it; ``piston`` (side
+  lobes) where they differ and the Gaussian fit does not explain the data (chi-square
+  3 SDs above its mean, or a 4-sigma echo/no-echo event) or leans towards it.
+  Another tier replaces ``gauss`` only if it fits better by ``TIER_THRESHOLD``.
 * **overlap**: residuals that run in long same-sign blocks with an excess chi-square
   say two reflectors were merged; the result is then ``UNRESOLVED``.
 
@@ -28,7 +32,7 @@ from numpy.typing import NDArray
 from scipy.special import ndtr
 
 from sonarloc.fit import model as M
-from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _take, fit_batch
+from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _take, fit_batch, tof_jacobian
 from sonarloc.physics.tiers import GAUSS_TOLERANCE_US
 
 Array = NDArray[np.float64]
@@ -43,6 +47,12 @@ against line (a likelihood ratio of e^4.5 ~ 90)."""
 
 TIER_THRESHOLD = 4.0
 """Difference of -2 log-likelihood for another beam tier to replace the Gaussian one."""
+
+SCORE_Z = 1.5
+"""Score-test statistic above which the residuals of a Gaussian fit are taken to lean
+towards another tier, which is then fitted (a cheap pre-screen: the likelihood ratio
+decides, and for these nonlinear models it can exceed ``TIER_THRESHOLD`` already at a
+score of 1.7)."""
 
 SURPRISE = 16.0
 """An event whose probability under a fit is below exp(-SURPRISE/2) (a 4-sigma event)
@@ -138,26 +148,60 @@ def choose_kind(sel: Selection, line: BatchFit | None, moving: NDArray[np.int64]
                 sel.kind[b] = "line"   # one viewpoint: the same fit, read as a wall
 
 
-def _tier_differs(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: str,
-                  cfg: FitConfig) -> NDArray[np.bool_]:
-    """Whether Gaussian and piston beams predict distinguishable data at these fits."""
+def _tiers_differ(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: str,
+                  tier_a: str, tier_b: str, cfg: FitConfig) -> NDArray[np.bool_]:
+    """Whether two tiers predict distinguishable data at the fits of segments ``idx``:
+    a used echo's mean delay differing by more than the physics' tolerance
+    (:data:`sonarloc.physics.tiers.GAUSS_TOLERANCE_US`) or a no-echo reading's detection
+    probability by more than 0.2."""
     mod = cfg.module
     sub = _take(batch, idx)
     p = sel.local[idx]
-    geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.px, sub.py, sub.yaw)
-    gg, _, _ = M.beam_delay_factor(geo.theta, "gauss", mod, derivative=False)
-    gp, _, _ = M.beam_delay_factor(geo.theta, "piston", mod, derivative=False)
-    lim = mod.detection_limit_us
     K = p[:, 2:3]
-    dg = np.abs(np.minimum(K * gg, lim) - np.minimum(K * gp, lim))
-    need = np.any((dg > GAUSS_TOLERANCE_US) & sel.used[idx], axis=1)
+    geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.px, sub.py, sub.yaw)
+    delays = []
+    for t in (tier_a, tier_b):
+        g, _, lg = M.beam_delay_factor(geo.theta, t, mod, derivative=False)
+        z = M.detection_z(K, lg, mod) if cfg.detection else None
+        delays.append(M.echo_terms(K, g, z, mod, want_info=False, tier=t).delay)
+    need = np.any((np.abs(delays[0] - delays[1]) > GAUSS_TOLERANCE_US) & sel.used[idx], axis=1)
     if cfg.detection and sub.ne_valid.any():
         ng = M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.ne_px, sub.ne_py, sub.ne_yaw)
-        _, _, lg = M.beam_delay_factor(ng.theta, "gauss", mod, derivative=False)
-        _, _, lp = M.beam_delay_factor(ng.theta, "piston", mod, derivative=False)
-        dp = np.abs(ndtr(M.detection_z(K, lg, mod)) - ndtr(M.detection_z(K, lp, mod)))
-        need |= np.any((dp > 0.2) & sub.ne_valid, axis=1)
+        pr = [ndtr(M.detection_z(K, M.beam_delay_factor(ng.theta, t, mod,
+                                                         derivative=False)[2], mod))
+              for t in (tier_a, tier_b)]
+        need |= np.any((np.abs(pr[0] - pr[1]) > 0.2) & sub.ne_valid, axis=1)
     return need
+
+
+def score_z(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: str,
+            tier_a: str, tier_b: str, cfg: FitConfig) -> Array:
+    """Score (Lagrange multiplier) test of tier ``tier_b`` against the fit in ``tier_a``.
+
+    With the mean readings of the two tiers m_a, m_b at the fit, the test asks whether
+    moving the model from m_a towards m_b would explain the residuals: z = e.d / |d|
+    with e the standardised residuals and d = (m_b - m_a)/s with the directions the fit
+    already has (its Jacobian) projected out. z ~ N(0, 1) when ``tier_a`` is right;
+    large z says the data lean towards ``tier_b``. Costs one model evaluation.
+    """
+    mod = cfg.module
+    sub = _take(batch, idx)
+    p = sel.local[idx]
+    J, da, sd = tof_jacobian(kind, tier_a, p, sub, cfg)
+    geo = M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.px, sub.py, sub.yaw)
+    g, _, lg = M.beam_delay_factor(geo.theta, tier_b, mod, derivative=False)
+    K = p[:, 2:3]
+    z = M.detection_z(K, lg, mod) if cfg.detection else None
+    db = M.echo_terms(K, g, z, mod, want_info=False, tier=tier_b).delay
+    used = sel.used[idx]
+    d = np.where(used, (db - da) / sd, 0.0)
+    J = J * used[:, None, :]
+    JJ = np.matmul(J, np.swapaxes(J, 1, 2)) + 1e-12 * np.eye(3)[None]
+    coef = np.linalg.solve(JJ, np.einsum("bkn,bn->bk", J, d)[..., None])[..., 0]
+    d_perp = d - np.einsum("bk,bkn->bn", coef, J)
+    norm = np.sqrt((d_perp * d_perp).sum(1))
+    e = sel.resid[idx] * used
+    return np.where(norm > 1e-9, (e * d_perp).sum(1) / np.maximum(norm, 1e-9), 0.0)
 
 
 def misfit(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: str,
@@ -195,38 +239,76 @@ def misfit(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: st
 
 def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                 threshold: float = TIER_THRESHOLD) -> None:
-    """Refit with the piston beam where the Gaussian fit does not explain the data and
-    the two beams differ there; keep it where it fits better."""
-    basis = np.full(sel.kind.shape, "gauss suffices: beams agree within the data",
-                    dtype=object)
-    fine = np.zeros(sel.kind.shape, dtype=bool)
-    dcost = np.full(sel.kind.shape, np.nan)
+    """Try the other tiers where the data can tell them from the Gaussian fit.
+
+    ``waveform`` (the simulated module: ripple jumps, late weak echoes) is fitted where
+    its predictions differ from the Gaussian fit's and the residuals lean towards it
+    (:func:`score_z` above ``SCORE_Z``); ``piston`` (eq. 3 with side lobes) where its
+    predictions differ and the Gaussian fit does not explain the data or leans towards
+    it. A tier replaces ``gauss`` only if it lowers -2 log-likelihood by more than
+    ``threshold``; the best such tier wins.
+    """
+    B = sel.kind.shape[0]
+    basis = np.full(B, "gauss: the tiers agree within the data", dtype=object)
+    dcost = {t: np.full(B, np.nan) for t in ("waveform", "piston")}
     for kind in ("point", "line"):
-        idx = np.flatnonzero(sel.kind == kind)
+        idx = np.flatnonzero((sel.kind == kind) & (sel.tier == "gauss"))
         if idx.size == 0:
             continue
-        differ = idx[_tier_differs(batch, sel, idx, kind, cfg)]
-        if differ.size == 0:
-            continue
-        bad = misfit(batch, sel, differ, kind, cfg)
-        fine[differ[~bad]] = True
-        need = differ[bad]
-        if need.size == 0:
-            continue
-        pist = fit_batch(_take(batch, need), kind, "piston", cfg)
-        d = sel.robust_cost[need] - pist.robust_cost                     # > 0: piston better
-        dcost[need] = d
-        better = d > threshold
-        basis[need] = np.where(better, "piston fits the data better",
-                               np.where(d < -threshold, "gauss fits the data better",
-                                        "data cannot tell gauss from piston: gauss kept"))
-        if better.any():
-            sel.put(need[better], pist.take(np.flatnonzero(better)))
-    basis[fine] = "gauss explains the data (no need to try piston)"
+        base = sel.robust_cost[idx].copy()
+        best_cost = base - threshold          # an alternative must beat gauss by this
+        best: list[tuple[str, BatchFit, NDArray[np.int64]]] = []
+        choice = np.full(idx.size, -1)
+        try_w = _tiers_differ(batch, sel, idx, kind, "gauss", "waveform", cfg)
+        differ_w = try_w.copy()
+        if try_w.any():   # and the residuals lean towards it (score test)
+            try_w[try_w] = score_z(batch, sel, idx[try_w], kind, "gauss", "waveform",
+                                   cfg) > SCORE_Z
+        try_p = _tiers_differ(batch, sel, idx, kind, "gauss", "piston", cfg)
+        if try_p.any():
+            rows = idx[try_p]
+            try_p[try_p] = misfit(batch, sel, rows, kind, cfg) | (np.abs(score_z(
+                batch, sel, rows, kind, "gauss", "piston", cfg)) > SCORE_Z)
+        for tier, mask in (("waveform", try_w), ("piston", try_p)):
+            rows = np.flatnonzero(mask)
+            if rows.size == 0:
+                continue
+            alt = fit_batch(_take(batch, idx[rows]), kind, tier, cfg,
+                            start=sel.rows(idx[rows]))
+            dcost[tier][idx[rows]] = base[rows] - alt.robust_cost   # > 0: tier better
+            wins = alt.robust_cost < best_cost[rows]
+            best_cost[rows[wins]] = alt.robust_cost[wins]
+            choice[rows[wins]] = len(best)
+            best.append((tier, alt, rows))
+        tried = try_w | try_p
+        basis[idx[differ_w & ~tried]] = "gauss: residuals do not lean towards another tier"
+        basis[idx[tried]] = "data cannot tell: gauss kept"
+        for k, (tier, alt, rows) in enumerate(best):
+            pick = np.flatnonzero(choice[rows] == k)
+            if pick.size:
+                sel.put(idx[rows[pick]], alt.take(pick))
+                basis[idx[rows[pick]]] = f"{tier} fits the data better"
+        # piston chosen (side lobes seen): its weak side-lobe echoes may be late as the
+        # module's waveform makes them; try waveform from the piston fit where it leans so
+        pst = idx[(sel.tier[idx] == "piston") & ~try_w]
+        if pst.size:
+            lean = misfit(batch, sel, pst, kind, cfg) | (score_z(
+                batch, sel, pst, kind, "piston", "waveform", cfg) > SCORE_Z)
+            rows2 = pst[lean]
+            if rows2.size:
+                alt = fit_batch(_take(batch, rows2), kind, "waveform", cfg,
+                                start=sel.rows(rows2))
+                d = sel.robust_cost[rows2] - alt.robust_cost
+                dcost["waveform"][rows2] = d
+                win = d > threshold
+                if win.any():
+                    sel.put(rows2[win], alt.take(np.flatnonzero(win)))
+                    basis[rows2[win]] = "waveform fits the data better (after piston)"
     for b, ex in enumerate(sel.extra):
         ex["tier_basis"] = basis[b]
-        if np.isfinite(dcost[b]):
-            ex["tier_dcost"] = float(dcost[b])
+        for t, d in dcost.items():
+            if np.isfinite(d[b]):
+                ex[f"dcost_{t}"] = float(d[b])
 
 
 def runs_z(signs: NDArray[np.bool_], n: NDArray[np.int64]) -> Array:

@@ -161,17 +161,17 @@ class SegmentView:
     label: str = ""
 
 
-def pick_segments(views: Sequence[SegmentView], n: int = 4) -> list[SegmentView]:
-    """Up to ``n`` segments to show, one per label (kind) first, in the given order."""
-    ok = [v for v in views if v.landmark.ok and np.isfinite(v.tof_us).sum() >= 5]
-    picked: list[SegmentView] = []
-    for v in ok:
-        if len(picked) < n and v.label not in {p.label for p in picked}:
-            picked.append(v)
-    for v in ok:
-        if len(picked) < n and all(v is not p for p in picked):
-            picked.append(v)
-    return picked
+def pick_segments(views: Sequence[SegmentView], n: int = 4, per_panel: int = 6
+                  ) -> list[list[SegmentView]]:
+    """Up to ``n`` panels of segments: one label (kind) per panel, in the given order,
+    each with up to ``per_panel`` segments of that kind (trusted fits, >= 5 echoes)."""
+    groups: dict[str, list[SegmentView]] = {}
+    for v in views:
+        if v.landmark.ok and np.isfinite(v.tof_us).sum() >= 5:
+            group = groups.setdefault(v.label or v.landmark.kind, [])
+            if len(group) < per_panel:
+                group.append(v)
+    return list(groups.values())[:n]
 
 
 def _count(n: int, noun: str) -> str:
@@ -242,31 +242,46 @@ def drive_figure(
         ax.set_ylim(ymin - 0.3, ymax + 0.3)
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=4,
               frameon=False)
-    shown = pick_segments(segments, 4)
+    panels = pick_segments(segments, 4)
     colors = ["tab:blue", "tab:green", "tab:purple", "tab:brown"]
     for i in range(4):
         sub = fig.add_subplot(gs[i // 2, 1 + i % 2])
-        if i >= len(shown):
+        if i >= len(panels):
             sub.axis("off")
             continue
-        v = shown[i]
-        lm = v.landmark
-        model, theta = landmark_model_us(lm, v.x_m, v.y_m, v.yaw_rad, c_mps, sigma_deg)
-        expected = beam_delay_us(lm.kappa_us, theta, lm.tier, sigma_deg, c_mps)
-        delay = v.tof_us - (model - expected)
-        finite = np.isfinite(delay)
-        # readings the fit did not explain (other reflectors, spikes): marked, not hidden
-        used = finite & (np.abs(delay - expected) <= outlier_us)
-        what = v.label or lm.kind
-        draw_excess_delay(sub, theta[used], delay[used], lm.kappa_us, sigma_deg,
-                          label="fitted model", color=colors[i], tier=lm.tier)
-        if (finite & ~used).any():
-            sub.plot(np.degrees(theta[finite & ~used]),
-                     np.clip(delay[finite & ~used], -outlier_us * 1.5, outlier_us * 2.5), "x",
-                     ms=3, color="0.6", label=f"> {outlier_us:g} µs off the fit")
-        sub.set_title(f"{what}: κ={lm.kappa_us:.2f} µs, {int(used.sum())} echoes\n"
-                      f"{_count(len(set(lm.sensors)), 'transducer')}, r={lm.range_m:.2f} m, "
-                      f"tier {lm.tier}", fontsize=8)
+        n_used = 0
+        marked = False
+        kappas: list[float] = []
+        transducers: set[int] = set()
+        tiers: set[str] = set()
+        for j, v in enumerate(panels[i]):
+            lm = v.landmark
+            model, theta = landmark_model_us(lm, v.x_m, v.y_m, v.yaw_rad, c_mps, sigma_deg)
+            expected = beam_delay_us(lm.kappa_us, theta, lm.tier, sigma_deg, c_mps)
+            delay = v.tof_us - (model - expected)  # each reading against its own fit's To
+            finite = np.isfinite(delay)
+            # readings the fit did not explain (other reflectors, spikes): marked, not hidden
+            used = finite & (np.abs(delay - expected) <= outlier_us)
+            draw_excess_delay(sub, theta[used], delay[used], lm.kappa_us, sigma_deg,
+                              label="fitted models" if j == 0 else "", color=colors[i],
+                              tier=lm.tier)
+            off = finite & ~used
+            if off.any():
+                sub.plot(np.degrees(theta[off]),
+                         np.clip(delay[off], -outlier_us * 1.5, outlier_us * 2.5), "x",
+                         ms=3, color="0.6",
+                         label=None if marked else f"> {outlier_us:g} µs off the fit")
+                marked = True
+            n_used += int(used.sum())
+            kappas.append(lm.kappa_us)
+            transducers.update(lm.sensors)
+            tiers.add(lm.tier)
+        what = panels[i][0].label or panels[i][0].landmark.kind
+        k = sorted(kappas)
+        ktext = f"κ={k[0]:.2f} µs" if len(k) == 1 else f"κ {k[0]:.2f}–{k[-1]:.2f} µs"
+        sub.set_title(f"{what}: {_count(len(panels[i]), 'segment')}, {n_used} echoes\n"
+                      f"{ktext}, {_count(len(transducers), 'transducer')}, "
+                      f"tier {'/'.join(sorted(tiers))}", fontsize=8)
         sub.set_xlabel("angle off the transducer axis (deg)", fontsize=8)
         sub.set_ylabel("TOF − 2r/c (µs)", fontsize=8)
         sub.tick_params(labelsize=7)

@@ -140,7 +140,7 @@ class _Tee:
 class _SegmentKeeper:
     """Keeps a few fitted segments with their readings, the best of each kind (bounded)."""
 
-    def __init__(self, per_kind: int = 4):
+    def __init__(self, per_kind: int = 6):
         self.per_kind = per_kind
         self.best: dict[str, list[tuple[float, int, SegmentView]]] = {}
         self._n = itertools.count()
@@ -148,14 +148,22 @@ class _SegmentKeeper:
     def offer(self, lm: Landmark, readings: Any) -> None:
         """Consider one fitted segment; kept if it is among the best of its kind.
 
-        Best: trusted fits whose residuals agree with the jitter model (``rms_us`` near
-        1), then the most echoes.
+        Best: trusted fits whose echoes span a wide arc of the beam (the U shows), with
+        many echoes and residuals that agree with the jitter model (``rms_us`` near 1).
         """
         if not lm.ok:
             return
-        n_echo = int(np.isfinite(readings.tof_us).sum())
+        from sonarloc.report.plots import landmark_model_us
+
+        echo = np.isfinite(readings.tof_us)
+        n_echo = int(echo.sum())
+        if n_echo < 5:
+            return
+        _, theta = landmark_model_us(lm, readings.x_m[echo], readings.y_m[echo],
+                                     readings.yaw_rad[echo])
+        span_deg = float(np.degrees(np.ptp(theta)))
         rms = lm.rms_us if math.isfinite(lm.rms_us) else 99.0
-        score = n_echo / max(rms, 1.0) ** 2
+        score = min(span_deg, 25.0) * math.sqrt(n_echo) / max(rms, 1.0) ** 2
         if lm.kind == "line":
             label = "wall"
         elif lm.kappa_us < 0.3:
@@ -171,8 +179,13 @@ class _SegmentKeeper:
         pool.sort(key=lambda e: (e[0], e[1]))
         del pool[self.per_kind:]
 
+    ORDER = ("wall", "point (pole)", "strong point (corner, edge)", "weak point (rod)")
+
     def views(self) -> list[SegmentView]:
-        return [v for pool in self.best.values() for _, _, v in pool]
+        """The kept segments, the best of each kind first, kinds in :attr:`ORDER`."""
+        labels = sorted(self.best, key=lambda k: self.ORDER.index(k) if k in self.ORDER
+                        else len(self.ORDER))
+        return [v for k in labels for _, _, v in self.best[k]]
 
 
 def _recording_source(keeper: _SegmentKeeper, max_readings: int | None) -> Callable[[float], Any]:

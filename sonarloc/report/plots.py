@@ -292,12 +292,15 @@ def draw_tracks(ax: Any, tracks: Mapping[str, tuple[ArrayLike, ArrayLike]],
 
 def draw_landmarks(ax: Any, landmarks: Iterable[Landmark], n_sigma: float = 3.0,
                    line_half_length_m: float = 0.4, color: str = "tab:red",
-                   label: str = "fitted landmarks") -> int:
+                   label: str = "fitted landmarks", max_bands: int = 40) -> int:
     """Fitted landmarks with their ``n_sigma`` uncertainty: ellipses (points), bands (walls).
 
     A wall (rho, alpha) is drawn as a segment of ``line_half_length_m`` either side of the
-    foot of the perpendicular from the segment's reference pose. Returns how many were drawn.
+    foot of the perpendicular from the segment's reference pose; the first ``max_bands``
+    walls also get their ±``n_sigma`` band in rho (more would hide the map). Returns how
+    many were drawn.
     """
+    bands = 0
     count = 0
     for lm in landmarks:
         p0, p1 = float(lm.params[0]), float(lm.params[1])
@@ -316,8 +319,11 @@ def draw_landmarks(ax: Any, landmarks: Iterable[Landmark], n_sigma: float = 3.0,
                     label=label if first else None)
             sd_rho = math.sqrt(max(float(lm.cov[0, 0]), 0.0))
             band = n_sigma * sd_rho
-            for s in (-band, band):
-                ax.plot(seg[:, 0] + s * n[0], seg[:, 1] + s * n[1], ":", color=color, lw=0.7)
+            if bands < max_bands:
+                bands += 1
+                for s in (-band, band):
+                    ax.plot(seg[:, 0] + s * n[0], seg[:, 1] + s * n[1], ":", color=color,
+                            lw=0.7)
         count += 1
     return count
 

@@ -212,3 +212,71 @@ def test_paper_fig5_scene_from_the_world_map():
     assert plane.kind == "line" and abs(plane.range_m - 1.5) < 2e-3
     assert plane.status in (FitStatus.OK, FitStatus.FLAT)
     assert plane.kappa_us < pole.kappa_us < rod.kappa_us
+
+
+@pytest.mark.parametrize("data_tier", ["waveform", "auto"])
+def test_ripple_jumps_and_late_weak_echoes(rng, data_tier):
+    # waveform-tier readings: half-period ripple jumps and weak echoes up to tens of us
+    # late at the arc edges; the fitter must pick the waveform model where it matters
+    refl = [Reflector.polar(1.46, -17, 0.67), Reflector.polar(2.0, 20, 2.68)]
+    tiers = []
+    for _ in range(4):
+        scan = pan_scan(refl, rng, -40, 40, 0.3, tier=data_tier)
+        lms = fit_scan(scan).landmarks
+        check_invariants(lms)
+        ok = [lm for lm in lms if lm.ok]
+        assert len(ok) == 2
+        pole, rod = sorted(ok, key=lambda lm: lm.bearing_rad)
+        assert near(pole, 1.46, -17) and near(rod, 2.0, 20)
+        assert pole.kappa_us < rod.kappa_us
+        tiers.append(rod.tier)
+        if rod.tier == "waveform":
+            assert rod.kappa_us == pytest.approx(2.68, rel=0.25)
+    assert tiers.count("waveform") >= 3
+
+
+def test_ring16_driving_through_the_room():
+    # the world simulator's default rig and tier on a moving robot: every OK landmark
+    # sits on a reflector of the map (poses in the map frame here)
+    from shapely.geometry import Point
+
+    from sonarloc.maps.geojson import load_map
+    from sonarloc.world.rig import rig_by_name
+    from sonarloc.world.simulate import simulate_scan
+
+    room = load_map(MAPS / "room.geojson")
+    sim = simulate_scan(room, rig_by_name("ring16"), duration_s=20.0, seed=5)
+    lms = fit_scan(sim.readings).landmarks
+    check_invariants(lms)
+    ok = [lm for lm in lms if lm.ok]
+    assert len(ok) >= 10
+    errs = []
+    for lm in ok:
+        rx, ry = lm.ref_pose[0], lm.ref_pose[1]
+        q = Point(rx + lm.range_m * math.cos(lm.bearing_rad),
+                  ry + lm.range_m * math.sin(lm.bearing_rad))
+        errs.append(min(q.distance(r.geometry) - (r.radius_m if lm.kind == "point" else 0.0)
+                        for r in room.reflectors))
+    errs_a = np.abs(np.array(errs))
+    assert np.percentile(errs_a, 90) < 0.01 and errs_a.max() < 0.05
+    assert any(lm.extra.get("kind_basis") == "motion" for lm in ok)
+
+
+def test_merged_pair_is_split_into_two_landmarks(rng):
+    # two poles 20 deg apart, 5 mm apart in range: one segment (the TOF step is inside
+    # the association gate) that no single landmark explains -> cut in two
+    refl = [Reflector.polar(1.500, -10.0, 0.67), Reflector.polar(1.505, 10.0, 0.67)]
+    two = 0
+    for _ in range(3):
+        lms = fit_scan(pan_scan(refl, rng, -40, 40, 0.3)).landmarks
+        check_invariants(lms)
+        ok = [lm for lm in lms if lm.ok]
+        for lm in ok:
+            assert any(abs(math.degrees(lm.bearing_rad) - b) < 3.0 and abs(lm.range_m - r) < 3e-3
+                       for r, b in ((1.5, -10.0), (1.505, 10.0)))
+        if len(ok) == 2:
+            two += 1
+            assert all("split_of" in lm.extra for lm in ok)
+        else:
+            assert all(lm.status is FitStatus.UNRESOLVED for lm in lms)
+    assert two >= 2

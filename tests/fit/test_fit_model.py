@@ -165,3 +165,21 @@ def test_piston_table_matches_bessel_functions():
     np.testing.assert_allclose(dg[main], dge[main], rtol=1e-5, atol=1e-6)
     lobes = (np.abs(th) > np.deg2rad(15.0)) & (np.abs(th) < np.deg2rad(25.0))
     np.testing.assert_allclose(lng[lobes], lnge[lobes], rtol=0, atol=1e-4)
+
+
+def test_waveform_delay_table_matches_monte_carlo():
+    from sonarloc.physics.waveform import crossing_delay_us
+
+    tab = M.waveform_delay_table(MOD)
+    rng = np.random.default_rng(11)
+    for u in (0.67, 4.0, 11.0):
+        v = u / np.exp(MOD.amplitude_fluctuation * rng.standard_normal(400_000))
+        w = crossing_delay_us(v, MOD)
+        w = w[np.isfinite(w)]
+        m, _, var = tab.lookup(np.array([u]))
+        assert float(m[0]) == pytest.approx(w.mean(), rel=0.01, abs=0.01)
+        assert float(np.sqrt(var[0])) == pytest.approx(w.std(), rel=0.03, abs=0.01)
+    u = np.geomspace(0.01, 40.0, 4001)
+    m, dm, _ = tab.lookup(u)
+    np.testing.assert_allclose(dm[1:-1], np.gradient(m, u)[1:-1], rtol=2e-3, atol=1e-3)
+    assert np.all(np.diff(m) >= -1e-9)          # later for weaker echoes

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sonarloc.fit.segment import Segmenter, SegmenterConfig
 from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings
@@ -127,3 +129,32 @@ def test_long_wall_is_cut_into_bounded_segments(rng):
     assert len(segs) >= 14
     assert max(len(s.readings) for s in segs) <= 200
     assert {s.closed_by for s in segs[:-1]} == {"full"}
+
+_reading = st.tuples(
+    st.floats(-1.0, 0.5),                                   # time step (may go back)
+    st.floats(-3, 3), st.floats(-3, 3),                     # position
+    st.floats(-10, 10),                                     # yaw (any winding)
+    st.one_of(st.floats(500, 30000), st.just(math.nan), st.just(math.inf),
+              st.floats(-100, 0)),                          # tof
+    st.integers(0, 3))                                      # sensor
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(_reading, min_size=0, max_size=300))
+def test_any_stream_is_segmented_without_errors(rows):
+    from sonarloc.fit.landmarks import fit_segments
+
+    seg = Segmenter(SegmenterConfig(max_open=8))
+    t = 0.0
+    closed = []
+    for dt, x, y, yaw, tof, sensor in rows:
+        t += dt
+        closed += seg.push(t, x, y, yaw, tof, sensor)
+        assert seg.open_segments <= 8
+    closed += seg.flush()
+    st_ = seg.stats
+    assert st_.readings == len(rows)
+    assert st_.echoes + st_.no_echo + st_.bad + st_.out_of_order == len(rows)
+    for lm in fit_segments(closed):
+        if lm.ok:
+            assert np.all(np.isfinite(lm.params)) and np.all(np.isfinite(lm.cov))

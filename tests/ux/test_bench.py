@@ -46,17 +46,22 @@ def test_cli_runs_only_quick_and_gathers(tmp_path: Path, run_cli):
     proc = run_cli("bench", "--dir", str(bench), "--only", "beta", "--quick")
     assert proc.returncode == 0, proc.stderr
     assert not (bench / "results" / "alpha.md").exists()
-    beta = (bench / "results" / "beta.md").read_text()
+    beta = (bench / "results" / "beta.md").read_text()  # no full run yet: the quick table
     assert "| a | 1 |" in beta and "quick=True" in beta
-    readme = (bench / "results" / "README.md").read_text()
-    assert "## beta speed" in readme and "| a | 1 |" in readme
     assert "| a | 1 |" in proc.stdout and "noise on stdout" not in proc.stdout
-    # a full run of everything, then gathering only
+    # a full run of everything gathers results/README.md
     proc = run_cli("bench", "--dir", str(bench))
     assert proc.returncode == 0, proc.stderr
-    text = collect_results(bench)
-    assert text.index("## alpha speed") < text.index("## beta speed")
-    assert "| a | 2 |" in text and "| a | 1 |" not in text
+    readme = (bench / "results" / "README.md").read_text()
+    assert readme.index("## alpha speed") < readme.index("## beta speed")
+    assert "| a | 2 |" in readme and "| a | 1 |" not in readme
+    # a quick run prints its tables, then the full run's files come back untouched
+    proc = run_cli("bench", "--dir", str(bench), "--quick")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("| a | 1 |") == 2
+    assert "| a | 2 |" in (bench / "results" / "alpha.md").read_text()
+    assert (bench / "results" / "README.md").read_text() == readme
+    assert "| a | 2 |" in collect_results(bench)
 
 
 def test_cli_failures_are_reported(tmp_path: Path, run_cli):

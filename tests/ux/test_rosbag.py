@@ -221,8 +221,8 @@ def _track(n: int, seed: int) -> PoseTrack:
                      rng.uniform(-math.pi, math.pi, n), cov)
 
 
-@pytest.mark.parametrize("version", [1, 2])
-def test_export_poses_and_map_to_odom(tmp_path: Path, version: int):
+@pytest.mark.parametrize("version,storage", [(1, "sqlite3"), (2, "sqlite3"), (2, "mcap")])
+def test_export_poses_and_map_to_odom(tmp_path: Path, version: int, storage: str):
     track = _track(20, 1)
     # odometry = map pose seen through a fixed map->odom transform (1, -2, 30 deg)
     T = np.array([1.0, -2.0, math.radians(30.0)])
@@ -230,7 +230,7 @@ def test_export_poses_and_map_to_odom(tmp_path: Path, version: int):
     dx, dy = track.x_m - T[0], track.y_m - T[1]
     odo = np.stack([track.t_s, c * dx - s * dy, s * dx + c * dy, track.yaw_rad - T[2]], -1)
     out = tmp_path / ("poses.bag" if version == 1 else "poses_bag")
-    stats = rosbag.export_poses(track, out, odometry=odo)
+    stats = rosbag.export_poses(track, out, odometry=odo, storage=storage)
     assert stats.poses == 20 and stats.transforms == 20 and stats.ros_version == version
     poses, tfs = [], []
     for topic, t_ns, msg in rosbag.read_messages(out):
