@@ -547,6 +547,9 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     return starts[0], starts[1], second, arc
 
 
+_EARLY_TOLERANCE = 100.0
+
+
 def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             cfg: FitConfig, rounds: int) -> tuple[Array, NDArray[np.bool_]]:
     """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective.
@@ -560,9 +563,11 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
     p = p.copy()
     lam = np.full(B, 1e-1)
     converged = np.zeros(B, dtype=bool)
-    for _ in range(rounds):
+    for rnd in range(rounds):
         # variances from the current delays, fixed for this round
         F, grad, H, _, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg)
+        # rounds before the last stop early: the next round moves the weights anyway
+        tol = cfg.tolerance * (1.0 if rnd == rounds - 1 else _EARLY_TOLERANCE)
         done = np.zeros(B, dtype=bool)
         act = np.arange(B)
         sub, ys, us, s2s = batch, y, use, s2
@@ -582,7 +587,7 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
                                   for b in range(act.size)])
             delta = np.where(np.isfinite(delta), delta, 0.0)
             # converged where the expected decrease (Newton decrement) is negligible
-            done[act[-np.einsum("bk,bk->b", ga, delta) < cfg.tolerance]] = True
+            done[act[-np.einsum("bk,bk->b", ga, delta) < tol]] = True
             keep = np.flatnonzero(~done[act])
             if keep.size == 0:
                 break
