@@ -302,6 +302,16 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
 
     ``s2`` (B, Nd): fixed TOF variances; ``use`` (B, Nd) echoes taken into account.
     """
+    F, grad, H, e, _ = _evaluate_s2(kind, tier, p, batch, y, use, s2, cfg, want_derivs)
+    return F, grad, H, e
+
+
+def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
+                 s2: Array | None, cfg: FitConfig, want_derivs: bool = True
+                 ) -> tuple[Array, Array, Array, Array, Array]:
+    """:func:`_evaluate`, also returning the variances (B, Nd) it used; ``s2=None``: the
+    variances at ``p`` itself (what :func:`_variances` gives, without evaluating the
+    model twice)."""
     mod = cfg.module
     tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
@@ -310,6 +320,8 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
     det = cfg.detection
     z = M.detection_z(K, lng, mod) if det else None
     et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
+    if s2 is None:
+        s2 = M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform" else None)
     w = np.where(use, 1.0 / np.sqrt(s2), 0.0)               # 1/s, 0 where unused
     e = (y - tau * geo.R - et.delay) * w
     F = (e * e).sum(-1)
@@ -331,7 +343,7 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
         H += np.matmul(Jw, np.swapaxes(Jw, 1, 2))
     F = F + _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
     if not det:
-        return F, grad, H, e
+        return F, grad, H, e, s2
     sa = M.sigma_a(mod)
     if want_derivs:
         dlng = np.where(g < 1e11, dg / g, 0.0) / sa
@@ -358,7 +370,7 @@ def _evaluate(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use
                 dzn = np.stack([np.zeros(gn.shape), dlgn, dzkn], axis=1)
             grad -= np.einsum("bkn,bn->bk", dzn, dlpn * nv)
             H += np.matmul(dzn * (curvn * nv)[:, None, :], np.swapaxes(dzn, 1, 2))
-    return F, grad, H, e
+    return F, grad, H, e, s2
 
 
 def tof_jacobian(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConfig
@@ -451,7 +463,8 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     g, _, lg = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
     scale = np.exp(0.5 * M.sigma_a(mod) ** 2)
     usef = use[:, None, :].astype(float)
-    gu = g * scale * usef                                                     # (B, G, Nd)
+    gu = np.multiply(g, scale)
+    gu *= usef                                                                # (B, G, Nd)
     # bearing-independent weights (the on-axis variance), so that the profile costs of
     # the nodes compare (weights from the model at each node would discount far-off
     # readings) and weigh against the detection terms as a likelihood does
@@ -471,7 +484,7 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
         Sgy = np.matmul(gu, yc[:, :, None])[..., 0]
     if cfg.detection:
         # echoes were detected: the one nearest the axis must be detectable (z < 2)
-        g_min = np.min(np.where(use[:, None, :], g, np.inf), axis=-1)
+        g_min = np.min(g, axis=-1, where=use[:, None, :], initial=np.inf)
         kmax = (mod.detection_limit_us * np.exp(2.0 * M.sigma_a(mod)) * scale
                 / np.where(np.isfinite(g_min), g_min, 1.0))
     else:
@@ -483,16 +496,24 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     if cfg.detection:
         # -log P(echo) of the echoes and -log P(no echo) of the others, in a cheap form
         # good to ~10% (a bracket needs only the shape): 0.35 max(z + 1.4, 0)^2
-        zd = M.detection_z(K[..., None], lg, mod)
-        cost = cost + 0.7 * (np.maximum(zd + 1.4, 0.0) ** 2 * usef).sum(-1)
+        # z + 1.4 = (ln g + ln kappa - ln L + 1.4 sa) / sa, formed in place (B, G, Nd)
+        sa = M.sigma_a(mod)
+        zd = lg + (np.log(np.maximum(K, 1e-300)) - np.log(mod.detection_limit_us)
+                   + 1.4 * sa)[..., None]
+        np.maximum(zd, 0.0, out=zd)
+        zd *= usef
+        cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zd, zd)
         if batch.ne_valid.any():
             ng = M.geometry(kind, r0[:, None, None], phis[:, :, None],
                             batch.ne_px[:, None, :], batch.ne_py[:, None, :],
                             batch.ne_yaw[:, None, :])
             _, _, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=False)
-            zn = M.detection_z(K[..., None], lgn, mod)
-            cost = cost + 0.7 * (np.maximum(1.4 - zn, 0.0) ** 2
-                                 * batch.ne_valid[:, None, :]).sum(-1)
+            # (1.4 - z) sa = (ln L + 1.4 sa - ln kappa) - ln g, formed in place
+            zn = np.subtract((np.log(mod.detection_limit_us) + 1.4 * sa
+                              - np.log(np.maximum(K, 1e-300)))[..., None], lgn)
+            np.maximum(zn, 0.0, out=zn)
+            zn *= batch.ne_valid[:, None, :]
+            cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zn, zn)
     cost = np.where(np.isfinite(cost) & ~pad, cost, np.inf)
     rows = np.arange(B)
     arc = np.stack([centre + lo, centre + hi], axis=-1)
@@ -526,6 +547,9 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     return starts[0], starts[1], second, arc
 
 
+_EARLY_TOLERANCE = 100.0
+
+
 def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             cfg: FitConfig, rounds: int) -> tuple[Array, NDArray[np.bool_]]:
     """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective.
@@ -539,10 +563,11 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
     p = p.copy()
     lam = np.full(B, 1e-1)
     converged = np.zeros(B, dtype=bool)
-    for _ in range(rounds):
+    for rnd in range(rounds):
         # variances from the current delays, fixed for this round
-        s2 = _variances(kind, tier, p, batch, cfg)
-        F, grad, H, _ = _evaluate(kind, tier, p, batch, y, use, s2, cfg)
+        F, grad, H, _, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg)
+        # rounds before the last stop early: the next round moves the weights anyway
+        tol = cfg.tolerance * (1.0 if rnd == rounds - 1 else _EARLY_TOLERANCE)
         done = np.zeros(B, dtype=bool)
         act = np.arange(B)
         sub, ys, us, s2s = batch, y, use, s2
@@ -562,7 +587,7 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
                                   for b in range(act.size)])
             delta = np.where(np.isfinite(delta), delta, 0.0)
             # converged where the expected decrease (Newton decrement) is negligible
-            done[act[-np.einsum("bk,bk->b", ga, delta) < cfg.tolerance]] = True
+            done[act[-np.einsum("bk,bk->b", ga, delta) < tol]] = True
             keep = np.flatnonzero(~done[act])
             if keep.size == 0:
                 break
@@ -590,8 +615,7 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
 def _full_cost(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
                cfg: FitConfig) -> Array:
     """-2 log-likelihood (B,) at ``p``, with the TOF variances' log-determinant."""
-    s2 = _variances(kind, tier, p, batch, cfg)
-    F, _, _, _ = _evaluate(kind, tier, p, batch, y, use, s2, cfg, want_derivs=False)
+    F, _, _, _, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg, want_derivs=False)
     return F + np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
 
 
@@ -727,8 +751,7 @@ def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
     p, conv, arc = _solve(kind, tier, batch, y, use0, cfg, start)
-    s2 = _variances(kind, tier, p, batch, cfg)
-    F, _, H, e = _evaluate(kind, tier, p, batch, y, use0, s2, cfg)
+    F, _, H, e, s2 = _evaluate_s2(kind, tier, p, batch, y, use0, None, cfg)
     # spikes: drop the worst echoes beyond outlier_sigma, then fit those segments again
     bad = use0 & (np.abs(e) > cfg.outlier_sigma)
     if bad.any():
@@ -743,8 +766,7 @@ def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
             idx = np.flatnonzero(drop.any(1))
             sub = _take(batch, idx)
             p2, c2, _ = _solve(kind, tier, sub, y[idx], use0[idx], cfg)
-            s2b = _variances(kind, tier, p2, sub, cfg)
-            F2, _, H2, e2 = _evaluate(kind, tier, p2, sub, y[idx], use0[idx], s2b, cfg)
+            F2, _, H2, e2, s2b = _evaluate_s2(kind, tier, p2, sub, y[idx], use0[idx], None, cfg)
             p[idx], conv[idx], s2[idx], F[idx], H[idx], e[idx] = p2, c2, s2b, F2, H2, e2
     chi2 = (e * e).sum(1)
     # full -2 log-likelihood (with the variances' log-determinant) to compare models

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import j1, jv, log_ndtr
+from scipy.special import j1, jv, log_ndtr, ndtr
 
 from sonarloc.physics.tof import ModuleParams
 
@@ -227,6 +227,7 @@ def detection_z(kappa: ArrayLike, log_g: ArrayLike, params: ModuleParams) -> Arr
 
 
 _Z_HIGH = 7.0
+_Z_FAST = 30.0     # below, P(echo) = Phi(-z) > 1e-198: no underflow in ndtr
 _Z_LOW = -10.0
 
 
@@ -319,15 +320,27 @@ def echo_terms(kappa: ArrayLike, g: ArrayLike, z: ArrayLike | None, params: Modu
     act = z > -_Z_HIGH
     if act.any():
         za = z[act]
-        l0 = log_ndtr(-za)                        # log P(echo)
+        # Phi and phi directly (ndtr costs half of log_ndtr) where Phi(-z) is far from
+        # underflow; the log form for the rest (z > 30: echoes the model cannot explain)
+        p0 = ndtr(-za)                            # P(echo)
+        with np.errstate(divide="ignore"):
+            l0 = np.log(p0)
         lpdf = -0.5 * za * za - _LOG_SQRT_2PI
-        m0 = np.exp(lpdf - l0)                    # phi(z) / Phi(-z)
+        m0 = np.exp(lpdf) / np.maximum(p0, 1e-300)  # phi(z) / Phi(-z)
+        far = za > _Z_FAST
+        if far.any():
+            l0[far] = log_ndtr(-za[far])
+            m0[far] = np.exp(lpdf[far] - l0[far])
         log_p[act] = l0
         dlogp[act] = -m0
         curv[act] = m0 * (m0 - za)
         if tier != "waveform":
-            ra = np.exp(log_ndtr(-za - s) - l0)       # Phi(-z-s) / Phi(-z)
-            m1 = np.exp(-0.5 * (za + s) ** 2 - _LOG_SQRT_2PI - l0)
+            zs = za + s
+            ra = ndtr(-zs) / np.maximum(p0, 1e-300)   # Phi(-z-s) / Phi(-z)
+            m1 = np.exp(-0.5 * zs * zs - _LOG_SQRT_2PI) / np.maximum(p0, 1e-300)
+            if far.any():
+                ra[far] = np.exp(log_ndtr(-zs[far]) - l0[far])
+                m1[far] = np.exp(-0.5 * zs[far] ** 2 - _LOG_SQRT_2PI - l0[far])
             ratio[act] = ra
             dratio[act] = -m1 + ra * m0
         if want_info:

@@ -65,12 +65,13 @@ def beam_delay_us(kappa_us: ArrayLike, theta_rad: ArrayLike, tier: str = "gauss"
                   ) -> NDArray[np.float64]:
     """Threshold delay kappa / rel_amp(theta) of the beam model a fit used [us].
 
-    ``tier``: ``"piston"`` uses the piston echo pattern (infinite at its nulls); any other
+    ``tier``: ``"piston"`` and ``"waveform"`` use the piston echo pattern (infinite at its
+    nulls; the waveform tier's later crossing of weak echoes is not drawn); any other
     tier the Gaussian main lobe of eq. 3, kappa·exp(theta²/2sigma²).
     """
     k = np.asarray(kappa_us, dtype=float)
     t = np.asarray(theta_rad, dtype=float)
-    if tier == "piston":
+    if tier in ("piston", "waveform"):
         from sonarloc.physics.beam import piston_echo
 
         a = piston_echo(t, c_mps=c_mps)
@@ -109,7 +110,7 @@ def landmark_model_us(
         direction = np.where(signed >= 0, p1, p1 + math.pi)
     theta = np.angle(np.exp(1j * (direction - yaw)))
     to_us = 2.0 * rng / c_mps * 1e6
-    if lm.tier == "piston":
+    if lm.tier in ("piston", "waveform"):
         return to_us + beam_delay_us(kappa, theta, "piston", sigma_deg, c_mps), theta
     return eq3_tof_us(to_us, theta, kappa, sigma_deg), theta
 
