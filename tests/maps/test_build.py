@@ -121,11 +121,11 @@ def test_built_map_recovers_the_room_within_2cm(room_run):
     n_obs = [f.properties["n_obs"] for f in built_map.features if f.kind == "wall"]
     assert built.n_walls >= 5
     for ends, n in zip(built.wall_ends, n_obs, strict=True):
-        if n < 10:
-            continue  # a few short ghost walls (corner echoes fitted as lines) may remain
+        if n < 5:
+            continue  # a few rarely seen ghost walls (corner echoes fitted as lines) may remain
         err = min(max(_line_distance(p, seg) for p in ends) for seg in true.wall_ends)
         assert err < 0.02  # both ends on a true wall's line
-    well_seen = sum(n >= 10 for n in n_obs)
+    well_seen = sum(n >= 5 for n in n_obs)
     assert well_seen >= 5
     cyl = [i for i, k in enumerate(true.point_kind) if k in ("pole", "rod")]
     for i in cyl:  # every pole and rod found, centre within 2 cm
