@@ -15,12 +15,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import time
 
-# Values such as "-180:180:3" start with "-": let argparse take them as values.
-_NEGATIVE_VALUE = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+([,:][-+\d.eE]*)+$")
+from sonarloc.commands._args import accept_negative_values
 
+# Values such as "-180:180:3" start with "-": let argparse take them as values.
 
 def _positive(text: str) -> float:
     try:
@@ -44,8 +43,7 @@ def _seed(text: str) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    if hasattr(parser, "_negative_number_matcher"):
-        parser._negative_number_matcher = _NEGATIVE_VALUE
+    accept_negative_values(parser)
     parser.add_argument("--map", default="room", metavar="MAP",
                         help="map GeoJSON with a route, or a name in maps/ (default room)")
     parser.add_argument("--rig", default="ring16", metavar="ring16|pan|RIG.json",

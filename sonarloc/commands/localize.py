@@ -15,36 +15,20 @@ axis); --method specular is that reading with walls seen at normal incidence;
 from __future__ import annotations
 
 import argparse
-import math
-import re
 import sys
 
+from sonarloc.commands._args import accept_negative_values, parse_pose
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import LocalizerConfig
 from sonarloc.localize.replay import PoseCsvWriter, replay_log
 from sonarloc.maps.geojson import load_map
 
 # "-1.5,2,90" starts with "-": let argparse take it as a value, not an option.
-_NEGATIVE_VALUE = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+([,:][-+\d.eE]*)+$")
 
-
-def parse_init(text: str) -> tuple[float, float, float]:
-    """``X,Y,YAW_DEG`` -> three finite floats; ValueError naming the value."""
-    parts = str(text).split(",")
-    try:
-        if len(parts) != 3:
-            raise ValueError
-        x, y, yaw = (float(p) for p in parts)
-    except ValueError:
-        raise ValueError(f"--init must be X,Y,YAW_DEG (three numbers), got {text!r}") from None
-    if not all(math.isfinite(v) for v in (x, y, yaw)):
-        raise ValueError(f"--init must be finite numbers, got {text!r}")
-    return x, y, yaw
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    if hasattr(parser, "_negative_number_matcher"):
-        parser._negative_number_matcher = _NEGATIVE_VALUE
+    accept_negative_values(parser)
     parser.add_argument("log", metavar="LOG", help="log JSONL (rig, init, odom, tof records)")
     parser.add_argument("--map", required=True, metavar="MAP", help="map GeoJSON")
     parser.add_argument("--out", metavar="POSES.csv", help="pose CSV to write (default stdout)")
@@ -59,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    init = parse_init(args.init) if args.init is not None else None
+    init = parse_pose(args.init, "--init") if args.init is not None else None
     fmap = FeatureMap.from_map(load_map(args.map))
     config = LocalizerConfig(method=args.method)
     if args.out:

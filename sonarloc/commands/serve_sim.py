@@ -88,7 +88,7 @@ def _transport(args: argparse.Namespace) -> Transport:
 def _records(args: argparse.Namespace, log_stats: LogStats) -> Iterator[Record]:
     if args.log:
         return iter_log(args.log, log_stats)
-    from sonarloc.commands.simulate import parse_pose
+    from sonarloc.commands._args import parse_pose
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import parse_pan_schedule, rig_by_name
     from sonarloc.world.simulate import simulate_records

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import sys
 from collections import Counter
 
+from sonarloc.commands._args import accept_negative_values, parse_pose
 from sonarloc.io.logfile import LogWriter
 from sonarloc.io.scancsv import write_scan_csv
 from sonarloc.maps.geojson import load_map
@@ -23,28 +23,8 @@ from sonarloc.world.rig import parse_pan_schedule, rig_by_name
 from sonarloc.world.simulate import PingTruth, scan_from_pings, simulate_records
 
 
-def parse_pose(text: str) -> tuple[float, float, float]:
-    """``X,Y,YAW_DEG`` -> three finite floats; ValueError naming the value."""
-    parts = str(text).split(",")
-    try:
-        if len(parts) != 3:
-            raise ValueError
-        x, y, yaw = (float(p) for p in parts)
-    except ValueError:
-        raise ValueError(f"--at must be X,Y,YAW_DEG (three numbers), got {text!r}") from None
-    if not all(math.isfinite(v) for v in (x, y, yaw)):
-        raise ValueError(f"--at must be finite numbers, got {text!r}")
-    return x, y, yaw
-
-
-# Values such as "-40:40:0.3" or "-1.5,2,90" start with "-": let argparse take them as
-# values, not options (it only knows plain negative numbers).
-_NEGATIVE_VALUE = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+([,:][-+\d.eE]*)+$")
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    if hasattr(parser, "_negative_number_matcher"):
-        parser._negative_number_matcher = _NEGATIVE_VALUE
+    accept_negative_values(parser)
     parser.add_argument("--map", required=True, metavar="MAP", help="map GeoJSON")
     parser.add_argument("--out", required=True, metavar="LOG", help="log JSONL to write")
     parser.add_argument("--rig", default="ring16", metavar="ring16|pan|RIG.json",

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sonarloc.commands.localize import parse_init
+from sonarloc.commands._args import parse_pose
 from sonarloc.io.logfile import LogWriter, OdomRecord, TruthRecord, iter_log
 from sonarloc.io.posescsv import COLUMNS, read_poses_csv
 from sonarloc.localize.ekf import Gaussian
@@ -144,13 +144,13 @@ finite = st.floats(-1e6, 1e6, allow_nan=False)
 
 @given(finite, finite, finite)
 def test_parse_init_round_trip(x, y, yaw):
-    assert parse_init(f"{x!r},{y!r},{yaw!r}") == (x, y, yaw)
+    assert parse_pose(f"{x!r},{y!r},{yaw!r}", "--init") == (x, y, yaw)
 
 
 @given(st.text(max_size=30))
 def test_parse_init_garbage_names_the_flag(text):
     try:
-        parse_init(text)
+        parse_pose(text, "--init")
     except ValueError as err:
         assert "--init" in str(err)
 
