@@ -39,7 +39,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sonarloc.localize import ekf, se2
+from sonarloc import se2
+from sonarloc.localize import ekf
 from sonarloc.localize.ekf import Feature, Gaussian, Innovation, OdomNoise
 from sonarloc.physics.tiers import Tier, delay_moments_us
 from sonarloc.physics.tof import ModuleParams

@@ -44,6 +44,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import (
     InitRecord,
@@ -54,7 +55,7 @@ from sonarloc.io.logfile import (
     TofRecord,
     TruthRecord,
 )
-from sonarloc.localize import echoes, ekf, se2
+from sonarloc.localize import echoes, ekf
 from sonarloc.localize.associate import Association, AssociationConfig, associate
 from sonarloc.localize.echoes import EchoObservation
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
@@ -276,10 +277,14 @@ class SegmentFitSource:
     on its own. ``min_echoes``: shorter segments are dropped by the segmenter as spikes;
     None lets the Localizer choose (1 with reading-level fusion, whose forward model
     can use a lone echo, else the segmenter's default).
+
+    ``on_fit(segment, landmark)``: optional callback for every fitted segment (e.g. to
+    keep the readings behind a figure), called in stream order.
     """
 
     def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 4,
                  max_wait_s: float = 0.25, max_readings: int | None = None,
+                 on_fit: Callable[[Any, Landmark], None] | None = None,
                  min_echoes: int | None = None) -> None:
         from sonarloc.fit.lsq import FitConfig
         from sonarloc.physics.tof import ModuleParams
@@ -291,6 +296,7 @@ class SegmentFitSource:
         self.batch = batch
         self.max_wait_s = max_wait_s
         self._waiting: list[tuple[float, Any]] = []
+        self.on_fit = on_fit
 
     @property
     def segmenter(self) -> Any:
@@ -336,6 +342,8 @@ class SegmentFitSource:
                 readings = tuple(np.asarray(a, dtype=float)[echo] for a in
                                  (r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us))
                 lm = replace(lm, extra={**lm.extra, "view_xy": view, "echoes": readings})
+            if self.on_fit is not None:
+                self.on_fit(s, lm)
             out.append(lm)
         return out
 

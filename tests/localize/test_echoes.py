@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from sonarloc.localize import echoes, ekf, se2
+from sonarloc import se2
+from sonarloc.localize import echoes, ekf
 from sonarloc.localize.echoes import EchoObservation
 from sonarloc.localize.ekf import Feature, Gaussian, OdomNoise
 from sonarloc.physics.tof import ModuleParams
