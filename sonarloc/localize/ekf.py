@@ -36,7 +36,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sonarloc.localize import se2
+from sonarloc import se2
 
 Array = NDArray[np.float64]
 

@@ -44,6 +44,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import (
     InitRecord,
@@ -54,7 +55,7 @@ from sonarloc.io.logfile import (
     TofRecord,
     TruthRecord,
 )
-from sonarloc.localize import ekf, se2
+from sonarloc.localize import ekf
 from sonarloc.localize.associate import Association, AssociationConfig, associate
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
@@ -236,10 +237,14 @@ class SegmentFitSource:
     ``max_readings``: segment length limit; None lets the :class:`Localizer` choose at
     the first reading (8 for fixed transducers, 400 for a panning one), or 400 when used
     on its own.
+
+    ``on_fit(segment, landmark)``: optional callback for every fitted segment (e.g. to
+    keep the readings behind a figure), called in stream order.
     """
 
     def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 4,
-                 max_wait_s: float = 0.25, max_readings: int | None = None) -> None:
+                 max_wait_s: float = 0.25, max_readings: int | None = None,
+                 on_fit: Callable[[Any, Landmark], None] | None = None) -> None:
         from sonarloc.fit.lsq import FitConfig
         from sonarloc.physics.tof import ModuleParams
 
@@ -249,6 +254,7 @@ class SegmentFitSource:
         self.batch = batch
         self.max_wait_s = max_wait_s
         self._waiting: list[tuple[float, Any]] = []
+        self.on_fit = on_fit
 
     @property
     def segmenter(self) -> Any:
@@ -293,6 +299,8 @@ class SegmentFitSource:
             if echo.any():
                 view = (float(np.mean(r.x_m[echo])), float(np.mean(r.y_m[echo])))
                 lm = replace(lm, extra={**lm.extra, "view_xy": view})
+            if self.on_fit is not None:
+                self.on_fit(s, lm)
             out.append(lm)
         return out
 
