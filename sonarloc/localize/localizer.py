@@ -556,7 +556,7 @@ class Localizer:
         self.stats.landmarks += 1
         reading_level = self.config.kuc_fusion == "echoes" and "echoes" in lm.extra
         usable = lm.status.value in self.config.fit_statuses
-        if not usable and not (reading_level and lm.status.value in ECHO_ONLY_STATUSES):
+        if not self.fuses(lm):
             self.stats.skipped[f"fit_{lm.status.value}"] += 1
             return FusionOutcome(lm.ref_t_s, None, False, f"fit status {lm.status.value}")
         if not self._entries:
@@ -569,6 +569,24 @@ class Localizer:
             self.stats.skipped["landmark_bad"] += 1
             return FusionOutcome(lm.ref_t_s, None, False, "landmark not usable")
         return self.add_observation(obs, lm.ref_t_s)
+
+    def fuses(self, lm: Landmark) -> bool:
+        """Whether :meth:`add_landmark` tries to fuse ``lm`` (by its fit status, and with
+        reading-level fusion whether its readings are attached)."""
+        if lm.status.value in self.config.fit_statuses:
+            return True
+        return (self.config.kuc_fusion == "echoes" and "echoes" in lm.extra
+                and lm.status.value in ECHO_ONLY_STATUSES)
+
+    @property
+    def segment_min_echoes(self) -> int | None:
+        """The segmenter's ``min_echoes`` for this Localizer's landmark source (None: the
+        segmenter's default): ``config.segment_min_echoes``, else 1 with reading-level
+        fusion."""
+        c = self.config
+        if c.segment_min_echoes is not None:
+            return c.segment_min_echoes
+        return 1 if c.kuc_fusion == "echoes" else None
 
     def _add_echoes(self, lm: Landmark, obs: Observation | None) -> FusionOutcome:
         """Associate a segment (by its fit, else by its readings), then fuse its readings
@@ -861,10 +879,10 @@ class Localizer:
                     self._source.max_readings = n
                 if isinstance(self._source, SegmentFitSource) and \
                         self._source.min_echoes is None:
-                    self._source.min_echoes = self._min_echoes()
+                    self._source.min_echoes = self.segment_min_echoes
             else:
                 self._source = SegmentFitSource(self._c_mps, max_readings=n,
-                                                min_echoes=self._min_echoes())
+                                                min_echoes=self.segment_min_echoes)
         bx, by, bth = (float(v) for v in base)
         mx, my, mth = (float(v) for v in mount)
         c, s = math.cos(bth), math.sin(bth)
@@ -872,12 +890,6 @@ class Localizer:
         tof = math.nan if r.tof_us is None else float(r.tof_us)
         for lm in self._source.push(r.t_s, px, py, pth, tof, r.sensor):
             self.add_landmark(lm)
-
-    def _min_echoes(self) -> int | None:
-        c = self.config
-        if c.segment_min_echoes is not None:
-            return c.segment_min_echoes
-        return 1 if c.kuc_fusion == "echoes" else None
 
     def _landmark_observation(self, lm: Landmark) -> Observation | None:
         """A fitted landmark (odom frame) as an observation relative to base_link at ref."""
