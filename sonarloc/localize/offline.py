@@ -131,8 +131,8 @@ class OfflinePipeline:
         needs (``FitConfig.min_echoes``) always ends ``too_few_points``: unless that
         status is fused, it is counted as such without fitting it."""
         assert self._source is not None
-        if "too_few_points" in self.loc.config.fit_statuses:
-            return segs
+        if self.loc.fuses_status("too_few_points"):
+            return segs  # SegmentFitSource.fit skips the fitter for them
         need = self._source.fit_config.min_echoes
         keep = [s for s in segs if s.n_echo >= need]
         n_skip = len(segs) - len(keep)
