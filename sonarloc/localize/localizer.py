@@ -59,6 +59,7 @@ from sonarloc.localize import ekf
 from sonarloc.localize.associate import Association, AssociationConfig, associate
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.relocalize import Relocalization, RelocalizeConfig, Relocalizer
 
 Array = NDArray[np.float64]
 Method = Literal["kuc", "conventional", "specular", "odometry"]
@@ -108,6 +109,12 @@ class LocalizerConfig:
         outside the gate, ambiguous) make the status ``lost``.
     lost_sd_m : a position SD above this makes the status ``lost``.
     dead_reckoning_after_s : no accepted observation for this long: ``dead_reckoning``.
+    relocalize : when ``lost`` (or started without a prior), try a global
+        relocalization (:mod:`~sonarloc.localize.relocalize`) every
+        ``relocalization.every_s`` from the fits since the trouble began, and restart
+        the filter at an unambiguous winner. Without a prior, no estimate is reported
+        until then.
+    relocalization : its settings.
     """
 
     method: Method = "kuc"
@@ -127,6 +134,8 @@ class LocalizerConfig:
     lost_after_rejections: int = 15
     lost_sd_m: float = 0.5
     dead_reckoning_after_s: float = 5.0
+    relocalize: bool = False
+    relocalization: RelocalizeConfig = field(default_factory=RelocalizeConfig)
 
     def __post_init__(self) -> None:
         if self.method not in ("kuc", "conventional", "specular", "odometry"):
@@ -189,6 +198,7 @@ class LocalizerStats:
     outcomes: Counter[str] = field(default_factory=Counter)
     skipped: Counter[str] = field(default_factory=Counter)
     replayed_steps: int = 0
+    relocalization: Counter[str] = field(default_factory=Counter)
 
     def summary(self) -> str:
         parts = [f"{self.odom} odom", f"{self.tof} tof", f"{self.observations} observations",
@@ -201,6 +211,9 @@ class LocalizerStats:
         if self.skipped:
             parts.append("skipped: " + ", ".join(f"{k} {v}" for k, v in
                                                  sorted(self.skipped.items())))
+        if self.relocalization:
+            parts.append("relocalization attempts: " + ", ".join(
+                f"{k} {v}" for k, v in sorted(self.relocalization.items())))
         return "; ".join(parts)
 
 
@@ -335,6 +348,10 @@ class Localizer:
         self._last_accept_t = -math.inf
         self._start_t = math.nan
         self._estimate: PoseEstimate | None = None
+        self._reloc = Relocalizer(fmap, self.config.relocalization) \
+            if self.config.relocalize else None
+        self._unknown = False  # started without a prior: no pose until relocalized
+        self._reject_start_t = math.nan
         c = self.config
         self._conv_cov = np.diag([c.conventional_range_sd_m**2,
                                   math.radians(c.conventional_bearing_sd_deg) ** 2])
@@ -354,6 +371,7 @@ class Localizer:
                   sd_yaw_rad: float) -> None:
         """Prior of ``base_link`` in ``map``; (re)starts the filter at the next odom record."""
         self._prior = Gaussian.from_pose(x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
+        self._unknown = False
         self._entries.clear()
         self._times.clear()
         self._pending.clear()
@@ -397,8 +415,12 @@ class Localizer:
             self.stats.skipped["bad_odom"] += 1
             return self._estimate
         if self._prior is None:
-            self.stats.skipped["odom_before_init"] += 1
-            return None
+            if self._reloc is None:
+                self.stats.skipped["odom_before_init"] += 1
+                return None
+            # no prior: follow the odometry and fit landmarks until relocalized
+            self._prior = Gaussian(np.zeros(3), np.eye(3))
+            self._unknown = True
         t = max(t_s, self._last_odom_t)  # time going backwards: keep the history sorted
         if not self._entries:
             self._append(_Entry(t, odom, self._prior))
@@ -410,7 +432,13 @@ class Localizer:
             self._append(_Entry(t, odom, state))
         self._last_odom_t = t
         self._trim()
+        if self._reloc is not None:
+            self._reloc.on_odom(t, odom)
         self._drain_pending(t)
+        if self._reloc is not None:
+            self._maybe_relocalize(t, odom)
+        if self._unknown:
+            return None
         self._estimate = self._make_estimate(t_s)
         return self._estimate
 
@@ -496,6 +524,10 @@ class Localizer:
         if not self._entries:
             self.stats.skipped["landmark_before_init"] += 1
             return FusionOutcome(lm.ref_t_s, None, False, "no prior yet")
+        if self._reloc is not None:
+            self._reloc.add(lm)
+            if self._unknown:
+                return FusionOutcome(lm.ref_t_s, None, False, "relocalizing")
         obs = self._landmark_observation(lm)
         if obs is None:
             self.stats.skipped["landmark_bad"] += 1
@@ -516,12 +548,12 @@ class Localizer:
         assoc = associate(state_ref, obs, self.fmap, self.config.association)
         self.stats.outcomes[assoc.status] += 1
         if not assoc.matched or assoc.feature is None:
-            self._consecutive_rejected += 1
+            self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, assoc.status)
         new_state, innov = ekf.update(state_ref, obs, assoc.feature, gate_probability=None)
         if not bool(np.all(innov.accepted)):
             self.stats.outcomes["singular"] += 1
-            self._consecutive_rejected += 1
+            self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, "singular")
         entry = _Entry(max(t_ref, base.t), odom_ref, new_state, obs, assoc.feature)
         self._entries.insert(i, entry)
@@ -555,7 +587,42 @@ class Localizer:
     def history_len(self) -> int:
         return len(self._entries)
 
+    @property
+    def relocalization(self) -> Relocalization | None:
+        """The latest relocalization attempt (None: none yet, or ``relocalize`` off)."""
+        return None if self._reloc is None else self._reloc.last
+
     # -- internals ------------------------------------------------------------------
+
+    def _rejected(self, t_ref: float) -> None:
+        if self._consecutive_rejected == 0:
+            self._reject_start_t = t_ref
+        self._consecutive_rejected += 1
+
+    def _maybe_relocalize(self, t: float, odom: Array) -> None:
+        """Lost (or no prior): try a global relocalization; restart the filter at a fix."""
+        assert self._reloc is not None
+        if not self._reloc.due(t):
+            return
+        if not self._unknown:
+            status, _ = self._status(t, self._entries[-1].state)
+            if status != "lost":
+                return
+            if math.isfinite(self._reject_start_t):
+                # fits from before the trouble began may come from elsewhere (a kidnap)
+                self._reloc.forget_before(self._reject_start_t - 1.0)
+        r = self._reloc.solve(t)
+        self.stats.relocalization[r.status] += 1
+        if not r.found:
+            return
+        pose, cov = r.pose_in_map(odom)
+        cov = ekf.symmetrize(cov + np.diag([0.01**2, 0.01**2, math.radians(0.5) ** 2]))
+        self._entries[:] = [_Entry(t, odom, Gaussian(pose, cov))]
+        self._times[:] = [t]
+        self._unknown = False
+        self._consecutive_rejected = 0
+        self._reject_start_t = math.nan
+        self._last_accept_t = t
 
     def _append(self, e: _Entry) -> None:
         self._entries.append(e)
@@ -697,8 +764,12 @@ class Localizer:
         if sd > c.lost_sd_m:
             return "lost", f"position SD {sd:.2f} m exceeds {c.lost_sd_m:g} m"
         if self._consecutive_rejected >= c.lost_after_rejections:
-            return "lost", (f"{self._consecutive_rejected} observations in a row rejected "
-                            f"by the map")
+            reason = (f"{self._consecutive_rejected} observations in a row rejected by the "
+                      f"map")
+            if self._reloc is not None and self._reloc.last is not None and \
+                    not self._reloc.last.found:
+                reason += f"; relocalization: {self._reloc.last.reason}"
+            return "lost", reason
         since = t - (self._last_accept_t if math.isfinite(self._last_accept_t)
                      else self._start_t)
         if since > c.dead_reckoning_after_s:
