@@ -475,13 +475,19 @@ class Localizer:
             if not math.isfinite(self._start_t):
                 self._start_t = float(t[0])
             t, pose = t[1:], pose[1:]
-        if len(t):
+        if len(t) > 4:
             last = self._entries[-1]
             prev = np.concatenate([last.odom[None, :], pose[:-1]])
             chain = ekf.predict_chain(last.state, se2.between(prev, pose),
                                       self.config.odom_noise)
             for k, tk in enumerate(t.tolist()):
                 self._append(_Entry(tk, pose[k], Gaussian(chain.mean[k], chain.cov[k])))
+        else:  # a few steps: one predict each costs less than setting up the chain
+            noise = self.config.odom_noise
+            for k, tk in enumerate(t.tolist()):
+                last = self._entries[-1]
+                state = ekf.predict(last.state, se2.between(last.odom, pose[k]), noise)
+                self._append(_Entry(tk, pose[k], state))
         self._last_odom_t = float(self._times[-1])
 
     def trim_history(self) -> None:
@@ -497,7 +503,14 @@ class Localizer:
             return None
         e = self._entries[i]
         status, reason = self._status(e.t, e.state)
-        m2o = se2.compose(e.state.mean, se2.inverse(e.odom))
+        # map→odom = mean ⊕ odom⁻¹ (scalar arithmetic: this runs once per odom record)
+        mx, my, mth = e.state.mean.tolist()
+        ox, oy, oth = e.odom.tolist()
+        c, s = math.cos(oth), math.sin(oth)
+        ix, iy = -c * ox - s * oy, s * ox - c * oy
+        cm, sm = math.cos(mth), math.sin(mth)
+        yaw = (mth - oth + math.pi) % (2.0 * math.pi) - math.pi
+        m2o = np.array([mx + cm * ix - sm * iy, my + sm * ix + cm * iy, yaw])
         return PoseEstimate(t_s, e.state, e.odom, m2o, status, reason)
 
     def on_tof(self, t_s: float, sensor: int, tof_us: float | None,
