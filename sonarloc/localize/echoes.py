@@ -222,6 +222,7 @@ class EchoObservation:
     lin_mean: Array | None = None
     lin_slope: Array | None = None
     lin_sd: Array | None = None
+    compressed: Compressed | None = None
 
     def __len__(self) -> int:
         return len(self.z_m)
@@ -279,12 +280,63 @@ class EchoObservation:
         return h, hx, ekf.symmetrize(r)
 
 
+@dataclass(frozen=True)
+class Compressed:
+    """A stacked readings update linearised once and reduced to at most 3 rows.
+
+    Whitened by ``R = L Lᵀ`` and QR-factored, ``L⁻¹ H = Q Rq``: the update with
+    ``(Qᵀ L⁻¹ nu, Rq, I)`` equals the n-row one with ``(nu, H, R)`` exactly, and the
+    n-row squared Mahalanobis distance is the reduced one plus ``resid2``, the part of
+    the whitened innovation outside ``Q``'s span. ``x0``: the pose linearised at.
+    """
+
+    x0: Array
+    q_nu: Array    # (k,) Qᵀ L⁻¹ (z - h(x0))
+    rq: Array      # (k, 3)
+    resid2: float
+    n: int
+
+
+def compress(obs: EchoObservation, pose: ArrayLike) -> Compressed | None:
+    """Linearise ``obs`` at ``pose`` and reduce it (None if R is not positive definite)."""
+    x0 = np.asarray(pose, dtype=float).copy()
+    h, hx, r = obs.measure(x0)
+    nu = obs.z_m - h
+    try:
+        chol = np.linalg.cholesky(r)
+    except np.linalg.LinAlgError:
+        return None
+    sol = np.linalg.solve(chol, np.column_stack([hx, nu]))  # L⁻¹ [H | nu]
+    hw, nuw = sol[:, :3], sol[:, 3]
+    q, rq = np.linalg.qr(hw, mode="reduced")
+    q_nu = q.T @ nuw
+    resid2 = max(float(nuw @ nuw - q_nu @ q_nu), 0.0)
+    return Compressed(x0, q_nu, rq, resid2, len(nu))
+
+
 def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
            ) -> tuple[Gaussian, Innovation]:
-    """Stacked Kalman update of an unbatched belief with a segment's readings."""
-    h, hx, r = obs.measure(state.mean)
-    nu = obs.z_m - h
-    return ekf.kalman_update(state, nu, hx, r, gate)
+    """Stacked Kalman update of an unbatched belief with a segment's readings.
+
+    Linearised at the first call's belief and kept (:class:`Compressed`): a replay of
+    the same update on a slightly moved belief (a delayed observation fused before it)
+    moves the prediction by ``H (x - x0)``, and costs a 3-row update.
+    """
+    if obs.compressed is None:
+        obs.compressed = compress(obs, state.mean)
+    c = obs.compressed
+    if c is None:
+        h, hx, r = obs.measure(state.mean)
+        return ekf.kalman_update(state, obs.z_m - h, hx, r, gate)
+    dx = state.mean - c.x0
+    dx[2] = float(se2.wrap_angle(dx[2]))
+    nu3 = c.q_nu - c.rq @ dx
+    new, innov = ekf.kalman_update(state, nu3, c.rq, np.eye(len(nu3)))
+    d2 = innov.d2 + c.resid2
+    accepted = np.asarray(~innov.singular & (d2 <= gate))
+    if not bool(accepted):
+        new = state
+    return new, Innovation(innov.nu, innov.S, d2, gate, accepted, innov.singular)
 
 
 def screen(state: Gaussian, obs: EchoObservation, probability: float = 0.999
