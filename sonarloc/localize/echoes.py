@@ -314,24 +314,46 @@ def compress(obs: EchoObservation, pose: ArrayLike) -> Compressed | None:
     return Compressed(x0, q_nu, rq, resid2, len(nu))
 
 
+#: Linearisations of a first update (iterated EKF), at most.
+ITERATIONS = 3
+
+
+def _reduced_update(state: Gaussian, c: Compressed) -> tuple[Gaussian, Innovation]:
+    dx = state.mean - c.x0
+    dx[2] = float(se2.wrap_angle(dx[2]))
+    nu3 = c.q_nu - c.rq @ dx
+    return ekf.kalman_update(state, nu3, c.rq, np.eye(len(nu3)))
+
+
 def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
            ) -> tuple[Gaussian, Innovation]:
     """Stacked Kalman update of an unbatched belief with a segment's readings.
 
-    Linearised at the first call's belief and kept (:class:`Compressed`): a replay of
+    Linearised at the first call's belief, relinearised at the updated mean up to
+    :data:`ITERATIONS` times (iterated EKF), and kept (:class:`Compressed`): a replay of
     the same update on a slightly moved belief (a delayed observation fused before it)
     moves the prediction by ``H (x - x0)``, and costs a 3-row update.
     """
     if obs.compressed is None:
-        obs.compressed = compress(obs, state.mean)
+        # iterated: relinearise (geometry and the delay model) at the updated mean, so a
+        # first update from a belief degrees off does not trust a slope taken there
+        x_lin = state.mean
+        for _ in range(ITERATIONS):
+            obs.linearize(x_lin)
+            obs.compressed = compress(obs, x_lin)
+            if obs.compressed is None:
+                break
+            moved = _reduced_update(state, obs.compressed)[0].mean
+            step = moved - x_lin
+            step[2] = float(se2.wrap_angle(step[2]))
+            x_lin = moved
+            if abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-5:
+                break
     c = obs.compressed
     if c is None:
         h, hx, r = obs.measure(state.mean)
         return ekf.kalman_update(state, obs.z_m - h, hx, r, gate)
-    dx = state.mean - c.x0
-    dx[2] = float(se2.wrap_angle(dx[2]))
-    nu3 = c.q_nu - c.rq @ dx
-    new, innov = ekf.kalman_update(state, nu3, c.rq, np.eye(len(nu3)))
+    new, innov = _reduced_update(state, c)
     d2 = innov.d2 + c.resid2
     accepted = np.asarray(~innov.singular & (d2 <= gate))
     if not bool(accepted):
