@@ -550,22 +550,53 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
 _EARLY_TOLERANCE = 100.0
 
 
+_STATE_FIELDS = ("p", "converged", "F", "H", "e", "s2")
+
+
+@dataclass
+class _State:
+    """A fit's state at its parameters: objective F (B,) (without the variances'
+    log-determinant), Fisher matrix H (B, 3, 3), standardised residuals e (B, Nd) and
+    the TOF variances s2 (B, Nd) they were computed with."""
+
+    p: Array
+    converged: NDArray[np.bool_]
+    F: Array
+    H: Array
+    e: Array
+    s2: Array
+
+    def full_cost(self, use: NDArray) -> Array:
+        """-2 log-likelihood (B,) with the TOF variances' log-determinant."""
+        return self.F + np.where(use, np.log(2.0 * np.pi * self.s2), 0.0).sum(1)
+
+    def take(self, idx: NDArray[np.int64]) -> _State:
+        """The state of segments ``idx``."""
+        return _State(*(getattr(self, f)[idx] for f in _STATE_FIELDS))
+
+    def put(self, idx: NDArray[np.int64], other: _State) -> None:
+        """Replace segments ``idx`` by ``other``'s (same width)."""
+        for name in _STATE_FIELDS:
+            getattr(self, name)[idx] = getattr(other, name)
+
+
 def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
-            cfg: FitConfig, rounds: int) -> tuple[Array, NDArray[np.bool_]]:
+            cfg: FitConfig, rounds: int) -> _State:
     """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective.
 
     A segment stops when its Newton decrement g^T H^-1 g (the expected decrease of the
     objective) falls below ``cfg.tolerance``; stopped segments are frozen for the rest
     of the round (so no result depends on the other segments of the batch) and left
-    out of the remaining iterations.
+    out of the remaining iterations. Returns the state at the result (variances of the
+    last round's start: the weights a round's steps were taken with).
     """
     B = p.shape[0]
     p = p.copy()
     lam = np.full(B, 1e-1)
-    converged = np.zeros(B, dtype=bool)
+    done = np.zeros(B, dtype=bool)
     for rnd in range(rounds):
         # variances from the current delays, fixed for this round
-        F, grad, H, _, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg)
+        F, grad, H, E, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg)
         # rounds before the last stop early: the next round moves the weights anyway
         tol = cfg.tolerance * (1.0 if rnd == rounds - 1 else _EARLY_TOLERANCE)
         done = np.zeros(B, dtype=bool)
@@ -575,9 +606,11 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             # steps in (r, phi, log kappa): the delays scale with kappa and the detection
             # margin with log kappa, so this is where the objective is nearly quadratic
             kap = p[act, 2]
-            ga = grad[act] * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)
-            Ha = H[act] * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)[:, :, None]
-            Ha = Ha * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)[:, None, :]
+            ga = grad[act]
+            ga[:, 2] *= kap
+            Ha = H[act]
+            Ha[:, 2, :] *= kap[:, None]
+            Ha[:, :, 2] *= kap[:, None]
             diag = np.maximum(np.einsum("bkk->bk", Ha), 1e-12)
             A = Ha + (lam[act, None] * diag)[:, :, None] * np.eye(3)[None]
             try:
@@ -601,43 +634,35 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             q[:, :2] += delta[:, :2]
             q[:, 0] = np.maximum(q[:, 0], 1e-3)
             q[:, 2] = np.maximum(q[:, 2] * np.exp(delta[:, 2]), cfg.kappa_min_us)
-            Fq, gq, Hq, _ = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg)
+            Fq, gq, Hq, eq = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg)
             ok = np.isfinite(Fq) & (Fq <= F[act]) & ~done[act]
             ia = act[ok]
-            p[ia], F[ia], grad[ia], H[ia] = q[ok], Fq[ok], gq[ok], Hq[ok]
+            p[ia], F[ia], grad[ia], H[ia], E[ia] = q[ok], Fq[ok], gq[ok], Hq[ok], eq[ok]
             lam[act] = np.where(ok, np.maximum(lam[act] / 4.0, 1e-9),
                                 np.minimum(lam[act] * 8.0, 1e9))
             done[act[~ok & (lam[act] >= 1e9)]] = True
-        converged = done
-    return p, converged
-
-
-def _full_cost(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
-               cfg: FitConfig) -> Array:
-    """-2 log-likelihood (B,) at ``p``, with the TOF variances' log-determinant."""
-    F, _, _, _, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg, want_derivs=False)
-    return F + np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
+    return _State(p, done, F, H, E, s2)
 
 
 def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
-           start_fit: BatchFit | None = None) -> tuple[Array, NDArray[np.bool_], Array]:
+           start_fit: BatchFit | None = None) -> tuple[_State, Array]:
     """Grid bracket + refinement (from a second start where the grid is ambiguous), or
     refinement from another model's fit of the same segments (``start_fit``)."""
     if start_fit is not None:
-        p, conv = _refine(kind, tier, start_fit.local.copy(), batch, y, use, cfg, cfg.rounds)
-        return p, conv, start_fit.arc.copy()
+        st = _refine(kind, tier, start_fit.local.copy(), batch, y, use, cfg, cfg.rounds)
+        return st, start_fit.arc.copy()
     start, start2, second, arc = _grid_start(kind, tier, batch, y, use, cfg)
-    p, conv = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
+    st = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
     idx = np.flatnonzero(second)
     if idx.size:
         sub = _take(batch, idx)
-        p2, conv2 = _refine(kind, tier, start2[idx], sub, y[idx], use[idx], cfg, cfg.rounds)
-        f1 = _full_cost(kind, tier, p[idx], sub, y[idx], use[idx], cfg)
-        f2 = _full_cost(kind, tier, p2, sub, y[idx], use[idx], cfg)
-        better = f2 < f1
-        p[idx[better]] = p2[better]
-        conv[idx[better]] = conv2[better]
-    return p, conv, arc
+        st2 = _refine(kind, tier, start2[idx], sub, y[idx], use[idx], cfg, cfg.rounds)
+        f1 = st.take(idx).full_cost(use[idx])
+        f2 = st2.full_cost(use[idx])
+        better = np.flatnonzero(f2 < f1)
+        if better.size:
+            st.put(idx[better], st2.take(better))
+    return st, arc
 
 
 def _covariance(H: Array) -> Array:
@@ -683,13 +708,9 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     B = batch.size
     n_d = batch.valid.sum(1)
     n_n = batch.ne_valid.sum(1)
-    width = batch.px.shape[1] + batch.ne_px.shape[1]
-    if B <= 1 or (B * width <= cfg.chunk_readings
-                  and B * width <= 1.3 * max(int((n_d + n_n).sum()), 1)):
-        return _fit_direct(batch, kind, tier, cfg, offsets_us, use, start)
-    # sort by size and fit in chunks of about chunk_readings padded readings, each
-    # trimmed to its own widest segment: no work on padding, arrays stay in cache
-    order = np.lexsort((n_n, n_d))
+    chunks = _plan_chunks(n_d, n_n, cfg.chunk_readings)
+    # chunks of segments of similar size, each trimmed to its own widest segment: little
+    # work on padding, arrays of a bounded size
     out_local = np.zeros((B, 3))
     out_cov = np.zeros((B, 3, 3))
     out_vec = {name: np.zeros(B) for name in ("cost", "chi2", "robust_cost")}
@@ -699,12 +720,7 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     Nd = batch.px.shape[1]
     out_used = np.zeros((B, Nd), dtype=bool)
     out_resid = np.zeros((B, Nd))
-    a = 0
-    while a < B:
-        b = a + 1
-        while b < B and (b + 1 - a) * int(n_d[order[b]] + n_n[order[b]] + 2) <= cfg.chunk_readings:
-            b += 1
-        idx = order[a:b]
+    for idx in chunks:
         wd = max(int(n_d[idx].max()), 1)
         wn = max(int(n_n[idx].max()), 1)
         sub = _trim(_take(batch, idx), wd, wn)
@@ -718,9 +734,59 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
             out_vec[name][idx] = getattr(part, name)
         out_n[idx], out_conv[idx], out_arc[idx] = part.n_used, part.converged, part.arc
         out_used[idx, :wd], out_resid[idx, :wd] = part.used, part.resid
-        a = b
     return BatchFit(kind, tier, out_local, out_cov, out_vec["cost"], out_vec["chi2"], out_n,
                     out_used, out_resid, out_arc, out_conv, out_vec["robust_cost"])
+
+
+_CALL_OVERHEAD_READINGS = 2000
+"""Fixed cost of fitting one chunk (Python and numpy call overhead), in padded readings."""
+
+
+def _plan_chunks(n_d: NDArray[np.int64], n_n: NDArray[np.int64], chunk_readings: int
+                 ) -> list[NDArray[np.int64]]:
+    """Split segments into chunks of similar size (indices), minimising the padded work.
+
+    Segments are sorted by (echoes, no-echo readings); a chunk is a run of the sorted
+    order of padded size ``count * (max echoes + max no-echo)`` (cut further to stay
+    below ``chunk_readings``) and costs that plus a fixed per-call overhead. The best
+    split into runs is found by dynamic programming over the distinct echo counts.
+    """
+    B = n_d.size
+    if B == 0:
+        return [np.arange(0)]
+    order = np.lexsort((n_n, n_d))
+    nd_s, nn_s = n_d[order], n_n[order]
+    # groups of equal echo count (boundaries in the sorted order)
+    starts = np.flatnonzero(np.r_[True, nd_s[1:] != nd_s[:-1]])
+    ends = np.r_[starts[1:], B]
+    G = starts.size
+    w_d = np.maximum(nd_s[ends - 1], 1).astype(float)                   # group widths
+    w_n = np.maximum(np.maximum.reduceat(nn_s, starts), 1).astype(float)
+    cum = np.r_[0, ends].astype(float)                                  # segments before
+    best = np.zeros(G + 1)
+    prev = np.zeros(G + 1, dtype=np.int64)
+    for j in range(1, G + 1):
+        # runs of groups i..j-1 (i = 0..j-1)
+        mn = np.maximum.accumulate(w_n[:j][::-1])[::-1]
+        count = cum[j] - cum[:j]
+        padded = count * (w_d[j - 1] + mn)
+        pieces = np.maximum(np.ceil(padded / chunk_readings), 1.0)
+        cost = best[:j] + padded + pieces * _CALL_OVERHEAD_READINGS
+        i = int(np.argmin(cost))
+        best[j], prev[j] = cost[i], i
+    runs = []
+    j = G
+    while j > 0:
+        i = int(prev[j])
+        runs.append((int(starts[i]), int(ends[j - 1])))
+        j = i
+    chunks = []
+    for a, b in reversed(runs):
+        width = int(max(nd_s[b - 1], 1) + max(nn_s[a:b].max(), 1)) + 2
+        per = max(chunk_readings // width, 1)
+        for c in range(a, b, per):
+            chunks.append(order[c:min(c + per, b)])
+    return chunks
 
 
 def _trim(batch: SegmentBatch, wd: int, wn: int) -> SegmentBatch:
@@ -750,13 +816,12 @@ def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
         use0 = use0 & use
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
-    p, conv, arc = _solve(kind, tier, batch, y, use0, cfg, start)
-    F, _, H, e, s2 = _evaluate_s2(kind, tier, p, batch, y, use0, None, cfg)
+    st, arc = _solve(kind, tier, batch, y, use0, cfg, start)
     # spikes: drop the worst echoes beyond outlier_sigma, then fit those segments again
-    bad = use0 & (np.abs(e) > cfg.outlier_sigma)
+    bad = use0 & (np.abs(st.e) > cfg.outlier_sigma)
     if bad.any():
         max_drop = np.floor(cfg.max_outlier_fraction * use0.sum(1)).astype(int)
-        order = np.argsort(-np.abs(np.where(bad, e, 0.0)), axis=1)
+        order = np.argsort(-np.abs(np.where(bad, st.e, 0.0)), axis=1)
         rank = np.empty_like(order)
         np.put_along_axis(rank, order, np.arange(order.shape[1])[None, :].repeat(
             order.shape[0], 0), axis=1)
@@ -765,12 +830,12 @@ def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
             use0 = use0 & ~drop
             idx = np.flatnonzero(drop.any(1))
             sub = _take(batch, idx)
-            p2, c2, _ = _solve(kind, tier, sub, y[idx], use0[idx], cfg)
-            F2, _, H2, e2, s2b = _evaluate_s2(kind, tier, p2, sub, y[idx], use0[idx], None, cfg)
-            p[idx], conv[idx], s2[idx], F[idx], H[idx], e[idx] = p2, c2, s2b, F2, H2, e2
+            st2, _ = _solve(kind, tier, sub, y[idx], use0[idx], cfg)
+            st.put(idx, st2)
+    p, conv, F, H, e = st.p, st.converged, st.F, st.H, st.e
     chi2 = (e * e).sum(1)
     # full -2 log-likelihood (with the variances' log-determinant) to compare models
-    F = F + np.where(use0, np.log(2.0 * np.pi * s2), 0.0).sum(1)
+    F = st.full_cost(use0)
     n_used = use0.sum(1)
     dof = np.maximum(n_used - 3, 1)
     inflate = np.maximum(chi2 / dof, 1.0)
