@@ -71,7 +71,7 @@ class FitConfig:
 
     module: ModuleParams = field(default_factory=ModuleParams)
     detection: bool = True
-    grid_step_deg: float = 3.0
+    grid_step_deg: float = 6.0
     margin_deg: float = 12.0
     rounds: int = 2
     iterations: int = 12
@@ -153,17 +153,22 @@ def pack_segments(
     The reference of each segment is its last reading with a finite echo (its last
     reading if it has none). Non-finite TOFs (NaN, inf) are no-echo readings.
     """
-    cols = []
-    lengths = np.zeros(len(segments), dtype=np.int64)
+    n = len(segments)
+    if n == 0:
+        return pack_flat(np.zeros(0, dtype=np.int64), *(np.zeros(0),) * 5, n_segments=0)
     for b, seg in enumerate(segments):
-        arrs = [np.asarray(a, dtype=float).reshape(-1) for a in seg]
-        if len(arrs) != 5 or len({a.size for a in arrs}) != 1:
+        if len(seg) != 5:
             raise ValueError(f"segment {b}: expected 5 arrays of equal length")
-        lengths[b] = arrs[0].size
-        cols.append(arrs)
-    f = [np.concatenate([c[k] for c in cols]) if cols else np.zeros(0) for k in range(5)]
-    return pack_flat(np.repeat(np.arange(len(segments)), lengths), f[0], f[1], f[2], f[3],
-                     f[4], n_segments=len(segments))
+    cols = [[seg[k] for seg in segments] for k in range(5)]
+    sizes = np.array([[a.size if isinstance(a, np.ndarray) else np.size(a) for a in c]
+                      for c in cols], dtype=np.int64)                      # (5, n)
+    lengths = sizes[0]
+    if np.any(sizes != lengths):
+        b = int(np.flatnonzero((sizes != lengths).any(0))[0])
+        raise ValueError(f"segment {b}: expected 5 arrays of equal length")
+    f = [np.concatenate(c, axis=None, dtype=float) for c in cols]
+    return pack_flat(np.repeat(np.arange(n), lengths), f[0], f[1], f[2], f[3], f[4],
+                     n_segments=n)
 
 
 def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array,
@@ -194,33 +199,26 @@ def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_ra
         ref_yaw = np.where(has, yaw_rad[rr], 0.0)
         ref_t = np.where(has, t_s[rr], 0.0)
 
-    def pad(mask: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+    def pad(mask: NDArray[np.bool_], fill: tuple[float, float, float, float]
+            ) -> tuple[list[Array], NDArray[np.bool_]]:
+        """(x, y, yaw, tof) of the readings in ``mask``, padded per segment, and validity."""
         s = seg[mask]
         count = np.bincount(s, minlength=B)
         first = np.cumsum(count) - count
-        col = np.arange(s.size) - first[s]
-        return s, col, max(int(count.max(initial=0)), 1)
+        width = max(int(count.max(initial=0)), 1)
+        lin = s * width + (np.arange(s.size) - first[s])      # flat index in (B, width)
+        out = []
+        for values, f in zip((x_m[mask] - ref_xy[s, 0], y_m[mask] - ref_xy[s, 1],
+                              yaw_rad[mask], tof_us[mask]), fill, strict=True):
+            a = np.full(B * width, f)
+            a[lin] = values
+            out.append(a.reshape(B, width))
+        ok = np.zeros(B * width, dtype=bool)
+        ok[lin] = True
+        return out, ok.reshape(B, width)
 
-    sd, cd, Nd = pad(det)
-    sn, cn, Nn = pad(~det)
-    px = np.zeros((B, Nd))
-    py = np.zeros((B, Nd))
-    yw = np.zeros((B, Nd))
-    tof = np.full((B, Nd), np.nan)
-    valid = np.zeros((B, Nd), dtype=bool)
-    px[sd, cd] = x_m[det] - ref_xy[sd, 0]
-    py[sd, cd] = y_m[det] - ref_xy[sd, 1]
-    yw[sd, cd] = yaw_rad[det]
-    tof[sd, cd] = tof_us[det]
-    valid[sd, cd] = True
-    npx = np.zeros((B, Nn))
-    npy = np.zeros((B, Nn))
-    nyw = np.zeros((B, Nn))
-    nvalid = np.zeros((B, Nn), dtype=bool)
-    npx[sn, cn] = x_m[~det] - ref_xy[sn, 0]
-    npy[sn, cn] = y_m[~det] - ref_xy[sn, 1]
-    nyw[sn, cn] = yaw_rad[~det]
-    nvalid[sn, cn] = True
+    (px, py, yw, tof), valid = pad(det, (0.0, 0.0, 0.0, np.nan))
+    (npx, npy, nyw, _), nvalid = pad(~det, (0.0, 0.0, 0.0, np.nan))
     return SegmentBatch(px, py, yw, tof, valid, npx, npy, nyw, nvalid, ref_xy, ref_yaw, ref_t)
 
 
