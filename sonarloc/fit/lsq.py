@@ -313,62 +313,107 @@ def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, 
     mod = cfg.module
     tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
-    geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw)
-    g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=want_derivs)
+    moving = _is_moving(batch)
+    if moving:
+        geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw, moving=True)
+        theta, R = geo.theta, geo.R
+    else:                      # stationary: R = r, theta = phi - yaw
+        theta, R = M._wrap_fast(phi - batch.yaw), r
+    g, dlng, lng = M.beam_log_factor(theta, tier, mod, derivative=want_derivs)
     det = cfg.detection
     z = M.detection_z(K, lng, mod) if det else None
     et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
     if s2 is None:
         s2 = M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform" else None)
-    w = np.where(use, 1.0 / np.sqrt(s2), 0.0)               # 1/s, 0 where unused
-    e = (y - tau * geo.R - et.delay) * w
-    F = (e * e).sum(-1)
+    w = use / np.sqrt(s2)                                    # 1/s, 0 where unused
+    e = (y - tau * R - et.delay) * w
+    F = np.einsum("bn,bn->b", e, e)
     if det:
-        F = F - 2.0 * (et.log_p * use).sum(-1)
+        F -= 2.0 * np.einsum("bn,bn->b", et.log_p, use.astype(float))
     B = p.shape[0]
     grad = np.zeros((B, 3))
     H = np.zeros((B, 3, 3))
+    sa = M.sigma_a(mod)
+    inv_ksa = 1.0 / (K * sa)                                 # d z / d kappa, (B, 1)
     if want_derivs:
-        a = et.ddelay_du * K * dg                            # d mean / d theta
-        if geo.moving:
-            cols = [(tau * geo.dR_dr + a * geo.dtheta_dr) * w,
-                    (tau * geo.dR_dphi + a * geo.dtheta_dphi) * w]
+        jk = et.ddelay_du * g                                # d mean / d kappa
+        a = jk * K * dlng                                    # d mean / d theta
+        cols: list[Array | None]
+        if moving:
+            cols = [tau * geo.dR_dr + a * geo.dtheta_dr, tau * geo.dR_dphi + a * geo.dtheta_dphi,
+                    jk]
         else:
-            cols = [np.broadcast_to(tau * w, w.shape), a * w]
-        cols.append(et.ddelay_du * g * w)
-        Jw = np.stack(cols, axis=1)                          # (B, 3, Nd)
-        grad -= np.einsum("bkn,bn->bk", Jw, e)
-        H += np.matmul(Jw, np.swapaxes(Jw, 1, 2))
+            cols = [np.full((B, 1), tau), a, jk]
+        _gram(H, grad, cols, w * w, w * e)
+        if det:
+            dz = dlng / sa                                   # d z / d theta
+            zc: list[Array | None] = ([dz * geo.dtheta_dr, dz * geo.dtheta_dphi, inv_ksa]
+                                      if moving else [None, dz, inv_ksa])
+            _gram(H, grad, zc, et.curv * use, et.dlogp_dz * use)
     F = F + _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
     if not det:
         return F, grad, H, e, s2
-    sa = M.sigma_a(mod)
-    if want_derivs:
-        dlng = np.where(g < 1e11, dg / g, 0.0) / sa
-        dzk = np.broadcast_to(1.0 / (K * sa), g.shape)
-        if geo.moving:
-            dz = np.stack([dlng * geo.dtheta_dr, dlng * geo.dtheta_dphi, dzk], axis=1)
-        else:
-            dz = np.stack([np.zeros(g.shape), dlng, dzk], axis=1)  # (B, 3, Nd)
-        grad -= np.einsum("bkn,bn->bk", dz, et.dlogp_dz * use)
-        H += np.matmul(dz * (et.curv * use)[:, None, :], np.swapaxes(dz, 1, 2))
     nv = batch.ne_valid
-    if nv.any():
-        ng = M.geometry(kind, r, phi, batch.ne_px, batch.ne_py, batch.ne_yaw)
-        gn, dgn, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=want_derivs)
+    if nv.shape[1] and nv.any():
+        if moving:
+            ng = M.geometry(kind, r, phi, batch.ne_px, batch.ne_py, batch.ne_yaw, moving=True)
+            thn = ng.theta
+        else:
+            thn = M._wrap_fast(phi - batch.ne_yaw)
+        _, dlgn, lgn = M.beam_log_factor(thn, tier, mod, derivative=want_derivs, want_g=False)
         zn = M.detection_z(K, lgn, mod)
         lpn, dlpn, _, curvn = M.noecho_terms(zn, want_info=False)
-        F = F - 2.0 * (lpn * nv).sum(-1)
+        F = F - 2.0 * np.einsum("bn,bn->b", lpn, nv.astype(float))
         if want_derivs:
-            dlgn = np.where(gn < 1e11, dgn / gn, 0.0) / sa
-            dzkn = np.broadcast_to(1.0 / (K * sa), gn.shape)
-            if ng.moving:
-                dzn = np.stack([dlgn * ng.dtheta_dr, dlgn * ng.dtheta_dphi, dzkn], axis=1)
-            else:
-                dzn = np.stack([np.zeros(gn.shape), dlgn, dzkn], axis=1)
-            grad -= np.einsum("bkn,bn->bk", dzn, dlpn * nv)
-            H += np.matmul(dzn * (curvn * nv)[:, None, :], np.swapaxes(dzn, 1, 2))
+            dzn = dlgn / sa
+            zcn: list[Array | None] = ([dzn * ng.dtheta_dr, dzn * ng.dtheta_dphi, inv_ksa]
+                                       if moving else [None, dzn, inv_ksa])
+            _gram(H, grad, zcn, curvn * nv, dlpn * nv)
     return F, grad, H, e, s2
+
+
+def _gram(H: Array, grad: Array, cols: Sequence[Array | None], wH: Array, wg: Array) -> None:
+    """``H[k, l] += sum_n wH c_k c_l`` and ``grad[k] -= sum_n wg c_k`` over readings n.
+
+    ``cols``: three columns, each (B, N), (B, 1) (the same for all readings) or None
+    (zero); ``wH``, ``wg``: (B, N) weights.
+    """
+    sw: Array | None = None
+    sg: Array | None = None
+    dense: list[Array | None] = []          # wH * c of the columns that vary by reading
+    for c in cols:
+        if c is not None and c.shape[1] == 1:
+            if sw is None:
+                sw, sg = wH.sum(1), wg.sum(1)
+            dense.append(None)
+        else:
+            dense.append(None if c is None else wH * c)
+    for k in range(3):
+        ck, dk = cols[k], dense[k]
+        if ck is None:
+            continue
+        grad[:, k] -= (ck[:, 0] * sg if dk is None and sg is not None
+                       else np.einsum("bn,bn->b", wg, ck))
+        for m in range(k, 3):
+            cm, dm = cols[m], dense[m]
+            if cm is None:
+                continue
+            if dk is None and dm is None and sw is not None:
+                v = ck[:, 0] * cm[:, 0] * sw
+            elif dk is None and dm is not None:
+                v = ck[:, 0] * dm.sum(1)
+            elif dm is None and dk is not None:
+                v = cm[:, 0] * dk.sum(1)
+            else:
+                v = np.einsum("bn,bn->b", dk if dk is not None else wH * ck, cm)
+            H[:, k, m] += v
+            if m != k:
+                H[:, m, k] += v
+
+
+def _is_moving(batch: SegmentBatch) -> bool:
+    """Whether any reading was taken away from its segment's reference position."""
+    return bool(batch.px.any() or batch.py.any() or batch.ne_px.any() or batch.ne_py.any())
 
 
 def tof_jacobian(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConfig
