@@ -285,6 +285,8 @@ def _axis_bearings(kind: str, batch: SegmentBatch, y: Array, tau: float
     """
     if kind == "line":
         bear = batch.yaw
+    elif not _is_moving(batch):       # seen from the reference: the beam axis itself
+        bear = np.where(batch.valid, M._wrap_fast(batch.yaw), 0.0)
     else:
         R = np.where(batch.valid, y / tau, 0.0)
         bear = np.arctan2(batch.py + R * np.sin(batch.yaw), batch.px + R * np.cos(batch.yaw))
@@ -318,7 +320,7 @@ def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, 
         geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw, moving=True)
         theta, R = geo.theta, geo.R
     else:                      # stationary: R = r, theta = phi - yaw
-        theta, R = M._wrap_fast(phi - batch.yaw), r
+        theta, R = _angle_diff(phi, batch.yaw), r
     g, dlng, lng = M.beam_log_factor(theta, tier, mod, derivative=want_derivs)
     det = cfg.detection
     z = M.detection_z(K, lng, mod) if det else None
@@ -359,7 +361,7 @@ def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, 
             ng = M.geometry(kind, r, phi, batch.ne_px, batch.ne_py, batch.ne_yaw, moving=True)
             thn = ng.theta
         else:
-            thn = M._wrap_fast(phi - batch.ne_yaw)
+            thn = _angle_diff(phi, batch.ne_yaw)
         _, dlgn, lgn = M.beam_log_factor(thn, tier, mod, derivative=want_derivs, want_g=False)
         zn = M.detection_z(K, lgn, mod)
         lpn, dlpn, _, curvn = M.noecho_terms(zn, want_info=False)
@@ -409,6 +411,16 @@ def _gram(H: Array, grad: Array, cols: Sequence[Array | None], wH: Array, wg: Ar
             H[:, k, m] += v
             if m != k:
                 H[:, m, k] += v
+
+
+def _angle_diff(a: Array, b: Array) -> Array:
+    """``a - b`` wrapped to [-pi, pi] (broadcast); the bounds of the (small) inputs tell
+    when no wrapping is needed, which saves passes over the (large) result."""
+    if a.size and b.size:
+        amax, amin, bmax, bmin = a.max(), a.min(), b.max(), b.min()
+        if amax - bmin <= np.pi and amin - bmax >= -np.pi:
+            return a - b
+    return M._wrap_fast(a - b)
 
 
 def _is_moving(batch: SegmentBatch) -> bool:
@@ -478,7 +490,7 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
         y0 = np.nanmin(np.where(use, y, np.inf), axis=1)
     y0 = np.where(np.isfinite(y0), y0, 0.0)
     bear, centre = _axis_bearings(kind, batch, np.where(use, y, y0[:, None]), tau)
-    rel = M.wrap_angle(bear - centre[:, None])
+    rel = M._wrap_fast(bear - centre[:, None])
     lo = np.min(np.where(use, rel, np.inf), axis=1)
     hi = np.max(np.where(use, rel, -np.inf), axis=1)
     lo = np.where(np.isfinite(lo), lo, 0.0)
@@ -501,35 +513,39 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     offs = np.where(pad, hi[:, None] + margin, offs)                          # (B, G)
     phis = centre[:, None] + offs
     r0 = y0 / tau
-    geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
-                     batch.py[:, None, :], batch.yaw[:, None, :])
-    g, _, lg = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
+    moving = _is_moving(batch)
+    if moving:
+        geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
+                         batch.py[:, None, :], batch.yaw[:, None, :], moving=True)
+        theta = geo.theta
+    else:
+        theta = _angle_diff(phis[:, :, None], batch.yaw[:, None, :])
+    g, _, lg = M.beam_log_factor(theta, tier, mod, derivative=False)
     scale = np.exp(0.5 * M.sigma_a(mod) ** 2)
     usef = use[:, None, :].astype(float)
-    gu = np.multiply(g, scale)
-    gu *= usef                                                                # (B, G, Nd)
+    gu = g * usef                                  # (B, G, Nd); the profile's g is scale gu
     # bearing-independent weights (the on-axis variance), so that the profile costs of
     # the nodes compare (weights from the model at each node would discount far-off
     # readings) and weigh against the detection terms as a likelihood does
     w0 = 1.0 / float(M.tof_variance_us2(0.0, mod))
     yc = np.where(use, y - y0[:, None], 0.0)                                 # (B, Nd)
     S0 = use.sum(1)[:, None].astype(float)
-    S1 = gu.sum(-1)
-    S2 = np.einsum("bgn,bgn->bg", gu, gu)
-    if geo.moving:   # the range offsets of the readings depend on the node
+    S1 = gu.sum(-1) * scale
+    S2 = np.einsum("bgn,bgn->bg", gu, gu) * (scale * scale)
+    if moving:   # the range offsets of the readings depend on the node
         ycg = (yc[:, None, :] - tau * (geo.R - r0[:, None, None])) * usef
         Sy = ycg.sum(-1)
         Syy = np.einsum("bgn,bgn->bg", ycg, ycg)
-        Sgy = np.einsum("bgn,bgn->bg", gu, ycg)
+        Sgy = np.einsum("bgn,bgn->bg", gu, ycg) * scale
     else:
         Sy = yc.sum(-1)[:, None]
         Syy = np.einsum("bn,bn->b", yc, yc)[:, None]
-        Sgy = np.matmul(gu, yc[:, :, None])[..., 0]
+        Sgy = np.matmul(gu, yc[:, :, None])[..., 0] * scale
     if cfg.detection:
         # echoes were detected: the one nearest the axis must be detectable (z < 2)
-        g_min = np.min(g, axis=-1, where=use[:, None, :], initial=np.inf)
+        lg_min = np.min(lg, axis=-1, where=use[:, None, :], initial=np.inf)
         kmax = (mod.detection_limit_us * np.exp(2.0 * M.sigma_a(mod)) * scale
-                / np.where(np.isfinite(g_min), g_min, 1.0))
+                * np.exp(-np.where(np.isfinite(lg_min), lg_min, 0.0)))
     else:
         kmax = np.full(phis.shape, np.inf)
     T, Keff, sse = _profile_2x2(S0, S1, S2, Sy, Sgy, Syy, cfg.kappa_min_us * scale, kmax)
@@ -546,11 +562,14 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
         np.maximum(zd, 0.0, out=zd)
         zd *= usef
         cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zd, zd)
-        if batch.ne_valid.any():
-            ng = M.geometry(kind, r0[:, None, None], phis[:, :, None],
-                            batch.ne_px[:, None, :], batch.ne_py[:, None, :],
-                            batch.ne_yaw[:, None, :])
-            _, _, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=False)
+        if batch.ne_valid.shape[1] and batch.ne_valid.any():
+            if moving:
+                thn = M.geometry(kind, r0[:, None, None], phis[:, :, None],
+                                 batch.ne_px[:, None, :], batch.ne_py[:, None, :],
+                                 batch.ne_yaw[:, None, :], moving=True).theta
+            else:
+                thn = _angle_diff(phis[:, :, None], batch.ne_yaw[:, None, :])
+            lgn = M.beam_log_factor(thn, tier, mod, derivative=False, want_g=False)[2]
             # (1.4 - z) sa = (ln L + 1.4 sa - ln kappa) - ln g, formed in place
             zn = np.subtract((np.log(mod.detection_limit_us) + 1.4 * sa
                               - np.log(np.maximum(K, 1e-300)))[..., None], lgn)
