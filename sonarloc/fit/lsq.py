@@ -46,6 +46,9 @@ class FitConfig:
     margin_deg : how far beyond the arc covered by echoes a minimum may lie.
     rounds, iterations : reweighting rounds and (at most) damped Fisher-scoring steps
         per round.
+    follow_variances : the TOF variances follow every accepted step (iteratively
+        reweighted: a step is judged with the variances at its start, the next one
+        taken with those at its end); otherwise they are held fixed within a round.
     tolerance : a fit has converged when the expected decrease of the objective
         (-log-likelihood; the Newton decrement) is below this.
     outlier_sigma : standardised residual beyond which an echo is dropped as a spike
@@ -73,7 +76,7 @@ class FitConfig:
     detection: bool = True
     grid_step_deg: float = 6.0
     margin_deg: float = 12.0
-    rounds: int = 2
+    rounds: int = 1
     iterations: int = 12
     tolerance: float = 1e-3
     outlier_sigma: float = 4.5
@@ -88,6 +91,7 @@ class FitConfig:
     kappa_guess_us: float = 1.0
     second_start_dcost: float = 6.0
     chunk_readings: int = 65536
+    follow_variances: bool = True
 
     def __post_init__(self) -> None:
         for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
@@ -312,6 +316,15 @@ def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, 
     """:func:`_evaluate`, also returning the variances (B, Nd) it used; ``s2=None``: the
     variances at ``p`` itself (what :func:`_variances` gives, without evaluating the
     model twice)."""
+    return _evaluate_core(kind, tier, p, batch, y, use, s2, cfg, want_derivs)[1:]
+
+
+def _evaluate_core(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array,
+                   use: NDArray, s2: Array | None, cfg: FitConfig, want_derivs: bool = True,
+                   s2_other: Array | None = None
+                   ) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """:func:`_evaluate_s2` preceded by the objective with the variances ``s2_other``
+    instead (the same as the objective without them), from the same model pass."""
     mod = cfg.module
     tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
@@ -328,10 +341,16 @@ def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, 
     if s2 is None:
         s2 = M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform" else None)
     w = use / np.sqrt(s2)                                    # 1/s, 0 where unused
-    e = (y - tau * R - et.delay) * w
+    res = y - tau * R - et.delay
+    e = res * w
     F = np.einsum("bn,bn->b", e, e)
+    F_other = F
+    if s2_other is not None:
+        F_other = np.einsum("bn,bn->b", res * res, use / s2_other)
     if det:
-        F -= 2.0 * np.einsum("bn,bn->b", et.log_p, use.astype(float))
+        dF = 2.0 * np.einsum("bn,bn->b", et.log_p, use.astype(float))
+        F -= dF
+        F_other = F_other - dF if s2_other is not None else F
     B = p.shape[0]
     grad = np.zeros((B, 3))
     H = np.zeros((B, 3, 3))
@@ -352,9 +371,11 @@ def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, 
             zc: list[Array | None] = ([dz * geo.dtheta_dr, dz * geo.dtheta_dphi, inv_ksa]
                                       if moving else [None, dz, inv_ksa])
             _gram(H, grad, zc, et.curv * use, et.dlogp_dz * use)
-    F = F + _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
+    prior = _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
+    F = F + prior
+    F_other = F_other + prior if s2_other is not None else F
     if not det:
-        return F, grad, H, e, s2
+        return F_other, F, grad, H, e, s2
     nv = batch.ne_valid
     if nv.shape[1] and nv.any():
         if moving:
@@ -365,13 +386,15 @@ def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, 
         _, dlgn, lgn = M.beam_log_factor(thn, tier, mod, derivative=want_derivs, want_g=False)
         zn = M.detection_z(K, lgn, mod)
         lpn, dlpn, _, curvn = M.noecho_terms(zn, want_info=False)
-        F = F - 2.0 * np.einsum("bn,bn->b", lpn, nv.astype(float))
+        dFn = 2.0 * np.einsum("bn,bn->b", lpn, nv.astype(float))
+        F = F - dFn
+        F_other = F_other - dFn if s2_other is not None else F
         if want_derivs:
             dzn = dlgn / sa
             zcn: list[Array | None] = ([dzn * ng.dtheta_dr, dzn * ng.dtheta_dphi, inv_ksa]
                                        if moving else [None, dzn, inv_ksa])
             _gram(H, grad, zcn, curvn * nv, dlpn * nv)
-    return F, grad, H, e, s2
+    return F_other, F, grad, H, e, s2
 
 
 def _gram(H: Array, grad: Array, cols: Sequence[Array | None], wH: Array, wg: Array) -> None:
@@ -696,10 +719,21 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             q[:, :2] += delta[:, :2]
             q[:, 0] = np.maximum(q[:, 0], 1e-3)
             q[:, 2] = np.maximum(q[:, 2] * np.exp(delta[:, 2]), cfg.kappa_min_us)
-            Fq, gq, Hq, eq = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg)
-            ok = np.isfinite(Fq) & (Fq <= F[act]) & ~done[act]
+            if cfg.follow_variances:
+                # the step is judged with the current variances; the state at the new
+                # point carries its own (iteratively reweighted), from the same pass
+                Fa, Fq, gq, Hq, eq, s2q = _evaluate_core(kind, tier, q, sub, ys, us, None,
+                                                         cfg, s2_other=s2s)
+            else:
+                Fq, gq, Hq, eq = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg)
+                Fa, s2q = Fq, s2s
+            ok = np.isfinite(Fa) & (Fa <= F[act]) & ~done[act]
             ia = act[ok]
             p[ia], F[ia], grad[ia], H[ia], E[ia] = q[ok], Fq[ok], gq[ok], Hq[ok], eq[ok]
+            if cfg.follow_variances:
+                s2[ia] = s2q[ok]
+                s2s = s2s.copy() if s2s is s2 else s2s
+                s2s[ok] = s2q[ok]
             lam[act] = np.where(ok, np.maximum(lam[act] / 4.0, 1e-9),
                                 np.minimum(lam[act] * 8.0, 1e9))
             done[act[~ok & (lam[act] >= 1e9)]] = True
