@@ -39,6 +39,7 @@ if str(ROOT) not in sys.path:
 
 from scipy.stats import chi2  # noqa: E402
 
+from sonarloc import se2  # noqa: E402
 from sonarloc.fit.result import Landmark  # noqa: E402
 from sonarloc.io.logfile import (  # noqa: E402
     LogWriter,
@@ -48,7 +49,7 @@ from sonarloc.io.logfile import (  # noqa: E402
     TruthRecord,
 )
 from sonarloc.io.posescsv import PoseTrack  # noqa: E402
-from sonarloc.localize import ekf, se2  # noqa: E402
+from sonarloc.localize import ekf  # noqa: E402
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise  # noqa: E402
 from sonarloc.localize.features import FeatureMap  # noqa: E402
 from sonarloc.localize.localizer import Localizer, LocalizerConfig, SegmentFitSource  # noqa: E402

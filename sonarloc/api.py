@@ -221,9 +221,7 @@ class LocalizerNode:
     def _landmark(self, lm: Landmark, outcome: FusionOutcome) -> None:
         if not self._keep:
             return
-        from sonarloc.report.drive import landmark_to_map
-
         est = self.localizer.estimate
-        in_map = landmark_to_map(lm, tuple(float(v) for v in est.map_to_odom)) \
+        in_map = lm.transformed(est.map_to_odom) \
             if est is not None else None
         self._reports.append(LandmarkReport(lm, in_map, outcome.fused, outcome.reason))

@@ -9,7 +9,9 @@ unknown records, time going backwards, landmarks fused and rejected, final statu
 goes to stderr. --method conventional uses each reading as a range along the beam
 axis instead (the textbook sonar EKF: beam-wide bearing SD, walls ray-cast along the
 axis); --method specular is that reading with walls seen at normal incidence;
---method odometry ignores the sonar.
+--method odometry ignores the sonar. The kuc and odometry methods replay the log in
+batches (landmarks fused at their reference readings, as if fitting took no time);
+--online feeds the records one at a time, as a live robot would.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import sys
 from sonarloc.commands._args import accept_negative_values, parse_pose
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import LocalizerConfig
-from sonarloc.localize.replay import PoseCsvWriter, replay_log
+from sonarloc.localize.replay import Mode, PoseCsvWriter, replay_log
 from sonarloc.maps.geojson import load_map
 
 # "-1.5,2,90" starts with "-": let argparse take it as a value, not an option.
@@ -39,6 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="observation model (default kuc: fitted landmarks)")
     parser.add_argument("--status", action="store_true",
                         help="add a `status` column (tracking, dead_reckoning, lost)")
+    parser.add_argument("--online", action="store_true",
+                        help="feed the records one at a time as a live robot would (fits "
+                             "fused when they complete); slower than the default batch "
+                             "replay of the kuc and odometry methods")
     parser.add_argument("--quiet", action="store_true", help="no summary on stderr")
 
 
@@ -46,14 +52,16 @@ def run(args: argparse.Namespace) -> int:
     init = parse_pose(args.init, "--init") if args.init is not None else None
     fmap = FeatureMap.from_map(load_map(args.map))
     config = LocalizerConfig(method=args.method)
+    mode: Mode = "online" if args.online else "auto"
     if args.out:
         with open(args.out, "w", encoding="utf-8", newline="") as handle:
             writer = PoseCsvWriter(handle, args.status)
             result = replay_log(args.log, fmap, config=config, init=init,
-                                on_estimate=writer.write)
+                                on_estimate=writer.write, mode=mode)
     else:
         writer = PoseCsvWriter(sys.stdout, args.status)
-        result = replay_log(args.log, fmap, config=config, init=init, on_estimate=writer.write)
+        result = replay_log(args.log, fmap, config=config, init=init, on_estimate=writer.write,
+                            mode=mode)
     if not args.quiet:
         print(f"sonarloc localize: {result.summary()}", file=sys.stderr)
         for lineno, msg in result.log.malformed[:10]:

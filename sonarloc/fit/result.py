@@ -8,11 +8,13 @@ whose ``status`` is not ``OK`` carries a human-readable ``reason``.
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
+
+from sonarloc import se2
 
 
 class FitStatus(enum.Enum):
@@ -56,6 +58,31 @@ class Landmark:
     @property
     def ok(self) -> bool:
         return self.status is FitStatus.OK
+
+    def transformed(self, pose: ArrayLike) -> Landmark:
+        """This landmark moved into the parent frame of ``pose`` (x_m, y_m, yaw_rad).
+
+        E.g. a fit in ``odom`` moved into ``map`` by the ``map -> odom`` transform.
+        Parameters and covariance are rotated and shifted; the transform's own
+        uncertainty is not added.
+        """
+        t = np.asarray(pose, dtype=float)
+        p = np.array(self.params, dtype=float)
+        J = np.eye(3)
+        if self.kind == "point":
+            p[:2] = se2.transform_points(t, p[:2])
+            J[:2, :2] = se2.rotation(t[2])
+        else:
+            line = se2.transform_line(t, p[:2])
+            alpha = line[1]
+            J[0, 1] = -t[0] * np.sin(alpha) + t[1] * np.cos(alpha)
+            if abs(float(se2.wrap_angle(alpha - p[1] - t[2]))) > np.pi / 2:  # normal flipped
+                J[0] *= -1.0
+            p[:2] = line
+        ref = se2.compose(t, self.ref_pose)
+        return replace(self, params=p, cov=J @ self.cov @ J.T,
+                       ref_pose=(float(ref[0]), float(ref[1]), float(ref[2])),
+                       bearing_rad=float(se2.wrap_angle(self.bearing_rad + t[2])))
 
     @property
     def kappa_us(self) -> float:

@@ -147,6 +147,7 @@ class _Open:
     misses: int = 0
     trailing: int = 0       # no-echo readings attached after the last echo
     sensors: set[int] = field(default_factory=set)
+    arc: list[tuple[float, float]] = field(default_factory=list)  # of ``last`` (cached)
 
 
 class Segmenter:
@@ -188,6 +189,13 @@ class Segmenter:
         """Number of segments currently open (the segmenter's memory)."""
         return len(self._open)
 
+    @property
+    def open_since_s(self) -> float:
+        """Earliest last-echo time of the open segments (inf if none): a segment closed
+        later has its last echo (a fit's reference reading) at or after this time, or
+        after the latest reading pushed."""
+        return min((s.last[0] for s in self._open), default=math.inf)
+
     def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
              sensor: int = 0) -> list[Segment]:
         """Add one reading; returns the segments this reading closed (often none).
@@ -222,11 +230,12 @@ class Segmenter:
                 score = self._match(s, x, y, yaw, R)
                 if score < best_score:
                     best, best_score = s, score
+            miss = self._miss
             for s in list(self._open):
                 if s is best:
                     continue
                 off = self._off_axis(s, x, y, yaw)
-                if off <= self._miss:
+                if off <= miss:
                     # a farther echo won: this landmark was not detected (censor)
                     if (R > s.last[4] + self._gate_m and sensor in s.sensors
                             and s.trailing < self.config.censor_window):
@@ -241,6 +250,7 @@ class Segmenter:
                 best.rows.append(row)
                 best.n_echo += 1
                 best.last = (t, x, y, yaw, R, sensor)
+                best.arc = self._arc_points(best)
                 best.misses = 0
                 best.trailing = 0
                 best.sensors.add(sensor)
@@ -294,26 +304,34 @@ class Segmenter:
     def _match(self, s: _Open, x: float, y: float, yaw: float, R: float) -> float:
         """Normalised range mismatch of an echo with segment ``s`` (inf: no match)."""
         _, lx, ly, lyaw, lR, _ = s.last
+        gate = self._gate_m
         if x == lx and y == ly:   # same spot (pan): the landmark stays at range lR
             if abs(_wrap(yaw - lyaw)) > 2.0 * self._beam:
                 return math.inf
             d = abs(R - lR)
-            return d / self._gate_m if d <= self._gate_m else math.inf
+            return d / gate if d <= gate else math.inf
+        # every arc point lies lR from the last transducer position, so its distance
+        # from this one is within lR ± that shift: no point can match a range outside
+        shift = math.hypot(x - lx, y - ly)
+        if abs(R - lR) > shift + gate + 1e-9 * (1.0 + lR + R):
+            return math.inf
         best = math.inf
-        for px, py in self._arc_points(s):
+        beam = self._beam
+        for px, py in s.arc:
             dx, dy = px - x, py - y
-            if abs(_wrap(math.atan2(dy, dx) - yaw)) > self._beam:
+            a = math.atan2(dy, dx) - yaw
+            if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) > beam:
                 continue
             d = abs(math.hypot(dx, dy) - R)
             if d < best:
                 best = d
-        return best / self._gate_m if best <= self._gate_m else math.inf
+        return best / gate if best <= gate else math.inf
 
     def _off_axis(self, s: _Open, x: float, y: float, yaw: float) -> float:
         """Off-axis angle [rad] of ``s``'s last seen landmark for a reading at (x, y, yaw)."""
-        _, lx, ly, lyaw, lR, _ = s.last
-        px, py = lx + lR * math.cos(lyaw), ly + lR * math.sin(lyaw)
-        return abs(_wrap(math.atan2(py - y, px - x) - yaw))
+        px, py = s.arc[3]   # the arc's middle point: the beam axis of the last echo
+        a = math.atan2(py - y, px - x) - yaw
+        return abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
 
     def _gone(self, s: _Open, off: float) -> bool:
         """The landmark has left the beam: enough misses, and the beam has moved on by
@@ -339,6 +357,7 @@ class Segmenter:
                         and r_range > R + self._gate_m):
                     lead.append((r[0], r[1], r[2], r[3], math.nan, r[5]))
         s = _Open(self._next_id, lead + [row], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
+        s.arc = self._arc_points(s)
         self._next_id += 1
         self._open.append(s)
         return closed

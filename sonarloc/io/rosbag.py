@@ -36,6 +36,7 @@ from typing import IO, Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from sonarloc import se2
 from sonarloc.errors import LogFormatError, SonarlocError
 from sonarloc.io.logfile import (
     InitRecord,
@@ -173,13 +174,6 @@ def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
-def _compose(a: tuple[float, float, float], b: tuple[float, float, float]
-             ) -> tuple[float, float, float]:
-    """Pose b (in a's frame) expressed in a's parent: a ⊕ b."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2])
-
-
 def map_to_odom(map_pose: NDArray[np.float64], odom_pose: NDArray[np.float64]
                 ) -> NDArray[np.float64]:
     """The ``map -> odom`` transform T with ``map_pose = T ⊕ odom_pose``.
@@ -190,16 +184,9 @@ def map_to_odom(map_pose: NDArray[np.float64], odom_pose: NDArray[np.float64]
 
     Returns
     -------
-    (..., 3) transform (x_m, y_m, yaw_rad), yaw wrapped to (-pi, pi].
+    (..., 3) transform (x_m, y_m, yaw_rad), yaw wrapped to [-pi, pi).
     """
-    m = np.asarray(map_pose, dtype=float)
-    o = np.asarray(odom_pose, dtype=float)
-    th = m[..., 2] - o[..., 2]
-    c, s = np.cos(th), np.sin(th)
-    tx = m[..., 0] - (c * o[..., 0] - s * o[..., 1])
-    ty = m[..., 1] - (s * o[..., 0] + c * o[..., 1])
-    th = np.arctan2(np.sin(th), np.cos(th))
-    return np.stack([tx, ty, th], axis=-1)
+    return se2.compose(map_pose, se2.inverse(odom_pose))
 
 
 # --------------------------------------------------------------------------- import
@@ -278,9 +265,11 @@ def _mount_from_tf(frame: str, base: str, tfs: dict[str, tuple[str, tuple[float,
             return None
         seen.add(frame)
         parent, p = tfs[frame]
-        pose = _compose((p[0], p[1], p[2]), pose)
+        x, y, yaw = (float(v) for v in se2.compose(p[:3], pose))
+        pose = (x, y, yaw)
         frame = parent
-    return (pose[0], pose[1], math.degrees(pose[2]))
+    yaw_deg = math.degrees(pose[2])
+    return (pose[0], pose[1], yaw_deg + 360.0 if yaw_deg <= -180.0 else yaw_deg)  # (-180, 180]
 
 
 def _pick_topic(conns: list[Any], types: Sequence[str], wanted: str | None, what: str

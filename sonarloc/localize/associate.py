@@ -33,7 +33,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from sonarloc.localize import ekf, se2
+from sonarloc import se2
+from sonarloc.localize import ekf
 from sonarloc.localize.ekf import Feature, Gaussian, Observation
 from sonarloc.localize.features import FeatureMap
 

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sonarloc.localize import se2
+from sonarloc import se2
 from sonarloc.localize.ekf import Feature
 from sonarloc.physics import constants
 

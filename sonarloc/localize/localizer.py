@@ -42,8 +42,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
+from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import (
     InitRecord,
@@ -54,7 +55,7 @@ from sonarloc.io.logfile import (
     TofRecord,
     TruthRecord,
 )
-from sonarloc.localize import ekf, se2
+from sonarloc.localize import ekf
 from sonarloc.localize.associate import Association, AssociationConfig, associate
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
@@ -236,10 +237,14 @@ class SegmentFitSource:
     ``max_readings``: segment length limit; None lets the :class:`Localizer` choose at
     the first reading (8 for fixed transducers, 400 for a panning one), or 400 when used
     on its own.
+
+    ``on_fit(segment, landmark)``: optional callback for every fitted segment (e.g. to
+    keep the readings behind a figure), called in stream order.
     """
 
     def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 4,
-                 max_wait_s: float = 0.25, max_readings: int | None = None) -> None:
+                 max_wait_s: float = 0.25, max_readings: int | None = None,
+                 on_fit: Callable[[Any, Landmark], None] | None = None) -> None:
         from sonarloc.fit.lsq import FitConfig
         from sonarloc.physics.tof import ModuleParams
 
@@ -249,6 +254,7 @@ class SegmentFitSource:
         self.batch = batch
         self.max_wait_s = max_wait_s
         self._waiting: list[tuple[float, Any]] = []
+        self.on_fit = on_fit
 
     @property
     def segmenter(self) -> Any:
@@ -276,10 +282,14 @@ class SegmentFitSource:
         return self._fit()
 
     def _fit(self) -> list[Landmark]:
-        from sonarloc.fit.landmarks import fit_segments
-
         segs = [s for _, s in self._waiting]
         self._waiting.clear()
+        return self.fit(segs)
+
+    def fit(self, segs: Sequence[Any]) -> list[Landmark]:
+        """Fit closed segments (one vectorised batch); one landmark per segment, in order."""
+        from sonarloc.fit.landmarks import fit_segments
+
         if not segs:
             return []
         out = []
@@ -289,6 +299,8 @@ class SegmentFitSource:
             if echo.any():
                 view = (float(np.mean(r.x_m[echo])), float(np.mean(r.y_m[echo])))
                 lm = replace(lm, extra={**lm.extra, "view_xy": view})
+            if self.on_fit is not None:
+                self.on_fit(s, lm)
             out.append(lm)
         return out
 
@@ -401,6 +413,61 @@ class Localizer:
         self._drain_pending(t)
         self._estimate = self._make_estimate(t_s)
         return self._estimate
+
+    def extend_odometry(self, t_s: ArrayLike, odom: ArrayLike) -> None:
+        """Many odometry poses at once (offline replay): :meth:`on_odom` without the
+        per-record estimate, the predictions chained in closed form
+        (:func:`~sonarloc.localize.ekf.predict_chain`).
+
+        ``t_s`` (n,) [s], ``odom`` (n, 3) poses of ``base_link`` in ``odom`` (m, m, rad),
+        finite, after a prior. Pending readings are not processed (the caller routes
+        readings itself) and the history is not trimmed (call :meth:`trim_history`);
+        read estimates with :meth:`estimate_at`.
+        """
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        pose = np.asarray(odom, dtype=float).reshape(-1, 3)
+        if len(t) != len(pose):
+            raise ValueError(f"`t_s` and `odom` must have the same length, got {len(t)} and "
+                             f"{len(pose)}")
+        if len(t) == 0:
+            return
+        if self._prior is None:
+            raise ValueError("`extend_odometry` needs a prior (set_prior or an init record)")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(pose))):
+            raise ValueError("`t_s` and `odom` must be finite")
+        self.stats.odom += len(t)
+        t = np.maximum.accumulate(np.maximum(t, self._last_odom_t))
+        pose = pose.copy()
+        pose[:, 2] = se2.wrap_angle(pose[:, 2])
+        if not self._entries:
+            self._append(_Entry(float(t[0]), pose[0], self._prior))
+            if not math.isfinite(self._start_t):
+                self._start_t = float(t[0])
+            t, pose = t[1:], pose[1:]
+        if len(t):
+            last = self._entries[-1]
+            prev = np.concatenate([last.odom[None, :], pose[:-1]])
+            chain = ekf.predict_chain(last.state, se2.between(prev, pose),
+                                      self.config.odom_noise)
+            for k, tk in enumerate(t.tolist()):
+                self._append(_Entry(tk, pose[k], Gaussian(chain.mean[k], chain.cov[k])))
+        self._last_odom_t = float(self._times[-1])
+
+    def trim_history(self) -> None:
+        """Drop history older than ``history_s`` (as :meth:`on_odom` does)."""
+        if self._entries:
+            self._trim()
+
+    def estimate_at(self, t_s: float) -> PoseEstimate | None:
+        """The estimate at time ``t_s`` from the history: the belief after the last step
+        at or before ``t_s`` (None before the first one); the status as it is now."""
+        i = bisect.bisect_right(self._times, t_s) - 1
+        if i < 0:
+            return None
+        e = self._entries[i]
+        status, reason = self._status(e.t, e.state)
+        m2o = se2.compose(e.state.mean, se2.inverse(e.odom))
+        return PoseEstimate(t_s, e.state, e.odom, m2o, status, reason)
 
     def on_tof(self, t_s: float, sensor: int, tof_us: float | None,
                pan_rad: float | None = None) -> None:

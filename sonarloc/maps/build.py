@@ -44,10 +44,10 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, TofRecord, iter_log
 from sonarloc.io.posescsv import PoseTrack
-from sonarloc.localize import se2
 from sonarloc.maps.geojson import Map, map_from_geojson
 from sonarloc.physics import constants
 

@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.physics.constants import GAUSS_SIGMA_DEG, SPEED_OF_SOUND_MPS
 
@@ -112,41 +113,7 @@ class DriveReport:
 
 def map_from_odom(est: NDArray[np.float64], odom: NDArray[np.float64]) -> NDArray[np.float64]:
     """``map -> odom`` transforms (..., 3) from matching estimate and odometry poses (..., 3)."""
-    e, o = np.asarray(est, dtype=float), np.asarray(odom, dtype=float)
-    th = e[..., 2] - o[..., 2]
-    c, s = np.cos(th), np.sin(th)
-    return np.stack([e[..., 0] - (c * o[..., 0] - s * o[..., 1]),
-                     e[..., 1] - (s * o[..., 0] + c * o[..., 1]), th], -1)
-
-
-def landmark_to_map(lm: Landmark, transform: Sequence[float]) -> Landmark:
-    """A landmark fitted in ``odom`` moved into ``map`` by ``transform`` (x_m, y_m, yaw_rad).
-
-    Parameters and covariance are rotated and shifted; the transform's own uncertainty
-    is not added (the figure shows the fit's uncertainty).
-    """
-    tx, ty, th = (float(v) for v in transform)
-    c, s = math.cos(th), math.sin(th)
-    p = np.array(lm.params, dtype=float)
-    cov = np.array(lm.cov, dtype=float)
-    if lm.kind == "point":
-        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        p = np.array([c * p[0] - s * p[1] + tx, s * p[0] + c * p[1] + ty, p[2]])
-        cov = R @ cov @ R.T
-    else:
-        alpha = p[1] + th
-        rho = p[0] + tx * math.cos(alpha) + ty * math.sin(alpha)
-        J = np.array([[1.0, -tx * math.sin(alpha) + ty * math.cos(alpha), 0.0],
-                      [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-        cov = J @ cov @ J.T
-        if rho < 0:
-            rho, alpha = -rho, alpha + math.pi
-        p = np.array([rho, math.atan2(math.sin(alpha), math.cos(alpha)), p[2]])
-    rx, ry, ryaw = lm.ref_pose
-    ref = (c * rx - s * ry + tx, s * rx + c * ry + ty, ryaw + th)
-    return replace(lm, params=p, cov=cov, ref_pose=ref,
-                   bearing_rad=math.atan2(math.sin(lm.bearing_rad + th),
-                                          math.cos(lm.bearing_rad + th)))
+    return se2.compose(est, se2.inverse(odom))
 
 
 @dataclass(frozen=True)

@@ -192,17 +192,9 @@ def _recording_source(keeper: _SegmentKeeper, max_readings: int | None) -> Calla
     """The Localizer's own landmark source, also handing each fitted segment to ``keeper``."""
     from sonarloc.localize.localizer import SegmentFitSource
 
-    class RecordingSource(SegmentFitSource):
-        def _fit(self) -> list[Landmark]:
-            segs = [s for _, s in self._waiting]
-            lms = super()._fit()
-            if len(lms) == len(segs):  # one landmark per segment, in order
-                for seg, lm in zip(segs, lms, strict=True):
-                    keeper.offer(lm, seg.readings)
-            return lms
-
     def factory(c_mps: float) -> Any:
-        return RecordingSource(c_mps, max_readings=max_readings)
+        return SegmentFitSource(c_mps, max_readings=max_readings,
+                                on_fit=lambda seg, lm: keeper.offer(lm, seg.readings))
 
     return factory
 

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, OdomRecord, RigRecord, SensorMount, TruthRecord
-from sonarloc.localize import se2
 from sonarloc.localize.ekf import OdomNoise
 from sonarloc.localize.features import FeatureMap
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from sonarloc.localize import ekf, se2
+from sonarloc import se2
+from sonarloc.localize import ekf
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 
 filterpy_kalman = pytest.importorskip("filterpy.kalman")

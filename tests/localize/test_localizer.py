@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from loc_synth import feed, make_drive, room_map
 
+from sonarloc import se2
 from sonarloc.io.logfile import TruthRecord
-from sonarloc.localize import ekf, se2
+from sonarloc.localize import ekf
 from sonarloc.localize.localizer import Localizer, LocalizerConfig
 
 
@@ -178,3 +179,25 @@ def test_any_record_sequence_is_survived(method, records):
             assert bool(est.state.is_spd())
             assert est.status in ("tracking", "dead_reckoning", "lost")
     lc.finish()
+
+
+def test_segment_fit_source_reports_every_fit_with_its_segment():
+    """``on_fit`` sees each fitted segment with its landmark, in the order returned."""
+    from sonarloc.fit.synth import Reflector, pan_scan
+    from sonarloc.localize.localizer import SegmentFitSource
+
+    scan = pan_scan([Reflector.point(1.5, -0.3, 0.67), Reflector.point(1.4, 0.5, 2.68)],
+                    np.random.default_rng(3), step_deg=0.5)
+    seen: list = []
+    src = SegmentFitSource(343.0, max_readings=400, on_fit=lambda s, lm: seen.append((s, lm)))
+    out = []
+    for i in range(scan.t_s.size):
+        out += src.push(scan.t_s[i], scan.x_m[i], scan.y_m[i], scan.yaw_rad[i],
+                        scan.tof_us[i], 0)
+    out += src.flush()
+    assert len(out) >= 2
+    assert [lm for _, lm in seen] == out
+    for seg, lm in seen:
+        echo = np.isfinite(seg.readings.tof_us)
+        assert lm.extra["view_xy"] == pytest.approx(
+            (np.mean(seg.readings.x_m[echo]), np.mean(seg.readings.y_m[echo])))

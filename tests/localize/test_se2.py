@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sonarloc.localize import se2
+from sonarloc import se2
 
 coord = st.floats(-50, 50, allow_nan=False)
 angle = st.floats(-10, 10, allow_nan=False)

@@ -17,7 +17,6 @@ from sonarloc.report.drive import (
     DriveReport,
     SegmentView,
     drive_figure,
-    landmark_to_map,
     map_from_odom,
 )
 from sonarloc.report.metrics import track_error
@@ -52,7 +51,7 @@ pose = st.tuples(st.floats(-10, 10), st.floats(-10, 10), st.floats(-math.pi, mat
 @settings(max_examples=60, deadline=None)
 @given(T=pose, s=pose, p=st.tuples(st.floats(-5, 5), st.floats(-5, 5)),
        wall=st.tuples(st.floats(0.1, 5), st.floats(-math.pi, math.pi)))
-def test_landmark_to_map_keeps_what_a_sensor_sees(T, s, p, wall):
+def test_transformed_landmark_keeps_what_a_sensor_sees(T, s, p, wall):
     """A sensor pose moved along with the landmark sees the same TOF and angle."""
     # A sensor sitting on the point or the wall has no defined bearing to it.
     assume(math.hypot(p[0] - s[0], p[1] - s[1]) > 1e-3)
@@ -60,7 +59,7 @@ def test_landmark_to_map_keeps_what_a_sensor_sees(T, s, p, wall):
     c, si = math.cos(T[2]), math.sin(T[2])
     s_map = (c * s[0] - si * s[1] + T[0], si * s[0] + c * s[1] + T[1], s[2] + T[2])
     for lm in (_lm("point", [p[0], p[1], 0.67]), _lm("line", [wall[0], wall[1], 0.15])):
-        moved = landmark_to_map(lm, T)
+        moved = lm.transformed(T)
         a = landmark_model_us(lm, s[0], s[1], s[2])
         b = landmark_model_us(moved, *s_map)
         assert float(b[0]) == pytest.approx(float(a[0]), rel=1e-9, abs=1e-6)
@@ -71,7 +70,7 @@ def test_landmark_to_map_keeps_what_a_sensor_sees(T, s, p, wall):
 
 def test_point_covariance_rotates():
     lm = _lm("point", [1.0, 0.0, 1.0], np.diag([4e-4, 1e-4, 0.01]))
-    moved = landmark_to_map(lm, (0.0, 0.0, math.pi / 2))
+    moved = lm.transformed((0.0, 0.0, math.pi / 2))
     assert np.diag(moved.cov) == pytest.approx([1e-4, 4e-4, 0.01])
 
 

@@ -166,6 +166,73 @@ _TYPE_OF: dict[type, int] = {Echo: ECHO, Odom: ODOM, RigInfo: RIG_INFO, RigMount
                              Firing: FIRING, Settings: SETTINGS}
 
 
+def cut_packets(buf: bytearray, stats: DecoderStats, *, final: bool, min_count: int,
+                checksum_ok: Callable[[bytearray, int, int], bool]) -> list[bytes]:
+    """Cut the complete, checksum-valid ``0xFA 0xFB | COUNT | ... | CHECKSUM`` packets
+    off the front of ``buf`` (the ARCOS framing shared by this protocol and Pioneer SIP).
+
+    Parameters
+    ----------
+    buf : the receive buffer; consumed bytes are deleted from it. At most one partial
+        packet (or a lone trailing 0xFA) stays behind unless ``final``.
+    stats : counters; updated: ``crc_errors``, ``bytes_framed``, ``bytes_skipped``.
+    final : end of stream: give up on a packet that cannot complete.
+    min_count : smallest valid COUNT; a smaller one is a false sync.
+    checksum_ok : ``checksum_ok(buf, start, end)`` for the packet ``buf[start:end]``
+        (``end`` past its two checksum bytes).
+
+    Returns
+    -------
+    The bytes after COUNT up to the checksum of each good packet, in stream order.
+    After a bad checksum the scan advances one byte only, so a good packet starting
+    inside a false one is still found.
+    """
+    out: list[bytes] = []
+    n, pos, skipped = len(buf), 0, 0
+    while True:
+        i = buf.find(SYNC, pos)
+        if i < 0:
+            keep = 1 if (not final and n > pos and buf[n - 1] == SYNC[0]) else 0
+            skipped += n - keep - pos
+            pos = n - keep
+            break
+        skipped += i - pos
+        pos = i
+        if n - pos < HEADER_LEN:
+            if final:
+                skipped += n - pos
+                pos = n
+            break
+        count = buf[pos + 2]
+        if count < min_count:
+            skipped += 1
+            pos += 1
+            continue
+        end = pos + HEADER_LEN + count
+        if end > n:
+            if final:  # this packet will never complete: resync past its sync
+                skipped += 1
+                pos += 1
+                continue
+            break
+        if not checksum_ok(buf, pos, end):
+            stats.crc_errors += 1
+            skipped += 1
+            pos += 1
+            continue
+        out.append(bytes(buf[pos + HEADER_LEN:end - 2]))
+        stats.bytes_framed += end - pos
+        pos = end
+    stats.bytes_skipped += skipped
+    if pos:
+        del buf[:pos]
+    return out
+
+
+def _crc_ok(buf: bytearray, start: int, end: int) -> bool:
+    return binascii.crc_hqx(buf[start + 2:end - 2], CRC_INIT) == (buf[end - 2] << 8 | buf[end - 1])
+
+
 class SerialFrame(NamedTuple):
     """A good packet: its sequence number, type code and decoded message."""
 
@@ -212,49 +279,11 @@ class SerialDecoder:
         self._seq.reset()
 
     def _scan(self, final: bool) -> list[SerialFrame]:
-        buf = self._buf
         stats = self.stats
         out: list[SerialFrame] = []
-        n = len(buf)
-        pos = 0
-        skipped = 0
-        while True:
-            i = buf.find(SYNC, pos)
-            if i < 0:
-                keep = 1 if (not final and n > pos and buf[n - 1] == 0xFA) else 0
-                skipped += n - keep - pos
-                pos = n - keep
-                break
-            skipped += i - pos
-            pos = i
-            if n - pos < HEADER_LEN:
-                if final:
-                    skipped += n - pos
-                    pos = n
-                break
-            length = buf[pos + 2]
-            if length < MIN_N:
-                skipped += 1
-                pos += 1
-                continue
-            end = pos + HEADER_LEN + length
-            if end > n:
-                if final:  # this packet will never complete: resync past its sync
-                    skipped += 1
-                    pos += 1
-                    continue
-                break
-            crc = buf[end - 2] << 8 | buf[end - 1]
-            if binascii.crc_hqx(buf[pos + 2:end - 2], CRC_INIT) != crc:
-                stats.crc_errors += 1
-                skipped += 1
-                pos += 1
-                continue
-            type_ = buf[pos + 3]
-            seq = buf[pos + 4] | buf[pos + 5] << 8
-            payload = bytes(buf[pos + 6:end - 2])
-            stats.bytes_framed += end - pos
-            pos = end
+        for body in cut_packets(self._buf, stats, final=final, min_count=MIN_N,
+                                checksum_ok=_crc_ok):
+            type_, seq, payload = body[0], body[1] | body[2] << 8, body[3:]
             self._seq.see(seq, stats)
             parser = _PARSERS.get(type_)
             if parser is None:
@@ -271,7 +300,4 @@ class SerialDecoder:
                 continue
             stats.frames += 1
             out.append(SerialFrame(seq, type_, msg))
-        stats.bytes_skipped += skipped
-        if pos:
-            del buf[:pos]
         return out

@@ -30,9 +30,9 @@ import struct
 from dataclasses import dataclass
 
 from sonarloc.io.logfile import OdomRecord, Record, RigRecord, SensorMount, TofRecord
+from sonarloc.io.protocol.framing import SYNC, cut_packets
 from sonarloc.io.protocol.messages import DecoderStats
 
-SYNC = b"\xfa\xfb"
 MIN_COUNT = 3  # one data byte + checksum
 MAX_PACKET = 3 + 0xFF
 
@@ -45,6 +45,10 @@ ARG_INT, ARG_NINT, ARG_STR = 0x3B, 0x1B, 0x2B
 
 _FIXED = struct.Struct("<HHhhhBHhHBB")
 _SONAR = struct.Struct("<BH")
+
+
+def _checksum_ok(buf: bytearray, start: int, end: int) -> bool:
+    return sip_checksum(buf[start + 3:end - 2]) == (buf[end - 2] << 8 | buf[end - 1])
 
 
 def sip_checksum(data: bytes | bytearray | memoryview) -> int:
@@ -158,43 +162,10 @@ class ArcosDecoder:
         return self._scan(final=True)
 
     def _scan(self, final: bool) -> list[StandardSip | ArcosPacket]:
-        buf, stats = self._buf, self.stats
+        stats = self.stats
         out: list[StandardSip | ArcosPacket] = []
-        n, pos, skipped = len(buf), 0, 0
-        while True:
-            i = buf.find(SYNC, pos)
-            if i < 0:
-                keep = 1 if (not final and n > pos and buf[n - 1] == 0xFA) else 0
-                skipped += n - keep - pos
-                pos = n - keep
-                break
-            skipped += i - pos
-            pos = i
-            if n - pos < 3:
-                if final:
-                    skipped += n - pos
-                    pos = n
-                break
-            count = buf[pos + 2]
-            if count < MIN_COUNT:
-                skipped += 1
-                pos += 1
-                continue
-            end = pos + 3 + count
-            if end > n:
-                if final:
-                    skipped += 1
-                    pos += 1
-                    continue
-                break
-            data = bytes(buf[pos + 3:end - 2])
-            if sip_checksum(data) != (buf[end - 2] << 8 | buf[end - 1]):
-                stats.crc_errors += 1
-                skipped += 1
-                pos += 1
-                continue
-            stats.bytes_framed += end - pos
-            pos = end
+        for data in cut_packets(self._buf, stats, final=final, min_count=MIN_COUNT,
+                                checksum_ok=_checksum_ok):
             if self._parse_sip and data[0] in (SIP_STOPPED, SIP_MOVING):
                 sip = parse_standard_sip(data)
                 if sip is None:
@@ -205,9 +176,6 @@ class ArcosDecoder:
                 continue
             stats.frames += 1  # config, encoder, I/O packets, sync echoes, commands
             out.append(ArcosPacket(data[0], data[1:]))
-        stats.bytes_skipped += skipped
-        if pos:
-            del buf[:pos]
         return out
 
 

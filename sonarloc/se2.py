@@ -90,6 +90,13 @@ def inverse_jacobian(a: ArrayLike) -> Array:
     return j
 
 
+def rotation(yaw_rad: ArrayLike) -> Array:
+    """Rotation matrices ``(..., 2, 2)`` of angles ``(...)``."""
+    th = np.asarray(yaw_rad, dtype=float)
+    c, s = np.cos(th), np.sin(th)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
 def transform_points(pose: ArrayLike, points: ArrayLike) -> Array:
     """Points ``(..., 2)`` of the pose's child frame into its parent frame."""
     x, y, th = _split(pose)

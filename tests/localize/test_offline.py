@@ -1,0 +1,217 @@
+"""The offline (batch) replay: same landmarks, fused on time, rows for every odom record."""
+
+import io
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sonarloc.io.logfile import (
+    InitRecord,
+    LogWriter,
+    OdomRecord,
+    RigRecord,
+    SensorMount,
+    TofRecord,
+    TruthRecord,
+    iter_log,
+)
+from sonarloc.localize import ekf
+from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.localizer import Localizer, LocalizerConfig
+from sonarloc.localize.offline import OfflinePipeline
+from sonarloc.localize.replay import replay_log
+from sonarloc.maps.geojson import load_map
+from sonarloc.world.rig import PanRig, ring16
+from sonarloc.world.simulate import simulate_records
+
+ROOM = "maps/room.geojson"
+
+
+def _log(rig, seed, duration_s):
+    buf = io.StringIO()
+    with LogWriter(buf) as w:
+        w.write_all(simulate_records(load_map(ROOM), rig, duration_s=duration_s, seed=seed))
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def ring_log():
+    return _log(ring16(), 3, 12.0)
+
+
+@pytest.fixture(scope="module")
+def fmap():
+    return FeatureMap.from_map(load_map(ROOM))
+
+
+class Recording(Localizer):
+    """A Localizer that keeps the landmarks it is given."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.given = []
+
+    def add_landmark(self, lm):
+        self.given.append(lm)
+        return super().add_landmark(lm)
+
+
+def _rows(text, fmap, **kw):
+    rows = []
+    res = replay_log(io.StringIO(text), fmap,
+                     on_estimate=lambda r, e: rows.append((r.t_s, e)), **kw)
+    return res, rows
+
+
+def test_predict_chain_equals_repeated_predict():
+    rng = np.random.default_rng(4)
+    g = ekf.Gaussian(np.array([1.0, -2.0, 3.1]),
+                     np.array([[1e-3, 2e-4, 1e-4], [2e-4, 2e-3, 3e-4], [1e-4, 3e-4, 1e-3]]))
+    u = rng.normal(0, [0.03, 0.005, 0.2], (300, 3))
+    noise = ekf.OdomNoise()
+    chain = ekf.predict_chain(g, u, noise)
+    s = g
+    for k in range(len(u)):
+        s = ekf.predict(s, u[k], noise)
+        d = chain.mean[k] - s.mean
+        d[2] = (d[2] + math.pi) % (2 * math.pi) - math.pi
+        assert np.max(np.abs(d)) < 1e-12
+        assert np.allclose(chain.cov[k], s.cov, rtol=1e-10, atol=1e-16)
+    assert chain.is_spd().all()
+    assert ekf.predict_chain(g, np.zeros((0, 3))).mean.shape == (0, 3)
+    with pytest.raises(ValueError, match="one filter"):
+        ekf.predict_chain(ekf.Gaussian(np.zeros((2, 3)), np.zeros((2, 3, 3))), u)
+
+
+def test_batch_is_on_time_fusion(ring_log, fmap):
+    """Batch rows = a live Localizer given each landmark at the next odom record (the
+    rewind makes that on-time fusion)."""
+    loc = Recording(fmap)
+    res, rows = _rows(ring_log, fmap, localizer=loc, mode="batch")
+    n_odom = sum(isinstance(r, OdomRecord) for r in iter_log(io.StringIO(ring_log)))
+    assert res.rows == len(rows) == n_odom
+    assert loc.stats.accepted > 10
+    live = Localizer(fmap, landmark_source=lambda c: None)  # type: ignore[arg-type,return-value]
+    todo = sorted(loc.given, key=lambda lm: lm.ref_t_s)
+    records = list(iter_log(io.StringIO(ring_log)))
+    for r in records:
+        if isinstance(r, (RigRecord, InitRecord)):  # the log's rig and prior come first
+            live.handle(r)
+    k = 0
+    odoms = [r for r in records if isinstance(r, OdomRecord)]
+    for (t, est), rec in zip(rows, odoms, strict=True):
+        assert t == rec.t_s
+        live.handle(rec)
+        while k < len(todo) and todo[k].ref_t_s <= rec.t_s:
+            live.add_landmark(todo[k])
+            k += 1
+        ref = live.estimate
+        assert ref is not None
+        assert np.allclose(est.state.mean, ref.state.mean, atol=1e-9, rtol=0)
+        assert np.allclose(est.state.cov, ref.state.cov, atol=1e-14, rtol=1e-8)
+        assert est.status == ref.status
+        assert np.allclose(est.map_to_odom, ref.map_to_odom, atol=1e-9)
+    assert live.stats.accepted == loc.stats.accepted
+    assert live.stats.outcomes == loc.stats.outcomes
+
+
+def test_batch_fits_the_same_landmarks_as_online(ring_log, fmap):
+    on, rows_on = _rows(ring_log, fmap, mode="online")
+    ba, rows_ba = _rows(ring_log, fmap, mode="batch")
+    assert on.localizer.stats.landmarks == ba.localizer.stats.landmarks > 20
+    assert on.localizer.stats.tof == ba.localizer.stats.tof
+    assert [t for t, _ in rows_on] == [t for t, _ in rows_ba]
+    truth = {r.t_s: r for r in iter_log(io.StringIO(ring_log)) if isinstance(r, TruthRecord)}
+
+    def steady_rmse(rows):
+        e = [math.hypot(est.x_m - truth[t].x_m, est.y_m - truth[t].y_m)
+             for t, est in rows if t > 5.0]
+        return math.sqrt(np.mean(np.square(e)))
+
+    assert steady_rmse(rows_ba) < 0.02
+    assert steady_rmse(rows_ba) < steady_rmse(rows_on) + 0.003
+
+
+def test_fit_batch_size_barely_matters(ring_log, fmap):
+    _, a = _rows(ring_log, fmap, mode="batch", batch_segments=1)
+    _, b = _rows(ring_log, fmap, mode="batch")
+    diff = max(float(np.max(np.abs(x.state.mean - y.state.mean)))
+               for (_, x), (_, y) in zip(a, b, strict=True))
+    assert diff < 1e-3  # the batch fitter's rounding, not the fusion
+
+
+def test_panning_rig_and_odometry_method(fmap):
+    text = _log(PanRig(SensorMount(0, 0.1, 0.0, 0.0), (-90.0, 90.0, 1.5), 1, 0.03), 5, 10.0)
+    on, rows_on = _rows(text, fmap, mode="online")
+    ba, rows_ba = _rows(text, fmap, mode="batch")
+    assert len(rows_on) == len(rows_ba)
+    assert on.localizer.stats.landmarks == ba.localizer.stats.landmarks > 0
+    _, odo_on = _rows(text, fmap, mode="online", config=LocalizerConfig(method="odometry"))
+    _, odo_ba = _rows(text, fmap, mode="batch", config=LocalizerConfig(method="odometry"))
+    for (_, x), (_, y) in zip(odo_on, odo_ba, strict=True):
+        assert np.allclose(x.state.mean, y.state.mean, atol=1e-12)
+        assert np.allclose(x.state.cov, y.state.cov, rtol=1e-9, atol=1e-18)
+
+
+def test_mode_checks(ring_log, fmap):
+    with pytest.raises(ValueError, match="mode"):
+        replay_log(io.StringIO(ring_log), fmap, mode="fast")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="conventional"):
+        replay_log(io.StringIO(ring_log), fmap, mode="batch",
+                   config=LocalizerConfig(method="conventional"))
+    with pytest.raises(ValueError, match="batch_segments"):
+        OfflinePipeline(Localizer(fmap), batch_segments=0)
+    with pytest.raises(ValueError, match="method"):
+        OfflinePipeline(Localizer(fmap, LocalizerConfig(method="specular")))
+
+
+def test_buffers_stay_bounded(ring_log, fmap):
+    """Small batches: odometry waiting for the fitter and the history stay short."""
+    loc = Localizer(fmap)
+    pipe = OfflinePipeline(loc, batch_segments=4, max_wait_s=1.0, round_odom=10)
+    worst = 0
+    for rec in iter_log(io.StringIO(ring_log)):
+        if isinstance(rec, OdomRecord):
+            pipe.odom(rec)
+            worst = max(worst, len(pipe._odom) + len(pipe._rows))
+        elif isinstance(rec, TofRecord):
+            pipe.tof(rec)
+        elif isinstance(rec, (RigRecord, InitRecord)):
+            loc.handle(rec)
+    pipe.finish()
+    assert pipe.rows == loc.stats.odom
+    assert worst < 120  # ~ a few seconds of odometry at 20 Hz
+    assert loc.history_len < 400
+
+
+_t = st.floats(-5, 60, allow_nan=False)
+_xy = st.floats(-20, 20, allow_nan=False)
+_deg = st.floats(-720, 720, allow_nan=False)
+_records = st.lists(st.one_of(
+    st.builds(OdomRecord, _t, _xy, _xy, _deg),
+    st.builds(TofRecord, _t, st.integers(-1, 3),
+              st.one_of(st.none(), st.floats(1.0, 40000.0)),
+              st.one_of(st.none(), st.floats(-90, 90))),
+    st.builds(InitRecord, _t, _xy, _xy, _deg, st.floats(0.001, 1.0), st.floats(0.01, 30.0)),
+    st.just(RigRecord((SensorMount(0, 0.2, 0.0, 0.0), SensorMount(1, 0.0, 0.2, 90.0)))),
+), max_size=60)
+
+
+@settings(max_examples=40, deadline=None)
+@given(records=_records)
+def test_any_record_sequence_is_survived(fmap, records):
+    """Time going backwards, unknown sensors, jumps, re-inits: a row per odom record."""
+    buf = io.StringIO()
+    with LogWriter(buf) as w:
+        w.write_all(records)
+    rows = []
+    res = replay_log(io.StringIO(buf.getvalue()), fmap, init=(2.0, 1.0, 0.0), mode="batch",
+                     on_estimate=lambda r, e: rows.append(e))
+    assert res.rows == len(rows) == sum(isinstance(r, OdomRecord) for r in records)
+    for est in rows:
+        assert np.all(np.isfinite(est.state.mean))
+        assert bool(est.state.is_spd())
+        assert est.status in ("tracking", "dead_reckoning", "lost")
