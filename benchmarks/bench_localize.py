@@ -486,21 +486,39 @@ class MapErrors:
     corner_mm: float
     wall_mm: float
     extra: int
+    kinds: str = ""
     details: list[float] = field(default_factory=list)
 
 
-def map_errors(built: Map, true: Map, label: str) -> MapErrors:
+def observable_points(true: FeatureMap, poses: np.ndarray, max_range_m: float = 5.0
+                      ) -> np.ndarray:
+    """(P,) true points that can echo towards some pose (N, 3) of the drive: a corner
+    only from inside its walls' angle, an edge only from outside and near (the reflex
+    vertex of the L-shaped room has no corner a robot inside could see)."""
+    seen = np.zeros(true.n_points, dtype=bool)
+    for xy in poses[::10, :2]:
+        seen |= true.points_visible_from(xy, max_range_m)
+    return seen
+
+
+def map_errors(built: Map, true: Map, label: str, poses: np.ndarray) -> MapErrors:
     b = FeatureMap.from_map(built)
     t = FeatureMap.from_map(true)
+    seen = observable_points(t, poses)
     errs: dict[str, list[float]] = {"pole": [], "rod": [], "corner": []}
     found = 0
     for i, k in enumerate(t.point_kind):
-        if k not in errs or b.n_points == 0:
+        if k not in errs or b.n_points == 0 or not seen[i]:
             continue
         d = float(np.min(np.hypot(*(b.point_xy - t.point_xy[i]).T)))
         if d < 0.1:
             errs[k].append(d)
             found += 1
+    # kind labels: a built point is labelled right if a true point of that kind is
+    # within 2 cm (a vertex carries both a corner and an edge: either side may be seen)
+    right = sum(any(np.hypot(*(t.point_xy[j] - p)) < 0.02 and t.point_kind[j] == k
+                    for j in range(t.n_points)) for p, k in zip(b.point_xy, b.point_kind,
+                                                                 strict=True))
     wall_err = []
     for ends in b.wall_ends:
         best = math.inf
@@ -512,14 +530,15 @@ def map_errors(built: Map, true: Map, label: str) -> MapErrors:
     good_walls = sum(e < 0.02 for e in wall_err)
     extra = sum(e >= 0.02 for e in wall_err) + sum(
         float(np.min(np.hypot(*(t.point_xy - p).T))) >= 0.02 for p in b.point_xy)
-    n_true = sum(k in errs for k in t.point_kind)
+    n_true = sum(k in errs and bool(s) for k, s in zip(t.point_kind, seen, strict=True))
 
     def worst(v: list[float]) -> float:
         return 1000 * max(v) if v else math.nan
 
     return MapErrors(label, f"{found}/{n_true} points, {good_walls} walls", worst(errs["pole"]),
                      worst(errs["rod"]), worst(errs["corner"]),
-                     1000 * max((e for e in wall_err if e < 0.02), default=math.nan), extra)
+                     1000 * max((e for e in wall_err if e < 0.02), default=math.nan), extra,
+                     f"{right}/{b.n_points}")
 
 
 def map_building(seed: int, duration_s: float) -> list[MapErrors]:
@@ -532,7 +551,7 @@ def map_building(seed: int, duration_s: float) -> list[MapErrors]:
     out = []
     track = PoseTrack(t, tr[:, 0], tr[:, 1], tr[:, 2], np.zeros((len(t), 3, 3)))
     out.append(map_errors(map_from_geojson(build_from_log(io.StringIO(text), track).geojson()),
-                          room, "truth"))
+                          room, "truth", tr))
     # poses from our localizer against the true map (localize, then map)
     rows: list[tuple[float, np.ndarray, np.ndarray]] = []
     replay_log(io.StringIO(text), FeatureMap.from_map(room),
@@ -541,9 +560,9 @@ def map_building(seed: int, duration_s: float) -> list[MapErrors]:
                    np.array([r[1][1] for r in rows]), np.array([r[1][2] for r in rows]),
                    np.array([r[2] for r in rows]))
     out.append(map_errors(map_from_geojson(build_from_log(io.StringIO(text), lt).geojson()),
-                          room, "sonarloc localize (kuc)"))
+                          room, "sonarloc localize (kuc)", tr))
     out.append(map_errors(map_from_geojson(build_from_log(io.StringIO(text)).geojson()),
-                          room, "odometry only"))
+                          room, "odometry only", tr))
     return out
 
 
@@ -754,14 +773,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines += ["## Map building (room, ring16, 3 laps, seed 200)", "",
               "`sonarloc map build` on the simulated log, with poses from the truth, from "
               "`sonarloc localize` (kuc, against the true map) and from odometry alone. "
-              "Worst centre error of the poles/rods/corners found (within 10 cm), worst "
-              "end-to-line distance of the walls that lie on a true wall (< 2 cm); *extra*: "
-              "built features more than 2 cm from any true one (ghosts).", "",
+              "*found*: built points within 10 cm of the true poles/rods/corners that the "
+              "drive can see (a corner only from inside its walls' angle: the L's reflex "
+              "vertex has none), and built walls lying on a true wall (both ends < 2 cm "
+              "from its line). Worst centre error of the points found, worst end-to-line "
+              "distance of those walls; *extra*: built features more than 2 cm from any "
+              "true one (ghosts); *kinds right*: built points with a true point of the same "
+              "kind within 2 cm.", "",
               "| poses | found | worst pole (mm) | worst rod (mm) | worst corner (mm) | "
-              "worst wall (mm) | extra |", "|---|---|---:|---:|---:|---:|---:|"]
+              "worst wall (mm) | extra | kinds right |",
+              "|---|---|---:|---:|---:|---:|---:|---:|"]
     for me in mapping:
         lines.append(f"| {me.poses} | {me.found} | {me.pole_mm:.1f} | {me.rod_mm:.1f} | "
-                     f"{me.corner_mm:.1f} | {me.wall_mm:.1f} | {me.extra} |")
+                     f"{me.corner_mm:.1f} | {me.wall_mm:.1f} | {me.extra} | {me.kinds} |")
     lines += ["", f"Machine: {platform.machine()} {platform.processor() or ''}, Python "
               f"{platform.python_version()}, numpy {np.__version__}; "
               f"{datetime.date.today().isoformat()}; "

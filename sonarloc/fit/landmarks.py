@@ -21,6 +21,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from sonarloc.fit import model as M
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_flat
+from sonarloc.fit.pair import resolve_pairs
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig, SegmenterStats
 from sonarloc.fit.select import KAPPA_WALL_US, Selection, select_models
@@ -276,6 +277,12 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     than the BIC price of three more parameters; the two landmarks then replace the
     one (``extra["split_of"]`` = the segment id). Returns the landmarks in order.
     """
+    return [lm for g in _split_groups(segments, landmarks, config, n_cuts) for lm in g]
+
+
+def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
+                  config: FitConfig | None = None, n_cuts: int = 8) -> list[list[Landmark]]:
+    """:func:`split_unresolved`, the result of each segment in its own list."""
     cfg = config or FitConfig()
     cand: list[tuple[int, Segment, Segment]] = []
     for i, (seg, lm) in enumerate(zip(segments, landmarks, strict=True)):
@@ -298,7 +305,7 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
             cand.append((i, Segment(r.select(slice(0, pos)), seg.seg_id, seg.closed_by),
                          Segment(r.select(slice(pos, None)), seg.seg_id, seg.closed_by)))
     if not cand:
-        return list(landmarks)
+        return [[lm] for lm in landmarks]
     fits = fit_segments([c[1] for c in cand] + [c[2] for c in cand], cfg)
     half = len(cand)
     best: dict[int, tuple[float, Landmark, Landmark]] = {}
@@ -311,7 +318,7 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
         total = float(a.extra["cost"]) + float(b.extra["cost"])  # type: ignore[arg-type]
         if i not in best or total < best[i][0]:
             best[i] = (total, a, b)
-    out: list[Landmark] = []
+    out: list[list[Landmark]] = []
     for i, lm in enumerate(landmarks):
         if i in best:
             total, a, b = best[i]
@@ -321,9 +328,9 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                 for part in (a, b):
                     part.extra["split_of"] = lm.extra.get("seg_id", i)
                     part.extra["split_gain"] = gain
-                out += [a, b]
+                out.append([a, b])
                 continue
-        out.append(lm)
+        out.append([lm])
     return out
 
 
@@ -351,7 +358,7 @@ def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
     cfg = config or FitConfig()
     seg = Segmenter(segmenter, cfg.module)
     segments = list(seg.feed(scan))
-    return FitReport(split_unresolved(segments, fit_segments(segments, cfg), cfg), seg.stats)
+    return FitReport(_resolve(segments, fit_segments(segments, cfg), cfg), seg.stats)
 
 
 class OnlineFitter:
@@ -381,4 +388,25 @@ class OnlineFitter:
         return self._fit(closed) if closed else []
 
     def _fit(self, closed: list[Segment]) -> list[Landmark]:
-        return split_unresolved(closed, fit_segments(closed, self.config), self.config)
+        return _resolve(closed, fit_segments(closed, self.config), self.config)
+
+
+def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitConfig
+             ) -> list[Landmark]:
+    """Overlapping reflectors: the two-reflector model where one landmark is strained
+    (:func:`sonarloc.fit.pair.resolve_pairs`), then cuts in time for what is still
+    ``UNRESOLVED`` (:func:`split_unresolved`: a wall running into a corner)."""
+    groups: list[list[Landmark]] = []
+    todo: list[int] = []
+    for seg, lm in zip(segments, landmarks, strict=True):
+        res = resolve_pairs([seg], [lm], cfg)
+        if len(res) == 1 and res[0].status is FitStatus.UNRESOLVED:
+            todo.append(len(groups))
+        groups.append(res)
+    if todo:   # one batched call for all that are still unresolved
+        parts = _split_groups([segments[i] for i in todo], [groups[i][0] for i in todo],
+                              cfg)
+        for i, part in zip(todo, parts, strict=True):
+            groups[i] = part
+    out = [lm for g in groups for lm in g]
+    return out

@@ -8,27 +8,37 @@ landmarks in ``map``; the builder merges them across passes:
 
 * **walls**: line fits whose (rho, alpha) agree within ``wall_gate_m`` /
   ``wall_gate_deg`` and whose extents (the normal-incidence points of their echoes)
-  overlap or nearly touch (``wall_gap_m``) are one wall. Its (rho, alpha) is the
-  information-weighted mean of the fits (fit covariance plus, with a pose track, the
-  pose covariance carried through), its extent the span of the echo points. Walls that
-  nearly meet (ends within ``join_m`` of their lines' intersection, beyond both ends)
-  are extended to meet there; clusters on one line with overlapping extents are merged,
-  and a wall parallel within ``shadow_m`` of a wall seen twice as often over the same
-  stretch is dropped as a biased duplicate.
+  overlap or nearly touch (``wall_gap_m``) are one wall. Its line is fitted through the
+  member fits' *feet* (where the transducers' perpendiculars met each fitted line; total
+  least squares, outliers beyond 3 robust SDs dropped): a pose's yaw error rotates a
+  fitted line about its foot, so the feet stay on the wall while the fits' (rho, alpha)
+  do not. Its extent is the span of the inlier feet. Walls that nearly meet (ends within
+  ``join_m`` of their lines' intersection, beyond both ends) are extended to meet
+  there; clusters on one line with overlapping extents are merged, a wall parallel
+  within ``shadow_m`` of a wall seen twice as often over the same stretch is dropped as
+  a biased duplicate, and a wall shorter than ``short_wall_m`` seen fewer than twice
+  ``min_observations`` times is dropped (corner echoes fitted as a line).
 * **points**: point fits within ``point_gate_m`` of a cluster's predicted reflecting
   point are one reflector (strength is not used to split clusters: fitted kappas
   scatter widely; the cluster keeps their median). A cylinder reflects at its
   surface point facing the transducer, ``q = c + R u``: the builder solves the linear
   least squares for the centre ``c`` and radius ``R`` (with a zero-mean prior of SD
   ``radius_prior_sd_m`` on R, so R shrinks to 0 when the viewing directions do not
-  spread). The kind follows radius, then strength: R >= ``pole_radius_m`` is a
-  ``pole``; otherwise plane-strength (kappa near 0.15 us) is a ``corner``, near 0.67 us
-  a ``point``, near 2.68 us a ``rod`` (``edge`` when within 0.3 m of a built wall's
-  end). Clusters that converge within ``point_gate_m`` of each other are merged.
+  spread). The kind: within ``corner_gate_m`` of a vertex where two built walls meet,
+  ``corner`` if seen from inside the walls' angle, ``edge`` if from outside; otherwise
+  R >= ``pole_radius_m`` (and more than plane strength) is a ``pole``; otherwise
+  plane-strength (kappa near 0.15 us) is a ``corner``, near 0.67 us a ``point``, near
+  2.68 us a ``rod`` (``edge`` when within ``edge_near_wall_m`` of a built wall's end).
+  Corners and edges are placed by the fit with R = 0 (a vertex has no radius). A point
+  on a built wall (within ``on_wall_m`` of its line, further than ``edge_near_wall_m``
+  from its ends) is dropped: a wall echo fitted as a point. Clusters that converge
+  within ``point_gate_m`` of each other are merged.
 
-Clusters seen fewer than ``min_observations`` times are dropped (spikes, ghosts). Every
-feature carries its uncertainty: ``sd_m`` (largest position SD; for walls the SD of
-rho), walls also ``sd_alpha_deg``, plus ``n_obs`` and the merged ``kappa_us``.
+Clusters seen fewer than ``min_observations`` times, or in fewer than ``min_visits``
+separate passes (observations more than ``visit_gap_s`` apart), are dropped (spikes,
+ghosts). Every feature carries its uncertainty: ``sd_m`` (largest position SD; for
+walls the SD of rho from the feet's scatter), walls also ``sd_alpha_deg``, plus
+``n_obs``, ``n_visits`` and the merged ``kappa_us``.
 """
 
 from __future__ import annotations
@@ -53,8 +63,12 @@ from sonarloc.physics import constants
 
 Array = NDArray[np.float64]
 
+_MAX_FEET = 3000
+
 _KIND_KAPPA = {"corner": constants.KAPPA_US["corner"], "pole": constants.KAPPA_US["pole"],
                "rod": constants.KAPPA_US["rod"]}
+#: log strength halfway (geometrically) between a corner's and a pole's
+_LOG_CORNER_SPLIT = 0.5 * (math.log(_KIND_KAPPA["corner"]) + math.log(_KIND_KAPPA["pole"]))
 
 
 @dataclass(frozen=True)
@@ -73,17 +87,53 @@ class BuildConfig:
     statuses: tuple[str, ...] = ("ok", "flat")
     segment_max_readings: int = 30
     edge_near_wall_m: float = 0.3
+    corner_gate_m: float = 0.05
+    on_wall_m: float = 0.03
+    visit_gap_s: float = 10.0
+    short_wall_m: float = 0.5
+    min_visits: int = 1
     speed_of_sound_mps: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "pole_radius_m", "shadow_m",
-                     "wall_gap_m", "join_m", "radius_prior_sd_m", "edge_near_wall_m"):
+                     "wall_gap_m", "join_m", "radius_prior_sd_m", "edge_near_wall_m",
+                     "corner_gate_m", "on_wall_m", "visit_gap_s", "short_wall_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
         if not (isinstance(self.min_observations, int) and self.min_observations >= 1):
             raise ValueError(f"`min_observations` must be a positive integer, got "
                              f"{self.min_observations!r}")
+
+
+@dataclass
+class _Visits:
+    """Time intervals in which a cluster was observed (gaps > ``gap_s`` start a new one)."""
+
+    spans: list[list[float]] = field(default_factory=list)
+
+    def add(self, t_s: float, gap_s: float) -> None:
+        if not math.isfinite(t_s):
+            return
+        for sp in self.spans[-2:]:
+            if sp[0] - gap_s <= t_s <= sp[1] + gap_s:
+                sp[0], sp[1] = min(sp[0], t_s), max(sp[1], t_s)
+                return
+        self.spans.append([t_s, t_s])
+        if len(self.spans) > 1 and t_s < self.spans[-2][0]:
+            self.spans.sort()
+
+    def merged(self, other: _Visits, gap_s: float) -> _Visits:
+        out: list[list[float]] = []
+        for sp in sorted(self.spans + other.spans):
+            if out and sp[0] <= out[-1][1] + gap_s:
+                out[-1][1] = max(out[-1][1], sp[1])
+            else:
+                out.append(list(sp))
+        return _Visits(out)
+
+    def __len__(self) -> int:
+        return len(self.spans)
 
 
 @dataclass
@@ -96,6 +146,17 @@ class _PointCluster:
     log_kappas: deque[float] = field(default_factory=lambda: deque(maxlen=255))
     _solution: Array | None = None
     _cov: Array | None = None
+    u_sum: Array = field(default_factory=lambda: np.zeros(2))
+    visits: _Visits = field(default_factory=_Visits)
+
+    def mean_view(self) -> Array:
+        """(2,) mean unit direction from the reflector towards the transducers."""
+        return self.u_sum / max(float(np.hypot(*self.u_sum)), 1e-12)
+
+    def solve_point(self) -> tuple[Array, Array]:
+        """Centre (2,) and covariance (2, 2) of a point reflector (radius fixed at 0)."""
+        cov = np.asarray(np.linalg.inv(self.normal[:2, :2]), dtype=float)
+        return cov @ self.rhs[:2], cov
 
     def add(self, q: Array, cov: Array, u: Array, log_kappa: float) -> None:
         a = np.array([[1.0, 0.0, u[0]], [0.0, 1.0, u[1]]])
@@ -104,15 +165,18 @@ class _PointCluster:
         self.rhs += w.T @ q
         self.n += 1
         self.log_kappas.append(log_kappa)
+        self.u_sum += u
         self._solution = None
 
-    def absorb(self, other: _PointCluster, prior_info: float) -> None:
+    def absorb(self, other: _PointCluster, prior_info: float, gap_s: float) -> None:
         """Merge another cluster's observations (its radius prior is not counted twice)."""
         self.normal += other.normal
         self.normal[2, 2] -= prior_info
         self.rhs += other.rhs
         self.n += other.n
         self.log_kappas.extend(other.log_kappas)
+        self.u_sum += other.u_sum
+        self.visits = self.visits.merged(other.visits, gap_s)
         self._solution = None
 
     def solve(self) -> tuple[Array, Array]:
@@ -152,6 +216,11 @@ class _WallCluster:
     n: int = 0
     log_kappas: deque[float] = field(default_factory=lambda: deque(maxlen=255))
     zwz: float = 0.0
+    #: (foot_x, foot_y, weight) of the member fits' echo extents (ends and middle), the
+    #: most recent ``_MAX_FEET`` kept (memory stays bounded over long logs)
+    feet: deque[tuple[float, float, float]] = field(
+        default_factory=lambda: deque(maxlen=_MAX_FEET))
+    visits: _Visits = field(default_factory=_Visits)
 
     def scatter(self) -> float:
         """Chi-square per degree of freedom of the member fits about the merged line."""
@@ -190,12 +259,14 @@ class BuiltFeature:
     n_obs: int
     radius_m: float = 0.0
     sd_alpha_deg: float = math.nan
+    n_visits: int = 0
 
     def geojson(self, fid: str) -> dict[str, Any]:
         geom: dict[str, Any]
         props: dict[str, Any] = {"kind": self.kind, "id": fid,
                                  "kappa_us": round(self.kappa_us, 4),
-                                 "sd_m": round(self.sd_m, 5), "n_obs": self.n_obs}
+                                 "sd_m": round(self.sd_m, 5), "n_obs": self.n_obs,
+                                 "n_visits": self.n_visits}
         if self.kind == "wall":
             props["sd_alpha_deg"] = round(self.sd_alpha_deg, 4)
             props["vertices"] = "none"  # corners are explicit points; free ends are not edges
@@ -244,12 +315,13 @@ class MapBuilder:
         cov = cov + np.eye(2) * 1e-8
         log_k = math.log(p[2])
         if lm.kind == "point":
-            self._add_point(p[:2], cov, np.asarray(view_xy, dtype=float), log_k)
+            self._add_point(p[:2], cov, np.asarray(view_xy, dtype=float), log_k, lm.ref_t_s)
             return "point"
-        self._add_wall(p[0], p[1], cov, feet, log_k)
+        self._add_wall(p[0], p[1], cov, feet, log_k, lm.ref_t_s)
         return "wall"
 
-    def _add_point(self, q: Array, cov: Array, view: Array, log_k: float) -> None:
+    def _add_point(self, q: Array, cov: Array, view: Array, log_k: float,
+                   t_s: float) -> None:
         cfg = self.config
         v = view - q
         u = v / max(float(np.hypot(*v)), 1e-9)
@@ -265,10 +337,11 @@ class MapBuilder:
             self.points.append(best)
             self.stats["point_clusters"] += 1
         best.add(q, cov, u, log_k)
+        best.visits.add(t_s, cfg.visit_gap_s)
         self.stats["points"] += 1
 
     def _add_wall(self, rho: float, alpha: float, cov: Array, feet: Array | None,
-                  log_k: float) -> None:
+                  log_k: float, t_s: float) -> None:
         cfg = self.config
         f = np.zeros((0, 2)) if feet is None else np.asarray(feet, dtype=float).reshape(-1, 2)
         best, best_score = None, math.inf
@@ -300,10 +373,20 @@ class MapBuilder:
         best.zwz += float(z @ w @ z)
         best.n += 1
         best.log_kappas.append(log_k)
+        best.visits.add(t_s, cfg.visit_gap_s)
         if len(f):
             t = best.project(f)
             best.t_min = min(best.t_min, float(t.min()))
             best.t_max = max(best.t_max, float(t.max()))
+            # the fit's extent as three weighted points on its own line: where the
+            # transducers' perpendiculars met it (accurate across the wall whatever the
+            # pose's yaw error, which only slides them along it)
+            tf = f @ np.array([-math.sin(alpha), math.cos(alpha)])
+            w_each = len(f) / 3.0
+            for k in (int(np.argmin(tf)), int(np.argmax(tf))):
+                best.feet.append((float(f[k, 0]), float(f[k, 1]), w_each))
+            mean = f.mean(axis=0)
+            best.feet.append((float(mean[0]), float(mean[1]), w_each))
         self.stats["walls"] += 1
 
     def features(self) -> list[BuiltFeature]:
@@ -311,31 +394,44 @@ class MapBuilder:
         cfg = self.config
         walls: list[BuiltFeature] = []
         for c in _merge_walls(self.walls, cfg):
-            if c.n < cfg.min_observations or not math.isfinite(c.t_min):
+            if c.n < cfg.min_observations or not math.isfinite(c.t_min) or \
+                    len(c.visits) < cfg.min_visits:
                 continue
-            m, cov = c.mean()
-            rho, alpha = float(m[0]), float(m[1])
+            line = _robust_line(c)
+            if line is None:
+                continue
+            rho, alpha, t_min, t_max, sd_rho, sd_alpha = line
             n = np.array([math.cos(alpha), math.sin(alpha)])
             d = np.array([-n[1], n[0]])
-            ends = np.array([rho * n + c.t_min * d, rho * n + c.t_max * d])
-            if c.t_max - c.t_min < 1e-3:
-                continue
+            ends = np.array([rho * n + t_min * d, rho * n + t_max * d])
+            if t_max - t_min < 1e-3 or (t_max - t_min < cfg.short_wall_m and
+                                        c.n < 2 * cfg.min_observations):
+                self.stats["dropped_short_wall"] += 1
+                continue  # short and rarely seen: corner/edge echoes fitted as a line
             walls.append(BuiltFeature("wall", ends, math.exp(float(np.median(c.log_kappas))),
-                                      math.sqrt(cov[0, 0]), c.n,
-                                      sd_alpha_deg=math.degrees(math.sqrt(cov[1, 1]))))
+                                      sd_rho, c.n, sd_alpha_deg=math.degrees(sd_alpha),
+                                      n_visits=len(c.visits)))
         walls = _join_walls(_drop_shadowed(walls, cfg), cfg.join_m)
+        vertices = _wall_vertices(walls, cfg.corner_gate_m)
         points: list[BuiltFeature] = []
         wall_ends = np.array([w.coords for w in walls]).reshape(-1, 2)
         prior_info = 1.0 / cfg.radius_prior_sd_m**2
-        for pc in _merge_points(self.points, cfg.point_gate_m, prior_info):
-            if pc.n < cfg.min_observations:
+        for pc in _merge_points(self.points, cfg.point_gate_m, prior_info,
+                                   cfg.visit_gap_s):
+            if pc.n < cfg.min_observations or len(pc.visits) < cfg.min_visits:
                 continue
             sol, cov = pc.solve()
             kappa = math.exp(pc.log_kappa)
             radius = float(sol[2])
             centre = sol[:2]
-            if radius >= cfg.pole_radius_m:
-                kind = "pole"  # a resolved radius says cylinder, whatever kappa says
+            if _inside_wall(centre, walls, cfg):
+                self.stats["dropped_on_wall"] += 1
+                continue  # a wall's echo fitted as a point: nothing stands inside a wall
+            vertex = _vertex_kind(centre, pc.mean_view(), vertices, cfg.corner_gate_m)
+            if vertex is not None:
+                kind = vertex  # where two built walls meet: their corner (or edge)
+            elif radius >= cfg.pole_radius_m and pc.log_kappa > _LOG_CORNER_SPLIT:
+                kind = "pole"  # a resolved radius says cylinder (unless plane-strength)
             else:
                 kind = min(_KIND_KAPPA, key=lambda k: abs(math.log(_KIND_KAPPA[k]) - pc.log_kappa))
                 near_end = bool(len(wall_ends)) and float(
@@ -345,9 +441,14 @@ class MapBuilder:
                 elif kind == "rod" and near_end:
                     kind = "edge"
             if kind in ("corner", "edge"):
+                # a vertex reflects at one point, whatever the direction: no radius
                 radius = 0.0
+                centre, cov2 = pc.solve_point()
+                cov = np.zeros((3, 3))
+                cov[:2, :2] = cov2
             sd = math.sqrt(float(np.max(np.linalg.eigvalsh(cov[:2, :2]))))
-            points.append(BuiltFeature(kind, centre, kappa, sd, pc.n, radius))
+            points.append(BuiltFeature(kind, centre, kappa, sd, pc.n, radius,
+                                       n_visits=len(pc.visits)))
         return walls + points
 
     def geojson(self) -> dict[str, Any]:
@@ -361,6 +462,118 @@ class MapBuilder:
 
     def to_map(self) -> Map:
         return map_from_geojson(self.geojson())
+
+
+def _robust_line(c: _WallCluster) -> tuple[float, float, float, float, float, float] | None:
+    """(rho, alpha, t_min, t_max, sd_rho, sd_alpha) of a wall cluster's line, fitted
+    through its member fits' feet (total least squares, outliers beyond 3 robust SDs
+    dropped), extent from the inlier feet; None if nothing is left.
+
+    A fit's feet are where the transducer's perpendicular met its line: a yaw error of
+    the pose slides them along the wall but hardly moves them across it, so a line
+    through the feet of many fits is far less sensitive to pose yaw errors than the
+    mean of their (rho, alpha). With feet spread over less than 0.2 m the direction
+    comes from the information-weighted mean instead.
+    """
+    m_info, cov_info = c.mean()
+    if not c.feet:
+        return None
+    f = np.array(c.feet, dtype=float)
+    xy, w = f[:, :2], f[:, 2]
+    keep = np.ones(len(f), dtype=bool)
+    alpha = float(m_info[1])
+    sigma = 0.0
+    for _ in range(6):
+        ww = w[keep]
+        mean = (ww @ xy[keep]) / ww.sum()
+        r = xy[keep] - mean
+        scatter = (r * ww[:, None]).T @ r / ww.sum()
+        evals, evecs = np.linalg.eigh(scatter)
+        along = float(np.sqrt(max(evals[1], 0.0)))
+        if along >= 0.2:
+            nrm = evecs[:, 0]
+            a = math.atan2(nrm[1], nrm[0])
+            # keep the normal on the side of the information mean's
+            alpha = a if abs(float(se2.wrap_angle(a - m_info[1]))) <= math.pi / 2 else \
+                float(se2.wrap_angle(a + math.pi))
+        nrm = np.array([math.cos(alpha), math.sin(alpha)])
+        res = (xy - mean) @ nrm
+        sigma = max(1.4826 * float(np.median(np.abs(res[keep]))), 0.002)
+        new_keep = np.abs(res) <= 3.0 * sigma
+        if new_keep.sum() < 2 or np.array_equal(new_keep, keep):
+            keep = new_keep if new_keep.sum() >= 2 else keep
+            break
+        keep = new_keep
+    ww = w[keep]
+    mean = (ww @ xy[keep]) / ww.sum()
+    nrm = np.array([math.cos(alpha), math.sin(alpha)])
+    d = np.array([-nrm[1], nrm[0]])
+    rho = float(mean @ nrm)
+    t = xy[keep] @ d
+    n_fits = max(int(keep.sum()) // 3, 1)
+    spread = float(np.sqrt(np.mean((t - t.mean()) ** 2)))
+    sd_rho = sigma / math.sqrt(n_fits)
+    sd_alpha = sigma / (math.sqrt(n_fits) * spread) if spread >= 0.2 else \
+        math.sqrt(float(cov_info[1, 1]))
+    return rho, alpha, float(t.min()), float(t.max()), sd_rho, sd_alpha
+
+
+def _wall_vertices(walls: list[BuiltFeature], gate_m: float) -> list[tuple[Array, Array, Array]]:
+    """Where two built walls meet: (vertex (2,), unit direction along wall 1 away from
+    it, the same along wall 2), for every pair with an end within ``gate_m`` of the
+    other's end."""
+    out = []
+    for i in range(len(walls)):
+        for j in range(i + 1, len(walls)):
+            a, b = walls[i].coords, walls[j].coords
+            dist = np.hypot(*(a[:, None, :] - b[None, :, :]).transpose(2, 0, 1))
+            ia, ib = np.unravel_index(int(np.argmin(dist)), dist.shape)
+            if dist[ia, ib] > gate_m:
+                continue
+            v = 0.5 * (a[ia] + b[ib])
+            da = a[1 - ia] - a[ia]
+            db = b[1 - ib] - b[ib]
+            da = da / max(float(np.hypot(*da)), 1e-12)
+            db = db / max(float(np.hypot(*db)), 1e-12)
+            if abs(float(da[0] * db[1] - da[1] * db[0])) < math.sin(math.radians(10)):
+                continue  # (nearly) straight on: no vertex
+            out.append((v, da, db))
+    return out
+
+
+def _vertex_kind(centre: Array, view: Array, vertices: list[tuple[Array, Array, Array]],
+                 gate_m: float) -> str | None:
+    """``corner`` if ``centre`` is within ``gate_m`` of a wall vertex and was seen from
+    inside the angle between its walls (``view``: mean direction towards the
+    transducers), ``edge`` if seen from outside it, None when no vertex is near."""
+    best, best_d = None, gate_m
+    for v, da, db in vertices:
+        dist = float(np.hypot(*(centre - v)))
+        if dist <= best_d:
+            best, best_d = (da, db), dist
+    if best is None:
+        return None
+    da, db = best
+    # inside the (< 180 deg) angle spanned by da and db: on the same side of each as
+    # the other
+    cross = lambda p, q: float(p[0] * q[1] - p[1] * q[0])  # noqa: E731
+    inside = cross(da, view) * cross(da, db) > 0 and cross(db, view) * cross(db, da) > 0
+    return "corner" if inside else "edge"
+
+
+def _inside_wall(centre: Array, walls: list[BuiltFeature], cfg: BuildConfig) -> bool:
+    """True if ``centre`` lies on a built wall (within ``on_wall_m`` of its line) away
+    from its ends (further than ``edge_near_wall_m`` inside)."""
+    for w in walls:
+        a, b = w.coords
+        d = b - a
+        length = float(np.hypot(*d))
+        u = d / length
+        t = float((centre - a) @ u)
+        off = abs(float((centre - a) @ np.array([-u[1], u[0]])))
+        if off <= cfg.on_wall_m and cfg.edge_near_wall_m < t < length - cfg.edge_near_wall_m:
+            return True
+    return False
 
 
 def _drop_shadowed(walls: list[BuiltFeature], cfg: BuildConfig) -> list[BuiltFeature]:
@@ -426,28 +639,34 @@ def _merge_walls(clusters: list[_WallCluster], cfg: BuildConfig) -> list[_WallCl
             o.zwz += c.zwz
             o.n += c.n
             o.log_kappas.extend(c.log_kappas)
+            o.feet.extend(c.feet)
+            o.visits = o.visits.merged(c.visits, cfg.visit_gap_s)
             o.t_min = min(o.t_min, float(t.min()))
             o.t_max = max(o.t_max, float(t.max()))
             break
         else:
             out.append(_WallCluster(c.alpha_ref, c.info.copy(), c.rhs.copy(), c.t_min, c.t_max,
-                                    c.n, deque(c.log_kappas, maxlen=255), c.zwz))
+                                    c.n, deque(c.log_kappas, maxlen=255), c.zwz,
+                                    deque(c.feet, maxlen=_MAX_FEET),
+                                    _Visits([list(v) for v in c.visits.spans])))
     return out
 
 
-def _merge_points(clusters: list[_PointCluster], gate_m: float, prior_info: float
-                  ) -> list[_PointCluster]:
+def _merge_points(clusters: list[_PointCluster], gate_m: float, prior_info: float,
+                  gap_s: float) -> list[_PointCluster]:
     """Merge clusters whose centres ended up within ``gate_m`` (split early in a drive)."""
     out: list[_PointCluster] = []
     for c in sorted(clusters, key=lambda c: -c.n):
         centre = c.solve()[0][:2]
         for o in out:
             if float(np.hypot(*(o.solve()[0][:2] - centre))) <= gate_m:
-                o.absorb(c, prior_info)
+                o.absorb(c, prior_info, gap_s)
                 break
         else:
             merged = _PointCluster(c.normal.copy(), c.rhs.copy(), c.n, deque(c.log_kappas,
                                                                              maxlen=255))
+            merged.u_sum = c.u_sum.copy()
+            merged.visits = _Visits([list(v) for v in c.visits.spans])
             out.append(merged)
     return out
 
@@ -486,8 +705,8 @@ def _join_walls(walls: list[BuiltFeature], join_m: float) -> list[BuiltFeature]:
                     and np.hypot(*(ends[j][ib] - x)) <= join_m:
                 ends[i][ia] = x
                 ends[j][ib] = x
-    return [BuiltFeature(w.kind, e, w.kappa_us, w.sd_m, w.n_obs, w.radius_m, w.sd_alpha_deg)
-            for w, e in zip(walls, ends, strict=True)]
+    return [BuiltFeature(w.kind, e, w.kappa_us, w.sd_m, w.n_obs, w.radius_m, w.sd_alpha_deg,
+                         w.n_visits) for w, e in zip(walls, ends, strict=True)]
 
 
 # --------------------------------------------------------------------------- from a log

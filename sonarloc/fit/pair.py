@@ -1,0 +1,624 @@
+"""Two point reflectors in one segment: the min-of-two-U's model and when to believe it.
+
+Two reflectors a few degrees apart at nearly the same range give one segment: the
+module reports the *first* detected crossing, so the readings follow the lower of two
+U-shaped curves. One landmark then explains the readings with a too-low kappa (a
+wider, flatter U) or not at all. This module fits the two-reflector model
+
+    reading i ~ first detected echo of {A, B}:
+        p(y_i) = f_A P_A (1 - P_B (1 - w)) + f_B P_B (1 - P_A w)
+        P(no echo at j) = (1 - P_A,j) (1 - P_B,j)
+
+with ``f`` the detected echo's TOF density and ``P`` its detection probability under
+the single-landmark model (:mod:`sonarloc.fit.model`, same tier) and
+``w = Phi((m_B - m_A) / sqrt(s_A^2 + s_B^2))`` the probability that A's crossing comes
+first when both are detected. With one component it is exactly the single-landmark
+likelihood, so both are compared on equal terms.
+
+Search: for fixed bearings (phi_A, phi_B) and an assignment of each echo to the
+component nearer its beam axis, the model is linear in (To, kappa) of each component;
+a grid over bearing *pairs* with these 2x2 solves brackets the optimum globally, the
+best few nodes are refined on the full likelihood (quasi-Newton, BFGS).
+
+Decision (documented in docs/FITTING.md): the pair replaces the single landmark when
+
+* -2 log-likelihood drops by more than the BIC price of three more parameters
+  (``3 ln n``, n readings including no-echo ones) and by more than ``MIN_GAIN``,
+* each component is individually supported: removing it (the other kept as fitted)
+  costs more than that price; it is the first echo for at least ``min_echoes``
+  readings, mostly in one contiguous run of beam axes (``MIN_RUN_SHARE``),
+* the bearings differ by more than ``MIN_SEPARATION_DEG``, and the weaker one is not
+  where the stronger one's side lobe would be (``SIDE_LOBE_DEG``).
+
+Otherwise the single landmark stands; a segment whose single fit was not trusted
+keeps its status and its reason gets the pair test's numbers (the two could not be
+told apart). Each echo is evaluated with a robust cap (``outlier_sigma^2`` plus the
+log-variance at zero delay) so a spike cannot buy a component.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+from scipy.special import ndtr
+from scipy.stats import chi2 as chi2_dist
+
+from sonarloc.fit import model as M
+from sonarloc.fit.lsq import FitConfig, SegmentBatch, _kappa_penalty, pack_segments
+from sonarloc.fit.result import FitStatus, Landmark
+from sonarloc.fit.segment import Segment
+
+Array = NDArray[np.float64]
+
+MIN_SEPARATION_DEG = 1.0
+"""Bearings of the two components closer than this are one landmark."""
+
+GRID_STEP_DEG = 1.0
+"""Bearing grid step of the pair search."""
+
+N_STARTS = 3
+"""Grid nodes refined on the full likelihood."""
+
+MIN_GAIN = 25.0
+"""Least -2 log-likelihood gain of two reflectors over one, on top of the BIC price: the
+models are not exact (spikes, a beam tier that misses side lobes), and single
+reflectors with such misfits gain up to ~20 from a second component (measured:
+benchmarks/results/fit_quality.md)."""
+
+MIN_RUN_SHARE = 0.6
+"""The readings where a component gives the first echo must mostly (this share) form one
+contiguous run in beam-axis order: a reflector's U, not scattered spikes."""
+
+SIDE_LOBE_DEG = (12.0, 26.0)
+"""A weak component (kappa above ``SIDE_LOBE_KAPPA_US``) this far from a strong one
+(kappa below ``SIDE_LOBE_STRONG_US``) may be the strong one's side lobe (PHYSICS.md:
+side lobes near 17-20 deg reach the detection limit only for kappa below ~0.2 us)."""
+
+SIDE_LOBE_KAPPA_US = 3.0
+SIDE_LOBE_STRONG_US = 0.3
+
+N_CANDIDATES = 48
+"""Best grid nodes by the linear solves whose full likelihood is evaluated."""
+
+_SCALE = np.array([1e-3, math.pi / 180.0, 1.0])   # mm, deg, ln kappa -> m, rad, ln kappa
+
+
+@dataclass
+class PairFit:
+    """Result of :func:`fit_pair` for one segment.
+
+    ``local``: (2, 3) ``(r [m], phi [rad], kappa [us])`` of the components seen from the
+    reference pose (ordered by bearing); ``cov``: (2, 3, 3) their marginal covariances;
+    ``cost_single``/``cost_pair``: robust -2 log-likelihood of the best one- and two-
+    reflector models; ``support``: (2,) cost increase when either component is removed;
+    ``n_first``: (2,) readings at which each is the first echo (responsibilities);
+    ``price``: the BIC price of the three extra parameters; ``accepted``: the decision;
+    ``basis``: a sentence saying why; ``ambiguous``: components whose bearing another
+    optimum fits as well; ``hidden``: (2,) 0 where a component's minimum is seen (it is
+    the first echo at the reading nearest its bearing), NaN where the other reflector
+    hides it, else how far [deg] it lies beyond the readings.
+    """
+
+    local: Array
+    cov: Array
+    cost_single: float
+    cost_pair: float
+    support: Array
+    n_first: Array
+    price: float
+    accepted: bool
+    basis: str
+    chi2: Array
+    ambiguous: dict[int, str] = field(default_factory=dict)
+    hidden: Array = field(default_factory=lambda: np.zeros(2))
+
+    @property
+    def gain(self) -> float:
+        return self.cost_single - self.cost_pair
+
+
+class _Segment:
+    """One segment's readings relative to its reference pose (row ``b`` of a batch)."""
+
+    def __init__(self, batch: SegmentBatch, b: int, cfg: FitConfig, tier: str) -> None:
+        v = batch.valid[b]
+        nv = batch.ne_valid[b]
+        self.px, self.py, self.yaw = batch.px[b, v], batch.py[b, v], batch.yaw[b, v]
+        self.y = batch.tof_us[b, v] - 0.5 * cfg.module.count_period_us
+        self.npx, self.npy, self.nyaw = (batch.ne_px[b, nv], batch.ne_py[b, nv],
+                                         batch.ne_yaw[b, nv])
+        self.cfg = cfg
+        self.tier = tier
+        mod = cfg.module
+        self.cap = cfg.outlier_sigma ** 2 + math.log(
+            2.0 * math.pi * float(M.tof_variance_us2(0.0, mod)))
+
+    @property
+    def n(self) -> int:
+        return int(self.y.size + self.npx.size)
+
+    def _component(self, q: Array) -> tuple[Array, ...]:
+        """Per-reading terms of components q (S, 3) local (r, phi, ln kappa):
+        echo mean (S, n), variance, log P(echo), log P(no echo); no-echo log P(no echo)."""
+        mod = self.cfg.module
+        r, phi, K = q[:, 0:1], q[:, 1:2], np.exp(q[:, 2:3])
+        geo = M.geometry("point", r, phi, self.px, self.py, self.yaw)
+        g, _, lg = M.beam_delay_factor(geo.theta, self.tier, mod, derivative=False)
+        z = M.detection_z(K, lg, mod)
+        et = M.echo_terms(K, g, z, mod, want_info=False, tier=self.tier)
+        s2 = M.tof_variance_us2(et.delay, mod,
+                                et.delay_var if self.tier == "waveform" else None)
+        mean = M.us_per_m(mod) * geo.R + et.delay
+        lq = M.noecho_terms(z, want_info=False)[0]
+        if self.npx.size:
+            ng = M.geometry("point", r, phi, self.npx, self.npy, self.nyaw)
+            _, _, lgn = M.beam_delay_factor(ng.theta, self.tier, mod, derivative=False)
+            lqn = M.noecho_terms(M.detection_z(K, lgn, mod), want_info=False)[0]
+        else:
+            lqn = np.zeros((q.shape[0], 0))
+        return mean, s2, et.log_p, lq, lqn
+
+    def cost(self, comps: list[Array]) -> Array:
+        """Robust -2 log-likelihood (S,) of one or two components, each (S, 3)
+        ``(r [m], phi [rad], ln kappa)``."""
+        return self._eval(comps, False)[0]
+
+    def detail(self, comps: list[Array]) -> tuple[Array, Array, Array]:
+        """:meth:`cost`, the first-echo responsibilities (S, m, n) and the standardised
+        residuals (S, n) of the component each echo is assigned to."""
+        return self._eval(comps, True)
+
+    def _eval(self, comps: list[Array], detail: bool) -> tuple[Array, Array, Array]:
+        terms = [self._component(q) for q in comps]
+        y = self.y[None, :]
+        lnorm = [-0.5 * (y - m) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
+                 for m, s2, _, _, _ in terms]
+        if len(comps) == 1:
+            parts = [terms[0][2] + lnorm[0]]
+        else:
+            (ma, sa2, lpa, _, _), (mb, sb2, lpb, _, _) = terms
+            # w = P(A's crossing before B's) when both are detected
+            w = ndtr((mb - ma) / np.sqrt(sa2 + sb2))
+            pa, pb = np.exp(lpa), np.exp(lpb)
+            parts = [lpa + lnorm[0] + np.log(np.maximum(1.0 - pb * (1.0 - w), 1e-300)),
+                     lpb + lnorm[1] + np.log(np.maximum(1.0 - pa * w, 1e-300))]
+        # a uniform floor exp(-cap / 2) per echo: a spike costs at most about `cap`
+        ll = np.logaddexp(np.logaddexp.reduce(np.stack(parts), axis=0), -0.5 * self.cap)
+        per = -2.0 * ll
+        c = per.sum(1)
+        for t in terms:
+            c = c - 2.0 * t[4].sum(1)
+        for q in comps:
+            c = c + _kappa_penalty(np.exp(q[:, 2]), self.cfg)[0]
+        if not detail:
+            return c, np.zeros(0), np.zeros(0)
+        resp = np.exp(np.stack(parts, axis=1) - ll[:, None, :])
+        pick = np.argmax(resp, axis=1)
+        m_all = np.stack([t[0] for t in terms], axis=1)
+        s_all = np.stack([t[1] for t in terms], axis=1)
+        m_sel = np.take_along_axis(m_all, pick[:, None, :], axis=1)[:, 0]
+        s_sel = np.take_along_axis(s_all, pick[:, None, :], axis=1)[:, 0]
+        return c, resp, (self.y[None, :] - m_sel) / np.sqrt(s_sel)
+
+
+def _unscale(x: Array) -> list[Array]:
+    """Scaled (S, 3m) optimiser variables -> components (S, 3) in (m, rad, ln kappa)."""
+    x = np.atleast_2d(x)
+    return [x[:, 3 * k:3 * k + 3] * _SCALE for k in range(x.shape[1] // 3)]
+
+
+def _minimise(seg: _Segment, x0: Array, fixed: int | None = None, maxiter: int = 60
+              ) -> tuple[Array, float]:
+    """Quasi-Newton (BFGS) on the scaled variables with a vectorised FD gradient;
+    ``fixed``: index of a variable held at its start value (for profiles)."""
+    free = np.array([i for i in range(x0.size) if i != fixed])
+    d = free.size
+    h = 1e-4
+    steps = np.zeros((2 * d + 1, x0.size))
+    steps[1 + np.arange(d), free] = h
+    steps[1 + d + np.arange(d), free] = -h
+
+    def full(xf: Array) -> Array:
+        x = x0.copy()
+        x[free] = xf
+        return x
+
+    def fun(xf: Array) -> tuple[float, Array]:
+        c = np.asarray(seg.cost(_unscale(full(xf)[None, :] + steps)))
+        return float(c[0]), (c[1:d + 1] - c[d + 1:]) / (2.0 * h)
+
+    res = minimize(fun, x0[free], jac=True, method="BFGS",
+                   options={"maxiter": maxiter, "gtol": 1e-2})
+    x = full(np.asarray(res.x, dtype=float))
+    # ln kappa within the prior's reach (it is soft; keep the optimiser off the cliffs)
+    lk = x[2::3]
+    x[2::3] = np.clip(lk, math.log(seg.cfg.kappa_min_us), math.log(1e3))
+    return x, float(np.asarray(seg.cost(_unscale(x[None, :])))[0])
+
+
+PROFILE_STEPS = (-1.0, -0.4, 0.4, 1.0)
+"""Steps in ln kappa of the profile that measures each bearing's real spread."""
+
+
+def _profile_bearing_sd(seg: _Segment, x: Array, c: float, k: int) -> float:
+    """Bearing SD [rad] of component ``k`` along its kappa profile.
+
+    Bearing and kappa of a reflector whose inner arm is hidden by the other trade off
+    along a curved ridge the local (Hessian) covariance misses: hold ln kappa at a few
+    steps away, refit the rest, and take the largest bearing shift per unit of
+    sqrt(-2 log-likelihood rise) (exact for a Gaussian likelihood).
+    """
+    sd = 0.0
+    for step in PROFILE_STEPS:
+        x0 = x.copy()
+        x0[3 * k + 2] += step
+        xp, cp = _minimise(seg, x0, fixed=3 * k + 2)
+        dphi = math.radians(float(xp[3 * k + 1] - x[3 * k + 1]))
+        rise = max(cp - c, 1e-3)
+        sd = max(sd, abs(dphi) / math.sqrt(rise))
+    return sd
+
+
+def _hessian(seg: _Segment, x: Array, h: float = 1e-2) -> Array:
+    """Central-difference Hessian of the cost in the scaled variables (one batch call)."""
+    d = x.size
+    E = np.eye(d) * h
+    pts = [x]
+    for i in range(d):
+        pts += [x + E[i], x - E[i]]
+    for i in range(d):
+        for j in range(i + 1, d):
+            pts += [x + E[i] + E[j], x + E[i] - E[j], x - E[i] + E[j], x - E[i] - E[j]]
+    c = np.asarray(seg.cost(_unscale(np.array(pts))))
+    H = np.zeros((d, d))
+    f0 = c[0]
+    for i in range(d):
+        H[i, i] = (c[1 + 2 * i] - 2.0 * f0 + c[2 + 2 * i]) / (h * h)
+    k = 1 + 2 * d
+    for i in range(d):
+        for j in range(i + 1, d):
+            pp, pm, mp, mm = c[k:k + 4]
+            H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4.0 * h * h)
+            k += 4
+    return H
+
+
+def _starts(seg: _Segment, single: Array, n_starts: int) -> list[Array]:
+    """Best bearing pairs of a grid, each with (To, kappa) of both components solved
+    linearly (echoes assigned to the component nearer their beam axis)."""
+    mod = seg.cfg.module
+    tau = M.us_per_m(mod)
+    r0 = float(single[0])
+    rel = M.wrap_angle(seg.yaw - single[1])          # echo axes relative to the fit
+    lo, hi = float(rel.min()) - math.radians(3.0), float(rel.max()) + math.radians(3.0)
+    nodes = single[1] + np.arange(lo, hi + 1e-9, math.radians(GRID_STEP_DEG))
+    J = nodes.size
+    geo = M.geometry("point", np.full((J, 1), r0), nodes[:, None], seg.px, seg.py, seg.yaw)
+    g, _, _ = M.beam_delay_factor(geo.theta, seg.tier, mod, derivative=False)
+    g = np.minimum(g, 1e6) * math.exp(0.5 * M.sigma_a(mod) ** 2)
+    yy = seg.y[None, :] - tau * (geo.R - r0)          # (J, n): To + kappa g
+    ja, jb = np.triu_indices(J, k=2)
+    to_a = g[ja] <= g[jb]                             # (P, n): echo assigned to A
+    cost = np.zeros(ja.size)
+    sols = np.zeros((ja.size, 4))
+    for k, (jj, mask) in enumerate(((ja, to_a), (jb, ~to_a))):
+        gg, ys = g[jj], yy[jj]
+        w = mask.astype(float)
+        S0, S1, S2 = w.sum(1), (w * gg).sum(1), (w * gg * gg).sum(1)
+        Sy, Sgy, Syy = (w * ys).sum(1), (w * gg * ys).sum(1), (w * ys * ys).sum(1)
+        det = S0 * S2 - S1 * S1
+        ok = (det > 1e-12 * np.maximum(S0 * S2, 1e-300)) & (S0 >= 3)
+        det = np.where(ok, det, 1.0)
+        to = (S2 * Sy - S1 * Sgy) / det
+        kap = (S0 * Sgy - S1 * Sy) / det
+        ssr = Syy - to * Sy - kap * Sgy
+        cost = cost + np.where(ok & (kap > 0), ssr, np.inf)
+        sols[:, 2 * k] = to
+        sols[:, 2 * k + 1] = np.where(kap > 0, kap, 1.0)
+    order = np.argsort(cost)[:N_CANDIDATES]
+    order = order[np.isfinite(cost[order])]
+    if order.size == 0:
+        return []
+    a, b = ja[order], jb[order]
+    xs = np.stack([sols[order, 0] / tau / _SCALE[0], nodes[a] / _SCALE[1],
+                   np.log(np.maximum(sols[order, 1], seg.cfg.kappa_min_us)),
+                   sols[order, 2] / tau / _SCALE[0], nodes[b] / _SCALE[1],
+                   np.log(np.maximum(sols[order, 3], seg.cfg.kappa_min_us))], axis=1)
+    full = np.asarray(seg.cost(_unscale(xs)))   # the full likelihood ranks the candidates
+    best: list[Array] = []
+    taken: list[tuple[int, int]] = []
+    for k in np.argsort(full).tolist():
+        ak, bk = int(a[k]), int(b[k])
+        if any(abs(ak - a2) <= 1 and abs(bk - b2) <= 1 for a2, b2 in taken):
+            continue
+        taken.append((ak, bk))
+        best.append(xs[k])
+        if len(best) >= n_starts:
+            break
+    return best
+
+
+def fit_pair(batch: SegmentBatch, b: int, single_local: Array, tier: str,
+             cfg: FitConfig | None = None, n_starts: int = N_STARTS) -> PairFit | None:
+    """Fit one and two point reflectors to segment ``b`` of ``batch`` and decide.
+
+    Parameters
+    ----------
+    batch : padded segments (:func:`sonarloc.fit.lsq.pack_segments`).
+    b : which segment.
+    single_local : (3,) the single-landmark fit ``(r [m], phi [rad], kappa [us])``.
+    tier : model tier of both components (that of the single fit).
+
+    Returns
+    -------
+    :class:`PairFit`, or None when the segment has too few echoes for two landmarks
+    or no bearing pair could be bracketed.
+    """
+    cfg = cfg or FitConfig()
+    if tier == "conventional":
+        return None
+    seg = _Segment(batch, b, cfg, tier)
+    if seg.y.size < 2 * cfg.min_echoes or not np.all(np.isfinite(single_local)):
+        return None
+    s0 = np.array([single_local[0] / _SCALE[0], single_local[1] / _SCALE[1],
+                   math.log(max(float(single_local[2]), cfg.kappa_min_us))])
+    x1, c1 = _minimise(seg, s0)
+    c1 = min(c1, float(np.asarray(seg.cost(_unscale(s0[None, :])))[0]))
+    starts = _starts(seg, np.asarray(single_local, float), n_starts)
+    # and the single landmark split in two 1 deg either side: the pair can only gain
+    d1 = np.array([0.0, 1.0 / _SCALE[1] * math.radians(1.0), 0.0])
+    starts.append(np.concatenate([x1 - d1, x1 + d1]))
+    optima = []
+    for x0 in starts:
+        x, c = _minimise(seg, x0)
+        if x[1] > x[4]:                       # components ordered by bearing
+            x = np.concatenate([x[3:], x[:3]])
+        optima.append((c, x))
+    optima.sort(key=lambda o: o[0])
+    best_c, best_x = optima[0]
+    comps = _unscale(best_x)
+    c_arr, resp, resid = seg.detail(comps)
+    c_pair = float(c_arr[0])
+    without = [float(np.asarray(seg.cost([comps[1 - k]]))[0]) - c_pair for k in range(2)]
+    n_first = resp[0].sum(1)
+    price = 3.0 * math.log(max(seg.n, 2))
+    gain = c1 - c_pair
+    # the covariance (Hessian and kappa profiles: most of the cost) only where the
+    # evidence can carry the pair
+    promising = gain > max(price, MIN_GAIN)
+    H = _hessian(seg, best_x) if promising else np.full((6, 6), np.nan)
+    cov_s = _inverse(0.5 * H) if promising else H
+    pick = np.argmax(resp[0], axis=0)
+    chi2 = np.array([float((resid[0][pick == k] ** 2).sum()) for k in range(2)])
+    dof = max(seg.y.size - 6, 1)
+    cov_s = cov_s * max(float(chi2.sum()) / dof, 1.0)
+    T = np.diag(np.tile(_SCALE, 2))
+    cov = T @ cov_s @ T
+    local = np.zeros((2, 3))
+    cov_out = np.zeros((2, 3, 3))
+    for k in range(2):
+        q = comps[k][0]
+        K = math.exp(q[2])
+        local[k] = (q[0], float(M.wrap_angle(q[1])), K)
+        Jk = np.diag([1.0, 1.0, K])               # ln kappa -> kappa
+        cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
+    ambiguous: dict[int, str] = {}
+    if promising:
+        profile_sd = [_profile_bearing_sd(seg, best_x, best_c, k) for k in range(2)]
+        for k in range(2):
+            cov_out[k, 1, 1] = max(cov_out[k, 1, 1], profile_sd[k] ** 2)
+    # other optima that fit as well with other bearings: the bearings are ambiguous;
+    # the covariance is widened to cover them
+    for c, x in optima[1:] if promising else []:
+        if c - best_c >= AMBIGUOUS_DCOST:
+            continue
+        for k in range(2):
+            d = math.radians(float(x[3 * k + 1] - best_x[3 * k + 1]))
+            if abs(d) > max(AMBIGUOUS_SD * math.sqrt(cov_out[k, 1, 1]), math.radians(1.0)):
+                ambiguous.setdefault(k, f"bearings {math.degrees(local[k, 1]):.1f} and "
+                                        f"{math.degrees(local[k, 1] + d):.1f} deg, -2 log-"
+                                        f"likelihood {c - best_c:.1f} apart")
+                cov_out[k, 1, 1] = max(cov_out[k, 1, 1], d * d)
+    sep = abs(math.degrees(float(M.wrap_angle(local[1, 1] - local[0, 1]))))
+    # longest contiguous run (in beam-axis order) of each component's first echoes
+    order = np.argsort(M.wrap_angle(seg.yaw - local[:, 1].mean()))
+    seq = pick[order]
+    run_share = np.zeros(2)
+    for k in range(2):
+        mine = (seq == k).astype(int)
+        if mine.sum():
+            edges = np.diff(np.concatenate([[0], mine, [0]]))
+            runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+            run_share[k] = runs.max() / mine.sum()
+    side_lobe = bool(local[:, 2].max() > SIDE_LOBE_KAPPA_US
+                     and local[:, 2].min() < SIDE_LOBE_STRONG_US
+                     and SIDE_LOBE_DEG[0] <= sep <= SIDE_LOBE_DEG[1])
+    support = np.array(without)
+    if gain <= price:
+        accepted = False
+        basis = (f"two reflectors do not fit better than one: -2 log-likelihood gain "
+                 f"{gain:.1f} <= BIC price {price:.1f}")
+    elif sep < MIN_SEPARATION_DEG:
+        accepted = False
+        basis = f"the two components are {sep:.1f} deg apart: one reflector"
+    elif min(without) <= price:
+        accepted = False
+        basis = (f"gain {gain:.1f} over one reflector, but one component is not supported "
+                 f"on its own (removing it costs {min(without):.1f} <= {price:.1f})")
+    elif gain <= MIN_GAIN:
+        accepted = False
+        basis = (f"-2 log-likelihood gain {gain:.1f} of two reflectors over one is within "
+                 f"what model misfit gives single reflectors (<= {MIN_GAIN:g})")
+    elif min(n_first) < cfg.min_echoes:
+        accepted = False
+        basis = (f"one component is the first echo of only {min(n_first):.1f} readings "
+                 f"(< {cfg.min_echoes})")
+    elif min(run_share) < MIN_RUN_SHARE:
+        accepted = False
+        basis = (f"the readings one component explains are scattered (longest run "
+                 f"{min(run_share):.0%} of them): spikes, not a second U")
+    elif side_lobe:
+        accepted = False
+        basis = (f"the weak component (kappa {local[:, 2].max():.2f} us) lies "
+                 f"{sep:.1f} deg from a strong one (kappa {local[:, 2].min():.2f} us): "
+                 "its side lobe, not a second reflector")
+    else:
+        accepted = True
+        basis = (f"two reflectors {sep:.1f} deg apart: -2 log-likelihood gain {gain:.1f} > "
+                 f"BIC price {price:.1f}; each supported (removing one costs "
+                 f"{min(without):.1f})")
+    # where each component's minimum is seen: the reading whose beam axis is nearest
+    # to its bearing must exist (within 1 deg) and have it as the first echo, else the
+    # minimum is hidden by the other reflector (or lies beyond the scan)
+    hidden = np.zeros(2)
+    for k in range(2):
+        off = np.abs(M.wrap_angle(seg.yaw - local[k, 1]))
+        j = int(np.argmin(off))
+        hidden[k] = (math.degrees(float(off[j])) if off[j] > math.radians(1.0)
+                     else (0.0 if pick[j] == k else math.nan))
+    return PairFit(local, cov_out, float(c1), c_pair, support, n_first, price, accepted,
+                   basis, chi2, ambiguous, hidden)
+
+
+def _inverse(H: Array) -> Array:
+    """Inverse of a symmetric information matrix, finite when singular (huge variance)."""
+    Hs = 0.5 * (H + H.T)
+    Hs = np.where(np.isfinite(Hs), Hs, 0.0)
+    w, V = np.linalg.eigh(Hs)
+    floor = max(float(w.max()) * 1e-14, 1e-30)
+    inv = np.minimum(1.0 / np.maximum(w, floor), 1e30)
+    return (V * inv) @ V.T
+
+
+AMBIGUOUS_DCOST = 2.0
+"""Another local optimum of the pair within this much -2 log-likelihood whose bearings
+differ by more than ``AMBIGUOUS_SD`` SDs (and 1 deg) makes the bearings ambiguous."""
+
+AMBIGUOUS_SD = 2.0
+
+CANDIDATE_P = 0.01
+"""An ``OK`` single fit is tried as a pair when its TOF chi-square has p below this or
+its residuals run in blocks (runs z below ``CANDIDATE_RUNS_Z``)."""
+
+CANDIDATE_RUNS_Z = -2.5
+
+
+def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
+    """Whether a single-landmark result is worth the two-reflector test.
+
+    Point-like results (points, and walls by strength from one viewpoint: the same
+    fit) that are ``UNRESOLVED`` or ``FLAT`` with at least ``2 min_echoes`` echoes, and
+    ``OK`` ones whose residuals say the single model is strained.
+    """
+    if lm.n_readings < 2 * cfg.min_echoes or lm.tier == "conventional":
+        return False
+    if lm.kind == "line" and lm.extra.get("kind_basis") == "motion":
+        return False
+    if lm.status in (FitStatus.UNRESOLVED, FitStatus.FLAT):
+        return True
+    if lm.status is not FitStatus.OK:
+        return False
+    chi2 = float(lm.extra.get("chi2", 0.0))  # type: ignore[arg-type]
+    p = float(chi2_dist.sf(chi2, max(lm.n_readings - 3, 1)))
+    return p < CANDIDATE_P or float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z  # type: ignore[arg-type]
+
+
+def pair_landmarks(pf: PairFit, single: Landmark, cfg: FitConfig) -> list[Landmark]:
+    """Two landmarks from an accepted pair fit, each with its own status (``PARTIAL``
+    when its minimum is hidden by the other reflector or beyond the scan)."""
+    ref = np.array(single.ref_pose[:2])
+    out = []
+    mod = cfg.module
+    for k in range(2):
+        local = pf.local[k]
+        params, cov, _ = M.to_frame("point", local, pf.cov[k], ref)
+        sd = np.sqrt(np.maximum(np.diag(pf.cov[k]), 0.0))
+        K = float(local[2])
+        status, reason = FitStatus.OK, ""
+        if not (np.all(np.isfinite(params)) and np.all(np.isfinite(cov))):
+            status, reason = FitStatus.BAD_INPUT, "non-finite pair fit"
+        elif not (0.5 * cfg.kappa_lo_us <= K <= 2.0 * cfg.kappa_hi_us):
+            status = FitStatus.UNRESOLVED
+            reason = (f"kappa {K:.3g} us of one of two overlapping reflectors is outside any "
+                      "real reflector's range")
+        elif k in pf.ambiguous:
+            status = FitStatus.FLAT
+            reason = ("two reflectors, but another pair of bearings fits as well "
+                      f"({pf.ambiguous[k]}): bearing not determined")
+        elif pf.hidden[k] != 0.0:
+            status = FitStatus.PARTIAL
+            where = ("hidden by the other reflector" if math.isnan(pf.hidden[k]) else
+                     f"{pf.hidden[k]:.1f} deg beyond the readings")
+            reason = (f"one of two overlapping reflectors, its minimum {where}: "
+                      "bearing bounded only")
+        elif K < 1.5 * cfg.kappa_lo_us:
+            status = FitStatus.FLAT
+            reason = (f"one of two overlapping reflectors with kappa {K:.3f} us at the lower "
+                      "bound of the prior: its bearing rests on the curve's shape alone")
+        elif sd[1] > math.radians(cfg.flat_bearing_sd_deg):
+            status = FitStatus.FLAT
+            reason = (f"one of two overlapping reflectors, bearing SD "
+                      f"{math.degrees(sd[1]):.1f} deg > {cfg.flat_bearing_sd_deg:g} deg")
+        extra: dict[str, object] = {
+            key: single.extra[key] for key in ("seg_id", "closed_by", "n_bad_input",
+                                              "n_noecho") if key in single.extra}
+        extra.update(
+            pair_of=single.extra.get("seg_id", -1), pair_gain=pf.gain,
+            pair_price=pf.price, pair_basis=pf.basis, pair_support=float(pf.support[k]),
+            bearing_sd_deg=math.degrees(sd[1]), range_sd_m=float(sd[0]),
+            kappa_sd_us=float(sd[2]),
+            strength_db=20.0 * math.log10(mod.detection_limit_us / max(K, 1e-12)),
+            kind_basis="pair", chi2=float(pf.chi2[k]), cost=pf.cost_pair,
+            tier_basis=f"{single.tier} (that of the single fit)")
+        n_k = int(round(float(pf.n_first[k])))
+        out.append(Landmark(
+            kind="point", params=params, cov=cov, range_m=float(local[0]),
+            bearing_rad=float(local[1]), n_readings=n_k, ref_t_s=single.ref_t_s,
+            ref_pose=single.ref_pose, status=status, reason=reason, tier=single.tier,
+            rms_us=math.sqrt(float(pf.chi2[k]) / max(n_k, 1)), sensors=single.sensors,
+            extra=extra))
+    return out
+
+
+def resolve_pairs(segments: Sequence[Segment], landmarks: Sequence[Landmark],
+                  config: FitConfig | None = None) -> list[Landmark]:
+    """Replace single landmarks by two where the two-reflector model is accepted.
+
+    Tries :func:`fit_pair` on the results :func:`is_candidate` picks; an accepted pair
+    gives two point landmarks (``extra["pair_of"]`` = the segment id, ``pair_gain``,
+    ``pair_basis``); a rejected one leaves the single landmark, with the test's
+    numbers in ``extra["pair_basis"]`` (and appended to the reason when it was not
+    ``OK``: the two could not be told apart).
+    """
+    cfg = config or FitConfig()
+    out: list[Landmark] = []
+    for seg, lm in zip(segments, landmarks, strict=True):
+        if not is_candidate(lm, cfg):
+            out.append(lm)
+            continue
+        r = seg.readings
+        good = (np.isfinite(r.t_s) & np.isfinite(r.x_m) & np.isfinite(r.y_m)
+                & np.isfinite(r.yaw_rad) & (np.isnan(r.tof_us)
+                                            | (np.isfinite(r.tof_us) & (r.tof_us > 0))))
+        batch = pack_segments([(r.t_s[good], r.x_m[good], r.y_m[good],
+                                M.wrap_angle(r.yaw_rad[good]), r.tof_us[good])])
+        local = np.array([lm.range_m, lm.bearing_rad, lm.kappa_us])
+        pf = fit_pair(batch, 0, local, lm.tier, cfg)
+        if pf is None:
+            out.append(lm)
+            continue
+        if pf.accepted:
+            out += pair_landmarks(pf, lm, cfg)
+            continue
+        lm.extra["pair_basis"] = pf.basis
+        lm.extra["pair_gain"] = pf.gain
+        if lm.status is not FitStatus.OK:
+            out.append(replace(lm, reason=f"{lm.reason}; {pf.basis}"))
+        else:
+            out.append(lm)
+    return out

@@ -1,0 +1,106 @@
+"""Two overlapping reflectors: the min-of-two-U's model (sonarloc.fit.pair)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sonarloc.fit import pair as P
+from sonarloc.fit.landmarks import fit_scan
+from sonarloc.fit.lsq import FitConfig, fit_batch, pack_segments
+from sonarloc.fit.synth import Reflector, pan_scan
+from sonarloc.io.scancsv import ScanReadings
+
+
+def _batch(scan: ScanReadings):
+    return pack_segments([(scan.t_s, scan.x_m, scan.y_m, scan.yaw_rad, scan.tof_us)])
+
+
+def _x(local: np.ndarray) -> np.ndarray:
+    return np.array([local[0] / P._SCALE[0], local[1] / P._SCALE[1], math.log(local[2])])
+
+
+def test_one_component_is_the_fitters_likelihood(rng):
+    # with one component the pair model's cost is the single fit's -2 log-likelihood
+    # (up to the spike floor, negligible for readings the model explains); the floor
+    # only ever lowers it (here: edge echoes the piston beam calls improbable)
+    scan = pan_scan([Reflector.polar(1.5, 5.0, 0.67)], rng, -25, 35, 0.3)
+    batch = _batch(scan)
+    for tier in ("gauss", "piston", "waveform"):
+        fit = fit_batch(batch, "point", tier)
+        seg = P._Segment(batch, 0, FitConfig(), tier)
+        c = float(np.asarray(seg.cost(P._unscale(_x(fit.local[0])[None, :])))[0])
+        if tier == "gauss":
+            assert c == pytest.approx(float(fit.cost[0]), abs=0.1)
+        else:
+            assert c <= float(fit.cost[0]) + 1e-6
+
+
+def test_pair_cost_is_symmetric_and_reduces_to_one_when_the_other_is_silent(rng):
+    refl = [Reflector.polar(1.5, -8.0, 0.67), Reflector.polar(1.5005, 8.0, 0.67)]
+    batch = _batch(pan_scan(refl, rng, -40, 40, 0.3))
+    seg = P._Segment(batch, 0, FitConfig(), "gauss")
+    a = np.array([1500.0, -8.0, math.log(0.67)])
+    b = np.array([1500.5, 8.0, math.log(0.67)])
+    ab = np.asarray(seg.cost(P._unscale(np.concatenate([a, b])[None, :])))[0]
+    ba = np.asarray(seg.cost(P._unscale(np.concatenate([b, a])[None, :])))[0]
+    assert ab == pytest.approx(ba, rel=1e-12)
+    silent = b.copy()
+    silent[2] = math.log(1e4)      # never detected: the pair is the single model
+    c2 = np.asarray(seg.cost(P._unscale(np.concatenate([a, silent])[None, :])))[0]
+    c1 = np.asarray(seg.cost(P._unscale(a[None, :])))[0]
+    pen = P._kappa_penalty(np.array([1e4]), FitConfig())[0][0]
+    assert c2 - pen == pytest.approx(c1, abs=1e-6)
+
+
+def test_two_poles_20_deg_apart_equal_range_are_resolved(rng):
+    truth = ((1.5, -10.0), (1.5005, 10.0))
+    resolved = 0
+    for _ in range(3):
+        lms = fit_scan(pan_scan([Reflector.polar(r, b, 0.67) for r, b in truth], rng,
+                                -40, 40, 0.3)).landmarks
+        assert lms
+        for lm in lms:
+            if lm.ok:   # every trusted landmark sits on a reflector (4 SDs)
+                sd = float(lm.extra["bearing_sd_deg"])
+                assert any(abs(math.degrees(lm.bearing_rad) - b) < 4 * sd + 0.1
+                           and abs(lm.range_m - r) < 2e-3 for r, b in truth), lm
+            else:
+                assert lm.reason
+        if len(lms) == 2 and all("pair_of" in lm.extra for lm in lms):
+            resolved += 1
+            assert lms[0].bearing_rad < lms[1].bearing_rad
+            assert float(lms[0].extra["pair_gain"]) > P.MIN_GAIN
+    assert resolved >= 2
+
+
+@pytest.mark.parametrize("kappa,tier", [(0.67, "gauss"), (0.15, "auto"), (2.68, "auto")])
+def test_single_reflectors_are_not_split(rng, kappa, tier):
+    for _ in range(3):
+        b = rng.uniform(-10, 10)
+        lms = fit_scan(pan_scan([Reflector.polar(1.5, b, kappa)], rng, -40, 40, 0.3,
+                                tier=tier)).landmarks
+        assert not any("pair_of" in lm.extra for lm in lms)
+
+
+def test_spikes_do_not_buy_a_second_reflector(rng):
+    for _ in range(3):
+        scan = pan_scan([Reflector.polar(1.5, rng.uniform(-5, 5), 0.67)], rng, -40, 40, 0.3)
+        tof = scan.tof_us.copy()
+        inside = np.flatnonzero(np.isfinite(tof))[::17]
+        tof[inside] -= rng.uniform(20, 35, inside.size)
+        lms = fit_scan(ScanReadings(scan.t_s, scan.x_m, scan.y_m, scan.yaw_rad, tof,
+                                    scan.sensor)).landmarks
+        assert not any("pair_of" in lm.extra for lm in lms)
+
+
+def test_a_rejected_pair_says_why(rng):
+    # 12 deg apart at equal range: one segment; whatever the decision, it is recorded
+    refl = [Reflector.polar(1.5, -6.0, 0.67), Reflector.polar(1.5, 6.0, 0.67)]
+    lms = fit_scan(pan_scan(refl, rng, -40, 40, 0.3)).landmarks
+    assert any("pair_basis" in lm.extra for lm in lms)
+    for lm in lms:
+        if not lm.ok:
+            assert lm.reason
