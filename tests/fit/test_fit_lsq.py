@@ -227,3 +227,35 @@ def test_fisher_matrix_is_jacobian_gram_plus_detection_curvature(rng, kind, movi
                        np.broadcast_to(1.0 / (p[:, 2:3] * sa), g.shape)], axis=1)
         ref = ref + (dz * (curv * ok)[:, None, :]) @ np.swapaxes(dz, 1, 2)
     np.testing.assert_allclose(H, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+
+
+def test_covariance_inverts_fisher_and_survives_singular(rng):
+    from sonarloc.fit.lsq import _covariance
+
+    A = rng.normal(size=(50, 3, 3))
+    H = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(3)
+    H[0] = np.diag([1e6, 1.0, 0.0])                     # singular: huge, finite variance
+    H[1] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])   # rank one
+    H[2] = np.nan                                       # non-finite input
+    C = _covariance(H)
+    assert np.all(np.isfinite(C))
+    np.testing.assert_allclose(C[3:] @ H[3:], np.broadcast_to(np.eye(3), (47, 3, 3)),
+                               atol=1e-6)
+    assert C[0, 2, 2] == pytest.approx(1e8) and C[0, 0, 0] == pytest.approx(1e-6)  # floored
+    assert np.all(np.linalg.eigvalsh(C[:3]) > 0)
+
+
+def test_batch_and_fast_presets(rng):
+    # batch: the default's answer (to a fraction of an SD); fast: one guarded step from
+    # a coarse grid, coarser but sound (no divergence, sub-degree bearings)
+    batch = _pan_batch(rng, 80, 1.5, 8.0, 0.67, step=0.5)
+    ref = fit_batch(batch, "point", "gauss")
+    sd = np.sqrt(np.einsum("bkk->bk", ref.cov))
+    b = fit_batch(batch, "point", "gauss", FitConfig.batch())
+    assert np.all(np.abs(b.local - ref.local) < 0.2 * sd)
+    f = fit_batch(batch, "point", "gauss", FitConfig.fast())
+    assert np.all(np.isfinite(f.local)) and np.all(np.isfinite(f.cov))
+    err_b = np.rad2deg(M.wrap_angle(f.local[:, 1] - np.deg2rad(8.0)))
+    assert np.sqrt(np.mean(err_b ** 2)) < 0.8
+    assert np.all(np.abs(f.local[:, 0] - 1.5) < 3e-3)
+    assert FitConfig.fast(iterations=3).iterations == 3
