@@ -6,13 +6,16 @@ several seeds each. Every drive is localized in the same run by four methods fed
 same log: dead reckoning (``odometry``), the textbook sonar EKF (``conventional``: each
 reading a range along the beam axis, 10 deg bearing SD, walls ray-cast along the
 axis), the same reading with walls seen at normal incidence (``specular``: a stronger
-baseline) and ours (``kuc``: fitted landmarks with range, bearing and strength).
+baseline) and ours (``kuc``: fitted landmarks with range, bearing and strength), both
+in the batch replay of ``sonarloc localize`` and fed record by record (``kuc live``).
 Reported: position and yaw RMSE (whole drive and after a 5 s warm-up), average NEES
 against its 95 % chi-square band, replay speed; the EKF core's peer check and step time
 against FilterPy; the model-exact Monte-Carlo NEES of the core; the fit-batching
-latency trade-off; memory over a long looped replay; and map building errors.
+latency trade-off; the batch replay's speed against the live one; memory over long
+looped replays (live 1 h, batch 24 h); and map building errors.
 
-Run: ``python benchmarks/bench_localize.py [--quick] [--soak-hours H]``; writes
+Run: ``python benchmarks/bench_localize.py [--quick] [--soak-hours H]
+[--batch-soak-hours H]``; writes
 benchmarks/results/localize.md and localize.png.
 """
 
@@ -27,7 +30,7 @@ import resource
 import sys
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +43,6 @@ if str(ROOT) not in sys.path:
 from scipy.stats import chi2  # noqa: E402
 
 from sonarloc import se2  # noqa: E402
-from sonarloc.fit.result import Landmark  # noqa: E402
 from sonarloc.io.logfile import (  # noqa: E402
     LogWriter,
     OdomRecord,
@@ -53,13 +55,14 @@ from sonarloc.localize import ekf  # noqa: E402
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise  # noqa: E402
 from sonarloc.localize.features import FeatureMap  # noqa: E402
 from sonarloc.localize.localizer import Localizer, LocalizerConfig, SegmentFitSource  # noqa: E402
-from sonarloc.localize.replay import replay_log  # noqa: E402
+from sonarloc.localize.offline import OfflinePipeline  # noqa: E402
+from sonarloc.localize.replay import Mode, replay_log  # noqa: E402
 from sonarloc.maps.build import build_from_log  # noqa: E402
 from sonarloc.maps.geojson import Map, load_map, map_from_geojson  # noqa: E402
 from sonarloc.world.rig import PanRig, Rig, ring16  # noqa: E402
 from sonarloc.world.simulate import simulate_records  # noqa: E402
 
-METHODS = ("odometry", "conventional", "specular", "kuc")
+METHODS = ("odometry", "conventional", "specular", "kuc", "kuc live")
 WARMUP_S = 5.0
 
 
@@ -117,15 +120,24 @@ class Run:
     landmarks: int = 0
 
 
+def method_config(method: str) -> tuple[LocalizerConfig, Mode]:
+    """``kuc live``: the kuc method fed record by record (``--online``); the others as
+    ``sonarloc localize`` runs them (kuc and odometry in batches)."""
+    if method == "kuc live":
+        return LocalizerConfig(method="kuc"), "online"
+    return LocalizerConfig(method=method), "auto"  # type: ignore[arg-type]
+
+
 def localize_run(text: str, fmap: FeatureMap, truth: dict[float, np.ndarray],
-                 config: LocalizerConfig, localizer: Localizer | None = None) -> Run:
+                 config: LocalizerConfig, localizer: Localizer | None = None,
+                 mode: Mode = "auto") -> Run:
     rows: list[tuple[float, np.ndarray, np.ndarray]] = []
 
     def keep(rec: OdomRecord, est: Any) -> None:
         rows.append((rec.t_s, est.state.mean, est.state.cov))
 
     res = replay_log(io.StringIO(text), fmap, config=config, on_estimate=keep,
-                     localizer=localizer)
+                     localizer=localizer, mode=mode)
     t = np.array([r[0] for r in rows])
     mean = np.array([r[1] for r in rows])
     cov = np.array([r[2] for r in rows])
@@ -370,108 +382,56 @@ def soak(text: str, fmap: FeatureMap, hours: float, every_s: float
     return samples, time.perf_counter() - t0, last_t, status
 
 
-def _move_landmark(lm: Landmark, pose: np.ndarray, dt: float) -> Landmark:
-    """A landmark of one lap as seen ``dt`` later in an odom frame moved by ``pose``."""
-    p = np.asarray(lm.params, dtype=float).copy()
-    cov = np.asarray(lm.cov, dtype=float).copy()
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    if lm.kind == "point":
-        p[:2] = se2.transform_points(pose, p[:2])
-        rot = np.array([[c, -s], [s, c]])
-        cov[:2, :2] = rot @ cov[:2, :2] @ rot.T
-        cov[:2, 2] = rot @ cov[:2, 2]
-        cov[2, :2] = cov[:2, 2]
-    else:
-        moved = se2.transform_line(pose, p[:2])
-        sign = 1.0 if abs(float(se2.wrap_angle(moved[1] - p[1] - pose[2]))) < 1.0 else -1.0
-        j = np.eye(3)
-        j[0, 0] = sign
-        j[0, 1] = sign * (-pose[0] * math.sin(moved[1]) + pose[1] * math.cos(moved[1]))
-        p[:2] = moved
-        cov = j @ cov @ j.T
-    extra = dict(lm.extra)
-    if "view_xy" in extra:
-        extra["view_xy"] = tuple(float(v) for v in se2.transform_points(
-            pose, np.asarray(extra["view_xy"], dtype=float)))
-    ref = se2.compose(pose, np.asarray(lm.ref_pose, dtype=float))
-    return replace(lm, params=p, cov=cov, ref_t_s=lm.ref_t_s + dt,
-                   ref_pose=(float(ref[0]), float(ref[1]), float(ref[2])), extra=extra)
-
-
-class _ReplaySource:
-    """Replays one lap's fitted landmarks lap after lap, in the continued odom frame."""
-
-    def __init__(self, recorded: list[tuple[float, list[Landmark]]], lap_s: float,
-                 lap_inc: np.ndarray) -> None:
-        self.recorded = recorded
-        self.lap_s = lap_s
-        self.lap_inc = lap_inc
-        self.lap = 0
-        self.base = np.zeros(3)
-        self.i = 0
-
-    def push(self, t_s: float, *_: Any) -> list[Landmark]:
-        out: list[Landmark] = []
-        while True:
-            if self.i >= len(self.recorded):
-                if t_s < (self.lap + 1) * self.lap_s:
-                    return out
-                self.lap += 1
-                self.base = se2.compose(self.base, self.lap_inc)
-                self.i = 0
-            t_push, lms = self.recorded[self.i]
-            if t_push + self.lap * self.lap_s > t_s:
-                return out
-            out += [_move_landmark(lm, self.base, self.lap * self.lap_s) for lm in lms]
-            self.i += 1
-
-    def flush(self) -> list[Landmark]:
-        return []
-
-
-def fusion_soak(text: str, fmap: FeatureMap, hours: float, every_s: float
-                ) -> tuple[list[tuple[float, float, int]], float, float, float]:
-    """The fusion side alone for a long time: one lap's fits recorded, then replayed lap
-    after lap (odometry continued) through a Localizer. Returns samples, wall time, log
-    time and the position RMSE of the last lap against the truth."""
-    from sonarloc.io.logfile import iter_log
+def batch_soak(text: str, fmap: FeatureMap, hours: float, every_s: float
+               ) -> tuple[list[tuple[float, float, int, int]], float, float, float, str]:
+    """The whole kuc pipeline in batch mode (segmenter, batch fitter, on-time fusion,
+    history) on a looped drive for ``hours`` of log time, records handed straight to the
+    :class:`OfflinePipeline` (no log text). Returns (log hours, RSS MB, history entries,
+    records buffered by the pipeline) samples, wall time, log time, the position RMSE
+    of the last lap [mm] and the final status."""
+    from sonarloc.io.logfile import InitRecord, RigRecord, TofRecord, iter_log
 
     records = list(iter_log(io.StringIO(text)))
-    recorded: list[tuple[float, list[Landmark]]] = []
-
-    class Recorder(SegmentFitSource):
-        def push(self, t_s: float, *args: Any) -> list[Landmark]:
-            lms = super().push(t_s, *args)
-            if lms:
-                recorded.append((t_s, lms))
-            return lms
-
-    first = Localizer(fmap, LocalizerConfig(), landmark_source=lambda c: Recorder(c))
-    for rec in records:
-        first.handle(rec)
-    lap_s, lap_inc = lap_geometry(records)
-    source = _ReplaySource(recorded, lap_s, lap_inc)
-    loc = Localizer(fmap, LocalizerConfig(), landmark_source=lambda c: source)
+    lap_s, _ = lap_geometry(records)
     truth = {r.t_s: (r.x_m, r.y_m) for r in records if isinstance(r, TruthRecord)}
-    samples: list[tuple[float, float, int]] = []
+    total_laps = math.ceil(hours * 3600 / lap_s)
+    last_lap_t = (total_laps - 1) * lap_s
     errs: list[float] = []
+
+    def keep(rec: OdomRecord, est: Any) -> None:
+        if rec.t_s >= last_lap_t:
+            tx, ty = truth[round(rec.t_s - last_lap_t, 9)]
+            errs.append(math.hypot(est.x_m - tx, est.y_m - ty))
+
+    loc = Localizer(fmap, LocalizerConfig())
+    pipe = OfflinePipeline(loc, keep)
+
+    def buffered() -> int:
+        seg = pipe._source.segmenter.open_segments if pipe._source is not None else 0
+        return (len(pipe._odom) + len(pipe._rows) + len(pipe._tof) + len(pipe._waiting)
+                + len(pipe._landmarks) + len(pipe._track_t) + seg)
+
+    samples: list[tuple[float, float, int, int]] = []
     next_t = 0.0
     last_t = 0.0
     t0 = time.perf_counter()
-    total_laps = math.ceil(hours * 3600 / lap_s)
     for rec in looped(records, hours):
-        est = loc.handle(rec)
         last_t = rec.t_s
         if isinstance(rec, OdomRecord):
-            if est is not None and rec.t_s >= (total_laps - 1) * lap_s:
-                tx, ty = truth[round(rec.t_s - (total_laps - 1) * lap_s, 9)]
-                errs.append(math.hypot(est.x_m - tx, est.y_m - ty))
+            pipe.odom(rec)
             if rec.t_s >= next_t:
-                samples.append((rec.t_s / 3600, rss_mb(), loc.history_len))
+                samples.append((rec.t_s / 3600, rss_mb(), loc.history_len, buffered()))
                 next_t += every_s
-    samples.append((last_t / 3600, rss_mb(), loc.history_len))
+        elif isinstance(rec, TofRecord):
+            pipe.tof(rec)
+        elif isinstance(rec, (RigRecord, InitRecord)):
+            pipe.finish()
+            loc.handle(rec)
+    pipe.finish()
+    samples.append((last_t / 3600, rss_mb(), loc.history_len, buffered()))
     rmse = 1000 * math.sqrt(float(np.mean(np.square(errs)))) if errs else math.nan
-    return samples, time.perf_counter() - t0, last_t, rmse
+    status = pipe.last.status if pipe.last is not None else "none"
+    return samples, time.perf_counter() - t0, last_t, rmse, status
 
 
 # --------------------------------------------------------------------------- map building
@@ -566,6 +526,231 @@ def map_building(seed: int, duration_s: float) -> list[MapErrors]:
     return out
 
 
+# --------------------------------------------------------------------------- relocalization
+
+
+def symmetric_room() -> Map:
+    """A 6 m x 4 m room with two poles placed point-symmetrically about its centre (a
+    half turn maps it onto itself) and a symmetric route."""
+    feats: list[dict[str, Any]] = [
+        {"type": "Feature", "properties": {"kind": "wall", "id": "room"},
+         "geometry": {"type": "Polygon", "coordinates": [[[0, 0], [6, 0], [6, 4], [0, 4],
+                                                          [0, 0]]]}},
+        {"type": "Feature", "properties": {"kind": "pole", "id": "p1", "radius_m": 0.0445},
+         "geometry": {"type": "Point", "coordinates": [1.5, 1.2]}},
+        {"type": "Feature", "properties": {"kind": "pole", "id": "p2", "radius_m": 0.0445},
+         "geometry": {"type": "Point", "coordinates": [4.5, 2.8]}},
+        {"type": "Feature", "properties": {"kind": "route", "id": "loop"},
+         "geometry": {"type": "LineString", "coordinates": [[1, 2], [3, 0.8], [5, 2], [3, 3.2],
+                                                            [1, 2]]}}]
+    return map_from_geojson({"type": "FeatureCollection", "features": feats})
+
+
+def _records(text: str) -> list[Record]:
+    from sonarloc.io.logfile import iter_log
+    return list(iter_log(io.StringIO(text)))
+
+
+def kidnap_records(records: list[Record], t_k: float, jump: np.ndarray) -> list[Record]:
+    """The robot carried off at ``t_k``: from then on the odometry is off by ``jump``
+    (composed at the kidnap pose) against the truth."""
+    out: list[Record] = []
+    ref = None
+    for r in records:
+        if isinstance(r, OdomRecord) and r.t_s >= t_k:
+            p = np.array([r.x_m, r.y_m, math.radians(r.yaw_deg)])
+            if ref is None:
+                ref = p
+            q = se2.compose(se2.compose(ref, jump), se2.between(ref, p))
+            r = OdomRecord(r.t_s, float(q[0]), float(q[1]), math.degrees(float(q[2])))
+        out.append(r)
+    return out
+
+
+@dataclass
+class RelocTrial:
+    kind: str
+    fixes: int = 0
+    wrong: int = 0            # fixes more than 10 cm from the truth
+    ambiguous: int = 0
+    attempts: int = 0
+    t_first_fix: float = math.nan   # after the kidnap / the start
+    t_recovered: float = math.nan   # from then on within 2 cm
+    err_fix_mm: float = math.nan
+    final_mm: float = math.nan
+    solve_s: list[float] = field(default_factory=list)
+
+
+def reloc_trial(records: list[Record], fmap: FeatureMap, t0: float, kind: str) -> RelocTrial:
+    from sonarloc.io.logfile import InitRecord
+    from sonarloc.localize import relocalize as rl
+
+    loc = Localizer(fmap, LocalizerConfig(relocalize=True))
+    truth = {r.t_s: r for r in records if isinstance(r, TruthRecord)}
+    tr = RelocTrial(kind)
+    assert loc._reloc is not None
+    reloc = loc._reloc
+    orig = reloc.solve
+
+    def timed(t_s: float) -> rl.Relocalization:
+        a = time.perf_counter()
+        out = orig(t_s)
+        tr.solve_s.append(time.perf_counter() - a)
+        return out
+
+    reloc.solve = timed  # type: ignore[method-assign]
+    errs: list[tuple[float, float]] = []
+    fixes_seen = 0
+    for r in records:
+        if kind == "no prior" and isinstance(r, InitRecord):
+            continue
+        est = loc.handle(r)
+        if est is None or not isinstance(r, OdomRecord):
+            continue
+        t = truth[r.t_s]
+        e = math.hypot(est.x_m - t.x_m, est.y_m - t.y_m)
+        errs.append((r.t_s, e))
+        found = loc.stats.relocalization["found"]
+        if found > fixes_seen and r.t_s >= t0:
+            fixes_seen = found
+            tr.fixes += 1
+            tr.wrong += e > 0.1
+            if math.isnan(tr.t_first_fix):
+                tr.t_first_fix = r.t_s - t0
+                tr.err_fix_mm = 1000 * e
+    loc.finish()
+    tr.ambiguous = loc.stats.relocalization["ambiguous"]
+    tr.attempts = sum(loc.stats.relocalization.values())
+    after = [(t, e) for t, e in errs if t >= t0]
+    if after:
+        tr.final_mm = 1000 * after[-1][1]
+        bad = [t for t, e in after if e >= 0.02]
+        if after[-1][1] < 0.02:
+            tr.t_recovered = (max(bad) if bad else after[0][0]) - t0
+    return tr
+
+
+def relocalization(n_seeds: int, duration_s: float) -> dict[str, list[RelocTrial]]:
+    room = load_map(ROOT / "maps" / "room.geojson")
+    fmap = FeatureMap.from_map(room)
+    jumps = [(0.0, 0.0, 60.0), (1.0, -0.5, 0.0), (-0.8, 0.6, -90.0), (0.5, 0.5, 180.0),
+             (0.0, 1.2, 30.0)]
+    out: dict[str, list[RelocTrial]] = {"kidnapped (room)": [], "no prior (room)": [],
+                                        "no prior (symmetric room)": []}
+    sym = symmetric_room()
+    sym_fmap = FeatureMap.from_map(sym)
+    for k in range(n_seeds):
+        recs = _records(simulate_text(Scenario("room", room, ring16()), 300 + k, duration_s))
+        j = jumps[k % len(jumps)]
+        t_k = 20.0
+        out["kidnapped (room)"].append(reloc_trial(
+            kidnap_records(recs, t_k, np.array([j[0], j[1], math.radians(j[2])])), fmap, t_k,
+            "kidnapped"))
+        out["no prior (room)"].append(reloc_trial(recs, fmap, 0.0, "no prior"))
+        srecs = _records(simulate_text(Scenario("sym", sym, ring16()), 400 + k, duration_s))
+        out["no prior (symmetric room)"].append(reloc_trial(srecs, sym_fmap, 0.0, "no prior"))
+        print(f"relocalization seed {k}: " + ", ".join(
+            f"{name}: fixes {v[-1].fixes} wrong {v[-1].wrong} amb {v[-1].ambiguous} "
+            f"t_fix {v[-1].t_first_fix:.1f} s final {v[-1].final_mm:.1f} mm"
+            for name, v in out.items()), file=sys.stderr)
+    return out
+
+
+def reloc_lines(reloc: dict[str, list[RelocTrial]], n_seeds: int, duration_s: float
+                ) -> list[str]:
+    lines = [f"## Global relocalization ({n_seeds} drives per case, ring16, {duration_s:g} s)",
+             "", "`LocalizerConfig(relocalize=True)` (`sonarloc localize --relocalize`). "
+             "*kidnapped*: at 20 s the odometry jumps against the truth (60 deg turn; 1.1 m; "
+             "1 m and -90 deg; 0.7 m and 180 deg; 1.2 m and 30 deg, one per drive), as if the "
+             "robot were carried off; *no prior*: the log's `init` record removed. *fix*: the "
+             "filter restarted at a relocalization; *wrong*: a fix more than 10 cm from the "
+             "truth; *recovered*: from then on within 2 cm of the truth to the end of the "
+             "drive (time after the kidnap / start); *ambiguous*: attempts that found several "
+             "poses about as likely and refused to pick one. The symmetric room (6 m x 4 m, "
+             "two poles point-symmetric about the centre) is ambiguous by construction: the "
+             "right answer there is no fix.", "",
+             "| case | recovered | fixes (wrong) | first fix after (s, median) | error at "
+             "first fix (mm, median) | recovered after (s, median / max) | final error (mm, "
+             "max) | attempts: ambiguous / all | solve time (ms, median) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, trials in reloc.items():
+        rec = [t for t in trials if math.isfinite(t.t_recovered)]
+        fixes = sum(t.fixes for t in trials)
+        wrong = sum(t.wrong for t in trials)
+
+        def med(v: list[float]) -> str:
+            v = [x for x in v if math.isfinite(x)]
+            return f"{float(np.median(v)):.1f}" if v else "-"
+
+        rec_t = [t.t_recovered for t in rec]
+        finals = [t.final_mm for t in trials if math.isfinite(t.final_mm)]
+        solve = [x for t in trials for x in t.solve_s]
+        lines.append(
+            f"| {name} | {len(rec)}/{len(trials)} | {fixes} ({wrong}) | "
+            f"{med([t.t_first_fix for t in trials])} | {med([t.err_fix_mm for t in trials])} | "
+            f"{med(rec_t)} / {(f'{max(rec_t):.1f}' if rec_t else '-')} | "
+            f"{_fmt(max(finals, default=math.nan))} | "
+            f"{sum(t.ambiguous for t in trials)} / {sum(t.attempts for t in trials)} | "
+            f"{1000 * float(np.median(solve)) if solve else math.nan:.0f} |")
+    return lines
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.1f}" if math.isfinite(v) else "-"
+
+
+def mapping_lines(mapping: list[MapErrors]) -> list[str]:
+    lines = ["## Map building (room, ring16, 3 laps, seed 200)", "",
+             "`sonarloc map build` on the simulated log, with poses from the truth, from "
+             "`sonarloc localize` (kuc, against the true map) and from odometry alone. "
+             "*found*: built points within 10 cm of the true poles/rods/corners that the "
+             "drive can see (a corner only from inside its walls' angle: the L's reflex "
+             "vertex has none), and built walls lying on a true wall (both ends < 2 cm "
+             "from its line). Worst centre error of the points found, worst end-to-line "
+             "distance of those walls; *extra*: built features more than 2 cm from any "
+             "true one (ghosts); *kinds right*: built points with a true point of the same "
+             "kind within 2 cm.", "",
+             "| poses | found | worst pole (mm) | worst rod (mm) | worst corner (mm) | "
+             "worst wall (mm) | extra | kinds right |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for me in mapping:
+        lines.append(f"| {me.poses} | {me.found} | {me.pole_mm:.1f} | {me.rod_mm:.1f} | "
+                     f"{me.corner_mm:.1f} | {me.wall_mm:.1f} | {me.extra} | {me.kinds} |")
+    return lines
+
+
+def run_sections(args: argparse.Namespace) -> int:
+    """``--sections``: run only map building and relocalization, and replace those
+    sections of the existing results file (the rest stays from its full run)."""
+    quick = args.quick
+    n_seeds = args.seeds or (1 if quick else 5)
+    lines = mapping_lines(map_building(200, 40.0 if quick else 174.0)) + [""]
+    dur = 30.0 if quick else 60.0
+    lines += reloc_lines(relocalization(n_seeds, dur), n_seeds, dur)
+    lines += ["", f"Map building and relocalization sections: {platform.machine()}, Python "
+              f"{platform.python_version()}, numpy {np.__version__}; "
+              f"{datetime.date.today().isoformat()}; {'--quick' if quick else 'full'} "
+              f"`--sections` run ({n_seeds} seed(s)), other jobs running on the machine "
+              "(solve times are indicative)."]
+    out = Path(args.out)
+    old = out.read_text(encoding="utf-8") if out.exists() else ""
+    cut = old.find("## Map building")
+    if cut < 0:
+        head, tail = old, ""
+    else:
+        head = old[:cut]
+        machine = old.find("\nMachine:", cut)
+        tail = old[machine:] if machine >= 0 else ""
+        reloc_note = tail.find("\nMap building and relocalization sections:")
+        if reloc_note >= 0:
+            tail = tail[:reloc_note] + "\n"
+    text = head + "\n".join(lines) + "\n" + tail
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text, encoding="utf-8")
+    print("\n".join(lines))
+    return 0
+
+
 # --------------------------------------------------------------------------- report
 
 
@@ -589,10 +774,11 @@ def plot(example: dict[str, Run], summaries: dict[str, dict[str, Summary]],
     ax.grid(alpha=0.3)
     ax = axes[0, 1]
     names = list(summaries)
-    width = 0.2
+    width = 0.16
     for j, m in enumerate(METHODS):
         vals = [summaries[s][m].steady_mm for s in names]
-        ax.bar(np.arange(len(names)) + (j - 1.5) * width, vals, width, label=m)
+        ax.bar(np.arange(len(names)) + (j - 0.5 * (len(METHODS) - 1)) * width, vals, width,
+               label=m)
     ax.set_yscale("log")
     ax.set_xticks(np.arange(len(names)))
     ax.set_xticklabels([n.replace(", ", "\n") for n in names], fontsize=8)
@@ -636,19 +822,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=None, help="drives per scenario (default 5)")
     ap.add_argument("--soak-hours", type=float, default=None,
                     help="log hours of the looped memory replay (default 1, quick 0.02)")
-    ap.add_argument("--fusion-soak-hours", type=float, default=None,
-                    help="log hours of the fusion-side replay (default 24, quick 0.05)")
+    ap.add_argument("--batch-soak-hours", type=float, default=None,
+                    help="log hours of the batch-mode full-pipeline replay (default 24, "
+                         "quick 0.05)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "localize.md"))
+    ap.add_argument("--sections", action="store_true",
+                    help="run only map building and relocalization and replace those "
+                         "sections of the existing results file")
     args = ap.parse_args(argv)
+    if args.sections:
+        return run_sections(args)
     quick = args.quick
     n_seeds = args.seeds or (1 if quick else 5)
     duration = 20.0 if quick else None  # None: one lap of the route
     soak_hours = args.soak_hours if args.soak_hours is not None else (0.02 if quick else 1.0)
-    fusion_hours = args.fusion_soak_hours if args.fusion_soak_hours is not None else \
+    batch_hours = args.batch_soak_hours if args.batch_soak_hours is not None else \
         (0.05 if quick else 24.0)
     ekf.chi2_gate(2)  # import scipy.stats outside the timings
 
     summaries: dict[str, dict[str, Summary]] = {}
+    speedup: dict[str, float] = {}
     example: dict[str, Run] = {}
     kuc_nees = (np.zeros(1), 0.0, 0.0)
     for sc in scenarios():
@@ -658,11 +851,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             text = simulate_text(sc, 100 + seed, duration)
             truth = truth_of(text)
             for m in METHODS:
-                runs[m].append(localize_run(text, fmap, truth, LocalizerConfig(method=m)))
+                cfg, mode = method_config(m)
+                runs[m].append(localize_run(text, fmap, truth, cfg, mode=mode))
             print(f"{sc.name} seed {seed}: " + ", ".join(
                 f"{m} {1000 * math.sqrt(np.mean(np.sum(runs[m][-1].err[:, :2] ** 2, 1))):.1f} mm"
                 for m in METHODS), file=sys.stderr)
         summaries[sc.name] = {m: summarize(runs[m]) for m in METHODS}
+        speedup[sc.name] = float(np.median([a.wall_s / b.wall_s for a, b in
+                                            zip(runs["kuc live"], runs["kuc"], strict=True)]))
         if sc.name == "room, ring16":
             example = {m: runs[m][0] for m in METHODS}
             n_min = min(len(r.nees) for r in runs["kuc"])
@@ -686,19 +882,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     core = core_nees(50 if quick else 500, 200 if quick else 1000)
     samples, soak_wall, soak_log, soak_status = soak(room_text, room_fmap, soak_hours,
                                                      60.0 if quick else 300.0)
-    fsamples, f_wall, f_log, f_rmse = fusion_soak(room_text, room_fmap, fusion_hours,
-                                                  120.0 if quick else 3600.0)
+    bsamples, b_wall, b_log, b_rmse, b_status = batch_soak(room_text, room_fmap, batch_hours,
+                                                           120.0 if quick else 3600.0)
     mapping = map_building(200, 40.0 if quick else 174.0)
+    reloc_s = 30.0 if quick else 60.0
+    reloc = relocalization(n_seeds, reloc_s)
 
     lines = ["# Localization: Kuc landmarks vs odometry and conventional sonar EKFs", ""]
     lines += [
         f"{n_seeds} simulated drive(s) per scenario ({'20 s' if quick else 'one lap of the route'}"
-        ", seeds 100..), each localized by all four methods from the same log in the same run. "
+        ", seeds 100..), each localized by every method from the same log in the same run. "
         "*odometry*: dead reckoning from the init prior; *conventional*: each reading a range "
         "along the beam axis with a 10 deg bearing SD, walls ray-cast along the axis; "
         "*specular*: that reading with walls predicted at normal incidence (a stronger, "
         "geometry-aware baseline); *kuc*: landmarks fitted with Kuc's forward model "
-        "(`sonarloc.fit`), fused at their reference times. RMSE over all odom steps of all "
+        "(`sonarloc.fit`), fused at their reference times (*kuc*: the batch replay of "
+        "`sonarloc localize`, as if fitting took no time; *kuc live*: the same Localizer fed "
+        "record by record, each fit fused when it completes). RMSE over all odom steps of all "
         f"drives; *steady* after a {WARMUP_S:g} s warm-up (the prior is off by ~5 cm / 2 deg). "
         "NEES: per time step averaged over the drives; *in band* = fraction of steps inside "
         "the 95 % chi-square band for that many drives. Speed: log time / wall time, "
@@ -710,7 +910,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for m in METHODS:
             s = by[m]
             obs = f"{s.fused} / {s.observations}" if m != "odometry" else "-"
-            if m == "kuc":
+            if m.startswith("kuc"):
                 obs += f" ({s.landmarks} fits)"
             lines.append(f"| {name} | {m} | {s.rmse_mm:.1f} | {s.steady_mm:.1f} | "
                          f"{s.yaw_deg:.2f} | {s.steady_yaw_deg:.2f} | {s.max_mm:.0f} | "
@@ -725,6 +925,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         lines.append(f"| {name} | {by['odometry'].steady_mm / k:.1f} | "
                      f"{by['conventional'].steady_mm / k:.2f} | "
                      f"{by['specular'].steady_mm / k:.2f} |")
+    lines += ["", "## Replay speed: batch against live (same logs, same run)", "",
+              "*kuc* is `sonarloc localize` (batch replay: readings segmented in a lean "
+              "loop, closed segments fitted up to 1024 at a time, each landmark fused at its "
+              "reference reading, odometry between updates predicted in closed form); "
+              "*kuc live* feeds the same Localizer record by record (`--online`, fits of "
+              "4 segments fused when they complete). Both fuse the same fitted landmarks; "
+              "the batch one as if fitting took no time. Speed-up: median over the drives "
+              "of live wall time / batch wall time.", "",
+              "| scenario | kuc live | kuc (batch) | speed-up | steady RMSE live / batch "
+              "(mm) | steady yaw live / batch (deg) |", "|---|---:|---:|---:|---:|---:|"]
+    for name, by in summaries.items():
+        lv, bt = by["kuc live"], by["kuc"]
+        lines.append(f"| {name} | {lv.speed:.0f}x | {bt.speed:.0f}x | {speedup[name]:.1f}x | "
+                     f"{lv.steady_mm:.1f} / {bt.steady_mm:.1f} | {lv.steady_yaw_deg:.2f} / "
+                     f"{bt.steady_yaw_deg:.2f} |")
     lines += ["", "## Fit batching: latency against replay speed (room, ring16, seed 100)", "",
               "The fitter runs on batches of closed segments; a fit fused later than it could "
               "be leaves the *current* pose to dead reckoning meanwhile.", "",
@@ -759,43 +974,33 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{60 * last[0]:.0f} min ({growth:+.2f} MB per log hour); history entries "
               f"{first[2]} / {mid[2]} / {last[2]} (bounded by `history_s`); status at the "
               f"end: {soak_status}.", ""]
-    ff, fl = fsamples[1] if len(fsamples) > 2 else fsamples[0], fsamples[-1]
-    lines += [f"Fusion side over {f_log / 3600:.1f} h: the first lap's fitted landmarks "
-              "recorded, then replayed lap after lap (moved into the continued odometry "
-              "frame) through a Localizer with the real odometry, association, rewinds and "
-              f"history: {f_wall:.0f} s wall time ({f_log / f_wall:.0f}x real time). "
-              f"Resident memory {ff[1]:.1f} MB at {ff[0]:.1f} h, {fl[1]:.1f} MB at "
-              f"{fl[0]:.1f} h ({(fl[1] - ff[1]) / max(fl[0] - ff[0], 1e-9):+.3f} MB per "
-              f"hour); history entries {ff[2]} -> {fl[2]}; position RMSE over the last lap "
-              f"{f_rmse:.1f} mm (still tracking). The segmenter and fitter keep only open "
-              "segments (docs/FITTING.md) and are exercised by the full-pipeline replay "
-              "above.", ""]
-    lines += ["## Map building (room, ring16, 3 laps, seed 200)", "",
-              "`sonarloc map build` on the simulated log, with poses from the truth, from "
-              "`sonarloc localize` (kuc, against the true map) and from odometry alone. "
-              "*found*: built points within 10 cm of the true poles/rods/corners that the "
-              "drive can see (a corner only from inside its walls' angle: the L's reflex "
-              "vertex has none), and built walls lying on a true wall (both ends < 2 cm "
-              "from its line). Worst centre error of the points found, worst end-to-line "
-              "distance of those walls; *extra*: built features more than 2 cm from any "
-              "true one (ghosts); *kinds right*: built points with a true point of the same "
-              "kind within 2 cm.", "",
-              "| poses | found | worst pole (mm) | worst rod (mm) | worst corner (mm) | "
-              "worst wall (mm) | extra | kinds right |",
-              "|---|---|---:|---:|---:|---:|---:|---:|"]
-    for me in mapping:
-        lines.append(f"| {me.poses} | {me.found} | {me.pole_mm:.1f} | {me.rod_mm:.1f} | "
-                     f"{me.corner_mm:.1f} | {me.wall_mm:.1f} | {me.extra} | {me.kinds} |")
+    bf, bm, bl = (bsamples[1] if len(bsamples) > 2 else bsamples[0],
+                  bsamples[len(bsamples) // 2], bsamples[-1])
+    lines += [f"The whole pipeline in batch mode (what `sonarloc localize` runs: segmenter, "
+              f"batch fitter, on-time fusion, history) over {b_log / 3600:.1f} h of the "
+              "looped drive, the records handed to the `OfflinePipeline` directly (no log "
+              f"text to parse): {b_wall:.0f} s wall time ({b_log / b_wall:.0f}x real time). "
+              f"Resident memory {bf[1]:.1f} MB at {bf[0]:.1f} h, {bm[1]:.1f} MB at "
+              f"{bm[0]:.1f} h, {bl[1]:.1f} MB at {bl[0]:.1f} h "
+              f"({(bl[1] - bf[1]) / max(bl[0] - bf[0], 1e-9):+.3f} MB per hour); history "
+              f"entries {bf[2]} / {bm[2]} / {bl[2]}; records held by the pipeline (odometry "
+              "waiting for the batch fitter, open and waiting segments) at most "
+              f"{max(x[3] for x in bsamples)}; position RMSE over the last lap "
+              f"{b_rmse:.1f} mm; status at the end: {b_status}.", ""]
+    lines += mapping_lines(mapping) + [""]
+    lines += reloc_lines(reloc, n_seeds, reloc_s)
     lines += ["", f"Machine: {platform.machine()} {platform.processor() or ''}, Python "
               f"{platform.python_version()}, numpy {np.__version__}; "
               f"{datetime.date.today().isoformat()}; "
               f"{'--quick' if quick else 'full run'}, {n_seeds} seed(s), soak "
-              f"{soak_hours:g} h, fusion soak {fusion_hours:g} h."]
+              f"{soak_hours:g} h, batch soak {batch_hours:g} h. Other jobs were running "
+              "on the machine (2 cores shared): absolute speeds vary from run to run; the "
+              "ratios come from the same run."]
     text = "\n".join(lines) + "\n"
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text, encoding="utf-8")
-    plot(example, summaries, kuc_nees, samples, out.with_suffix(".png"))
+    plot(example, summaries, kuc_nees, [x[:3] for x in bsamples], out.with_suffix(".png"))
     print(text)
     return 0
 

@@ -45,13 +45,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="feed the records one at a time as a live robot would (fits "
                              "fused when they complete); slower than the default batch "
                              "replay of the kuc and odometry methods")
+    parser.add_argument("--relocalize", action="store_true",
+                        help="when lost, relocalize globally from the landmarks fitted "
+                             "recently (an unambiguous match to the map, else keep trying); "
+                             "without an init record or --init, start that way (pose rows "
+                             "begin at the first fix); runs record by record")
     parser.add_argument("--quiet", action="store_true", help="no summary on stderr")
 
 
 def run(args: argparse.Namespace) -> int:
     init = parse_pose(args.init, "--init") if args.init is not None else None
     fmap = FeatureMap.from_map(load_map(args.map))
-    config = LocalizerConfig(method=args.method)
+    config = LocalizerConfig(method=args.method, relocalize=args.relocalize)
     mode: Mode = "online" if args.online else "auto"
     if args.out:
         with open(args.out, "w", encoding="utf-8", newline="") as handle:

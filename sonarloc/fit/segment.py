@@ -181,6 +181,9 @@ class Segmenter:
         self._gate_m = cfg.gate_us * self._m_per_us
         self._beam = math.radians(cfg.beam_half_width_deg)
         self._miss = math.radians(cfg.miss_half_width_deg)
+        # tan of the miss half-width plus a margin: beyond it, surely not within it
+        wide = self._miss + math.radians(0.5)
+        self._tan_miss_wide = math.tan(wide) if wide < math.radians(89.0) else math.inf
         self._miss_angle = math.radians(cfg.miss_angle_deg)
         self._arc = [self._beam * k / 3.0 for k in range(-3, 4)]
 
@@ -230,9 +233,16 @@ class Segmenter:
                 score = self._match(s, x, y, yaw, R)
                 if score < best_score:
                     best, best_score = s, score
-            miss = self._miss
+            miss, wide = self._miss, self._tan_miss_wide
+            cy, sy = math.cos(yaw), math.sin(yaw)
             for s in list(self._open):
                 if s is best:
+                    continue
+                # cheap test first: a landmark well off the axis is neither missed nor
+                # censored (the exact angle is only needed near the miss half-width)
+                dx, dy = s.arc[3][0] - x, s.arc[3][1] - y
+                along = dx * cy + dy * sy
+                if wide < math.inf and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
                 off = self._off_axis(s, x, y, yaw)
                 if off <= miss:
@@ -260,7 +270,13 @@ class Segmenter:
                 closed += self._start(row, R)
         else:
             st.no_echo += 1
+            wide = self._tan_miss_wide
+            cy, sy = math.cos(yaw), math.sin(yaw)
             for s in list(self._open):
+                dx, dy = s.arc[3][0] - x, s.arc[3][1] - y
+                along = dx * cy + dy * sy
+                if wide < math.inf and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
+                    continue
                 off = self._off_axis(s, x, y, yaw)
                 if off <= self._miss:
                     if sensor in s.sensors and s.trailing < self.config.censor_window:

@@ -7,6 +7,8 @@
 * :mod:`~sonarloc.localize.associate`: chi-square gated, ambiguity-rejecting association.
 * :mod:`~sonarloc.localize.localizer`: the :class:`Localizer` (thin state, message routing,
   delayed fits by rewind-and-replay, status).
+* :mod:`~sonarloc.localize.relocalize`: global relocalization from recent fits (when lost
+  or started without a prior).
 """
 
 from sonarloc.localize.associate import Association, AssociationConfig, associate
@@ -29,9 +31,11 @@ from sonarloc.localize.localizer import (
     LocalizerStats,
     PoseEstimate,
 )
+from sonarloc.localize.relocalize import Relocalization, RelocalizeConfig, Relocalizer
 
 __all__ = [
     "GATE_PROBABILITY", "Association", "AssociationConfig", "Feature", "FeatureMap",
     "FusionOutcome", "Gaussian", "Innovation", "Localizer", "LocalizerConfig", "LocalizerStats",
-    "Observation", "OdomNoise", "PoseEstimate", "associate", "chi2_gate", "predict", "update",
+    "Observation", "OdomNoise", "PoseEstimate", "Relocalization", "RelocalizeConfig",
+    "Relocalizer", "associate", "chi2_gate", "predict", "update",
 ]

@@ -118,13 +118,28 @@ class OfflinePipeline:
             if self._waiting and (final or len(self._waiting) >= self.batch_segments
                                   or t_odom - float(self._waiting[0].readings.t_s[0])
                                   >= self.max_wait_s):
-                self._landmarks += self._source.fit(self._waiting)
+                self._landmarks += self._source.fit(self._fittable(self._waiting))
                 self._waiting = []
             for s in self._waiting:
                 horizon = min(horizon, float(s.readings.t_s[0]))
         self._fuse(horizon)
         self.loc.trim_history()
         self._trim_track()
+
+    def _fittable(self, segs: list[Any]) -> list[Any]:
+        """The segments whose fit can be fused. One with fewer echoes than the fitter
+        needs (``FitConfig.min_echoes``) always ends ``too_few_points``: unless that
+        status is fused, it is counted as such without fitting it."""
+        assert self._source is not None
+        if "too_few_points" in self.loc.config.fit_statuses:
+            return segs
+        need = self._source.fit_config.min_echoes
+        keep = [s for s in segs if s.n_echo >= need]
+        n_skip = len(segs) - len(keep)
+        if n_skip:
+            self.loc.stats.landmarks += n_skip
+            self.loc.stats.skipped["fit_too_few_points"] += n_skip
+        return keep
 
     def _trim_track(self) -> None:
         # keep the odometry the readings still waiting may need (and one record before)
@@ -165,7 +180,8 @@ class OfflinePipeline:
             n = loc.config.segment_max_readings
             if n is None:
                 n = 400 if ready[0].pan_deg is not None else 8
-            self._source = SegmentFitSource(loc._c_mps, max_readings=n)
+            self._source = SegmentFitSource(loc._c_mps, max_readings=n,
+                                            min_echoes=loc.segment_min_echoes)
         t = np.array([r.t_s for r in ready])
         # odometry pose at each reading: linear between records, yaw the short way round
         tt, tr = np.array(self._track_t), np.array(self._track)
@@ -214,12 +230,11 @@ class OfflinePipeline:
             self._rows += part
             pos = upto
 
-        statuses = loc.config.fit_statuses
         now = [lm for lm in self._landmarks if lm.ref_t_s < horizon]
         self._landmarks = [lm for lm in self._landmarks if not lm.ref_t_s < horizon]
         now.sort(key=lambda lm: lm.ref_t_s)
         for lm in now:
-            if lm.status.value in statuses:
+            if loc.fuses(lm):
                 # the odometry up to the first record at or after the reference reading
                 j = int(np.searchsorted(pending_t, lm.ref_t_s, side="left"))
                 enter(min(j + 1, len(odom)))

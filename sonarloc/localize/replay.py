@@ -84,16 +84,22 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
     Raises
     ------
     LogFormatError
-        if an ``odom`` record comes before any prior (no ``init`` record, no ``init``).
+        if an ``odom`` record comes before any prior (no ``init`` record, no ``init``),
+        unless the Localizer relocalizes (``LocalizerConfig.relocalize``): then rows begin
+        at its first fix.
     """
     if mode not in ("auto", "batch", "online"):
         raise ValueError(f"`mode` must be 'auto', 'batch' or 'online', got {mode!r}")
     stats = LogStats()
     loc = localizer if localizer is not None else Localizer(fmap, config)
-    batchable = loc.config.method in ("kuc", "odometry") and loc._source_factory is None
+    # relocalization (LocalizerConfig.relocalize) runs record by record
+    batchable = loc.config.method in ("kuc", "odometry") and loc._source_factory is None \
+        and not loc.config.relocalize
     if mode == "batch" and not batchable:
         raise ValueError(f"`mode` 'batch' runs methods 'kuc' and 'odometry' with the default "
-                         f"landmark source, not {loc.config.method!r}")
+                         f"landmark source and without relocalization, not "
+                         f"{loc.config.method!r}" + (" with relocalize" if
+                                                      loc.config.relocalize else ""))
     pipe = OfflinePipeline(loc, on_estimate, batch_segments=batch_segments) \
         if mode != "online" and batchable else None
     rows = 0
@@ -108,7 +114,8 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
             if init is not None:
                 rec = InitRecord(rec.t_s, init[0], init[1], init[2], rec.sd_xy_m, rec.sd_yaw_deg)
             have_prior = True
-        elif isinstance(rec, OdomRecord) and not have_prior:
+        elif isinstance(rec, OdomRecord) and not have_prior and \
+                not (init is None and loc.config.relocalize):  # relocalizes from scratch
             if init is None:
                 raise LogFormatError(
                     f"the log has no `init` record before its first `odom` record (t_s="
