@@ -294,7 +294,7 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             reason = (f"occluded on both sides by nearer echoes (the arc's ends say nothing "
                       f"about this reflector) and the curve within does not fix its strength "
                       f"(kappa {local[j, 2]:.2f} +- {sd[j, 2]:.2f} us; a flat curve costs "
-                      f"{float(extra.get('curvature_dcost', math.nan)):.1f} in -2 log-"
+                      f"{float(extra.get('curvature_dcost', math.nan)):.1f} in -2 log-"  # type: ignore[arg-type]
                       f"likelihood, < {OCCLUDED_CURVATURE_DCOST:g} needed): strength and kind "
                       "(wall or pole) not determined")
         elif ("occluded" in meta[j] and sel.extra[j].get("kind_basis") == "strength"
