@@ -55,14 +55,23 @@ from sonarloc.io.logfile import (
     TofRecord,
     TruthRecord,
 )
-from sonarloc.localize import ekf
+from sonarloc.localize import echoes, ekf
 from sonarloc.localize.associate import Association, AssociationConfig, associate
+from sonarloc.localize.echoes import EchoObservation
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.relocalize import Relocalization, RelocalizeConfig, Relocalizer
 
 Array = NDArray[np.float64]
 Method = Literal["kuc", "conventional", "specular", "odometry"]
+
+#: Fit statuses whose segments are still associated and fused by their readings when
+#: ``kuc_fusion == "echoes"`` (the fit failed, the readings did not).
+ECHO_ONLY_STATUSES = ("ok", "flat", "too_few_points", "unresolved", "partial")
+#: A segment associated by its readings needs this many readings kept, and this share.
+ECHO_MIN_READINGS = 1
+ECHO_MIN_FRACTION = 0.75
+KucFusion = Literal["echoes", "fit"]
 Status = Literal["initializing", "tracking", "dead_reckoning", "lost"]
 
 
@@ -96,6 +105,15 @@ class LocalizerConfig:
     fit_sd_floor_m, fit_sd_floor_deg : added in quadrature to fitted landmarks'
         position/rho and bearing/alpha SDs (odometry error inside a segment, model error).
     fit_cov_scale : multiplies the fit covariance before the floor is added.
+    kuc_fusion : what the ``kuc`` method fuses once a fit is associated with a map
+        feature: ``"echoes"`` (default) the segment's readings themselves, each a time of
+        flight predicted by the forward model from the map feature and the pose
+        (:mod:`sonarloc.localize.echoes`; odometry error inside the segment enters their
+        covariance); ``"fit"`` the fitted landmark (point or line with the fit's
+        covariance and the floors below).
+    echo_gate_probability : chi-square gate (dof = readings kept) of the stacked update.
+    echo_screen_probability : per-reading chi-square(1) gate screening out readings of
+        another reflector before the stacked update.
     fit_statuses : fit statuses fused (``flat``: a wall seen near normal incidence over a
         short arc; its range is precise, its bearing SD large, as its covariance says).
     segment_max_readings : the segmenter closes (and the fitter fits) a segment after this
@@ -103,6 +121,9 @@ class LocalizerConfig:
         regular updates. None (default): 8 for fixed transducers, 400 (the segmenter's
         own limit) when the readings come with a pan angle: a panning transducer sweeps
         past its landmarks, and cutting a pass short leaves a partial U.
+    segment_min_echoes : segments with fewer echoes are dropped as spikes by the
+        segmenter. None (default): 1 with ``kuc_fusion="echoes"`` (a lone echo of a
+        feature is still a forward-model measurement), the segmenter's 3 otherwise.
     conventional_range_sd_m, conventional_bearing_sd_deg : the conventional model.
     max_range_m : readings (conventional) and candidates farther than this are ignored.
     lost_after_rejections : this many observations in a row rejected (no candidate,
@@ -127,7 +148,11 @@ class LocalizerConfig:
     fit_sd_floor_deg: float = 0.2
     fit_cov_scale: float = 1.0
     fit_statuses: tuple[str, ...] = ("ok", "flat")
+    kuc_fusion: KucFusion = "echoes"
+    echo_gate_probability: float = 0.99
+    echo_screen_probability: float = 0.999
     segment_max_readings: int | None = None
+    segment_min_echoes: int | None = None
     conventional_range_sd_m: float = 0.01
     conventional_bearing_sd_deg: float = 10.0
     max_range_m: float = 6.0
@@ -138,6 +163,12 @@ class LocalizerConfig:
     relocalization: RelocalizeConfig = field(default_factory=RelocalizeConfig)
 
     def __post_init__(self) -> None:
+        if self.kuc_fusion not in ("echoes", "fit"):
+            raise ValueError(f"`kuc_fusion` must be 'echoes' or 'fit', got {self.kuc_fusion!r}")
+        for name in ("echo_gate_probability", "echo_screen_probability"):
+            v = getattr(self, name)
+            if not 0.0 < v < 1.0:
+                raise ValueError(f"`{name}` must be in (0, 1), got {v!r}")
         if self.method not in ("kuc", "conventional", "specular", "odometry"):
             raise ValueError(f"`method` must be 'kuc', 'conventional', 'specular' or "
                              f"'odometry', got {self.method!r}")
@@ -195,6 +226,7 @@ class LocalizerStats:
     landmarks: int = 0
     observations: int = 0
     accepted: int = 0
+    echoes_fused: int = 0
     outcomes: Counter[str] = field(default_factory=Counter)
     skipped: Counter[str] = field(default_factory=Counter)
     replayed_steps: int = 0
@@ -205,7 +237,11 @@ class LocalizerStats:
                  f"{self.accepted} fused"]
         if self.landmarks:
             parts.insert(2, f"{self.landmarks} landmarks fitted")
-        rej = {k: v for k, v in self.outcomes.items() if k != "matched"}
+        if self.echoes_fused:
+            parts.append(f"{self.echoes_fused} readings fused")
+        if self.outcomes.get("echo_matched"):
+            parts.append(f"{self.outcomes['echo_matched']} associated by their readings")
+        rej = {k: v for k, v in self.outcomes.items() if k not in ("matched", "echo_matched")}
         if rej:
             parts.append("rejected: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())))
         if self.skipped:
@@ -224,7 +260,7 @@ class _Entry:
     t: float
     odom: Array
     state: Gaussian
-    obs: Observation | None = None
+    obs: Observation | EchoObservation | None = None
     feature: Feature | None = None
 
 
@@ -245,11 +281,15 @@ class SegmentFitSource:
     or the oldest has waited ``max_wait_s`` of stream time; the Localizer fuses the
     delayed fits at their reference times anyway. Each landmark gets
     ``extra["view_xy"]``: the mean transducer position of its echoes (in the frame of
-    the poses), the direction a cylinder's fitted surface point faces.
+    the poses), the direction a cylinder's fitted surface point faces; and
+    ``extra["echoes"]``: the segment's echoes as arrays ``(t_s, x_m, y_m, yaw_rad,
+    tof_us)`` (transducer poses in that frame) for the Localizer's reading-level fusion.
 
     ``max_readings``: segment length limit; None lets the :class:`Localizer` choose at
     the first reading (8 for fixed transducers, 400 for a panning one), or 400 when used
-    on its own.
+    on its own. ``min_echoes``: shorter segments are dropped by the segmenter as spikes;
+    None lets the Localizer choose (1 with reading-level fusion, whose forward model
+    can use a lone echo, else the segmenter's default).
 
     ``on_fit(segment, landmark)``: optional callback for every fitted segment (e.g. to
     keep the readings behind a figure), called in stream order.
@@ -257,12 +297,14 @@ class SegmentFitSource:
 
     def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 4,
                  max_wait_s: float = 0.25, max_readings: int | None = None,
-                 on_fit: Callable[[Any, Landmark], None] | None = None) -> None:
+                 on_fit: Callable[[Any, Landmark], None] | None = None,
+                 min_echoes: int | None = None) -> None:
         from sonarloc.fit.lsq import FitConfig
         from sonarloc.physics.tof import ModuleParams
 
         self.fit_config = FitConfig(module=ModuleParams(c_mps=speed_of_sound_mps))
         self.max_readings = max_readings
+        self.min_echoes = min_echoes
         self._segmenter: Any = None
         self.batch = batch
         self.max_wait_s = max_wait_s
@@ -275,8 +317,11 @@ class SegmentFitSource:
         if self._segmenter is None:
             from sonarloc.fit.segment import Segmenter, SegmenterConfig
 
-            cfg = SegmenterConfig() if self.max_readings is None else \
-                SegmenterConfig(max_readings=self.max_readings)
+            cfg = SegmenterConfig()
+            if self.max_readings is not None:
+                cfg = replace(cfg, max_readings=self.max_readings)
+            if self.min_echoes is not None:
+                cfg = replace(cfg, min_echoes=self.min_echoes)
             self._segmenter = Segmenter(cfg, self.fit_config.module)
         return self._segmenter
 
@@ -311,11 +356,25 @@ class SegmentFitSource:
             echo = np.isfinite(r.tof_us)
             if echo.any():
                 view = (float(np.mean(r.x_m[echo])), float(np.mean(r.y_m[echo])))
-                lm = replace(lm, extra={**lm.extra, "view_xy": view})
+                readings = tuple(np.asarray(a, dtype=float)[echo] for a in
+                                 (r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us))
+                lm = replace(lm, extra={**lm.extra, "view_xy": view, "echoes": readings})
             if self.on_fit is not None:
                 self.on_fit(s, lm)
             out.append(lm)
         return out
+
+
+def _echo_arrays(lm: Landmark) -> tuple[Array, ...] | None:
+    """``lm.extra["echoes"]`` as five equal-length float arrays (t, x, y, yaw, tof), or
+    None when absent or malformed."""
+    raw = lm.extra.get("echoes")
+    if not isinstance(raw, tuple) or len(raw) != 5:
+        return None
+    arrays = tuple(np.asarray(a, dtype=float).reshape(-1) for a in raw)
+    if len({a.size for a in arrays}) != 1 or arrays[0].size == 0:
+        return None
+    return arrays
 
 
 class Localizer:
@@ -529,9 +588,16 @@ class Localizer:
             self._drain_pending(self._last_odom_t)
 
     def add_landmark(self, lm: Landmark) -> FusionOutcome:
-        """Fuse a fitted landmark (in ``odom``; refers to the pose at ``lm.ref_t_s``)."""
+        """Fuse a fitted landmark (in ``odom``; refers to the pose at ``lm.ref_t_s``).
+
+        With ``kuc_fusion="echoes"`` and the segment's readings attached, the readings are
+        fused instead (:meth:`_add_echoes`); then a segment whose fit is unusable (too few
+        points, unresolved, partial) or does not associate is associated by its readings.
+        """
         self.stats.landmarks += 1
-        if lm.status.value not in self.config.fit_statuses:
+        reading_level = self.config.kuc_fusion == "echoes" and "echoes" in lm.extra
+        usable = lm.status.value in self.config.fit_statuses
+        if not self.fuses(lm):
             self.stats.skipped[f"fit_{lm.status.value}"] += 1
             return FusionOutcome(lm.ref_t_s, None, False, f"fit status {lm.status.value}")
         if not self._entries:
@@ -541,11 +607,170 @@ class Localizer:
             self._reloc.add(lm)
             if self._unknown:
                 return FusionOutcome(lm.ref_t_s, None, False, "relocalizing")
-        obs = self._landmark_observation(lm)
+        obs = self._landmark_observation(lm) if usable else None
+        if reading_level:
+            return self._add_echoes(lm, obs)
         if obs is None:
             self.stats.skipped["landmark_bad"] += 1
             return FusionOutcome(lm.ref_t_s, None, False, "landmark not usable")
         return self.add_observation(obs, lm.ref_t_s)
+
+    def fuses(self, lm: Landmark) -> bool:
+        """Whether :meth:`add_landmark` tries to fuse ``lm`` (by its fit status, and with
+        reading-level fusion whether its readings are attached)."""
+        if lm.status.value in self.config.fit_statuses:
+            return True
+        return (self.config.kuc_fusion == "echoes" and "echoes" in lm.extra
+                and lm.status.value in ECHO_ONLY_STATUSES)
+
+    @property
+    def segment_min_echoes(self) -> int | None:
+        """The segmenter's ``min_echoes`` for this Localizer's landmark source (None: the
+        segmenter's default): ``config.segment_min_echoes``, else 1 with reading-level
+        fusion."""
+        c = self.config
+        if c.segment_min_echoes is not None:
+            return c.segment_min_echoes
+        return 1 if c.kuc_fusion == "echoes" else None
+
+    def _add_echoes(self, lm: Landmark, obs: Observation | None) -> FusionOutcome:
+        """Associate a segment (by its fit, else by its readings), then fuse its readings
+        through the forward model (:mod:`sonarloc.localize.echoes`)."""
+        self.stats.observations += 1
+        arrays = _echo_arrays(lm)
+        if arrays is None:
+            self.stats.outcomes["echo_none"] += 1
+            return FusionOutcome(lm.ref_t_s, None, False, "no readings attached")
+        t_echo = arrays[0]
+        t_ref = float(lm.ref_t_s) if math.isfinite(lm.ref_t_s) else float(np.max(t_echo))
+        i = bisect.bisect_right(self._times, t_ref)
+        if i == 0 or t_ref < self._times[-1] - self.config.history_s:
+            self.stats.outcomes["too_old"] += 1
+            return FusionOutcome(t_ref, None, False, "older than the history")
+        base = self._entries[i - 1]
+        odom_ref = self._odom_at(t_ref, i)
+        state_ref = ekf.predict(base.state, se2.between(base.odom, odom_ref),
+                                self.config.odom_noise)
+        chain = self._echo_chain(arrays, t_ref, odom_ref)
+        if chain is None:
+            self.stats.outcomes["echo_none"] += 1
+            return FusionOutcome(t_ref, None, False, "no reading inside the history")
+        assoc: Association | None = None
+        eo: EchoObservation | None = None
+        if obs is not None:
+            assoc = associate(state_ref, obs, self.fmap, self.config.association)
+            self.stats.outcomes[assoc.status] += 1
+            if assoc.matched and assoc.feature is not None:
+                eo = self._echo_for(chain, assoc.kind, assoc.index, lm, state_ref)
+                if eo is None:
+                    self.stats.outcomes["echo_outliers"] += 1
+        if eo is None:
+            found = self._associate_echoes(chain, lm, state_ref)
+            if found is None:
+                self._rejected(t_ref)
+                self.stats.outcomes["echo_unmatched"] += 1
+                return FusionOutcome(t_ref, assoc, False, "readings match no map feature")
+            eo, assoc = found
+            self.stats.outcomes["echo_matched"] += 1
+        assert assoc is not None
+        gate = ekf.chi2_gate(len(eo), self.config.echo_gate_probability)
+        new_state, innov = echoes.update(state_ref, eo, gate)
+        if not bool(np.all(innov.accepted)):
+            self.stats.outcomes["echo_gated"] += 1
+            self._rejected(t_ref)
+            return FusionOutcome(t_ref, assoc, False, "readings outside the gate")
+        self.stats.echoes_fused += len(eo)
+        return self._insert_fused(i, base, t_ref, odom_ref, new_state, eo, eo.feature, assoc)
+
+    def _echo_chain(self, arrays: tuple[Array, ...], t_ref: float, odom_ref: Array
+                    ) -> tuple[Array, Array, Array, Array, Array] | None:
+        """(t, ranges c·Tm/2, rel, p_fac, v_fac) of a segment's echoes inside the history."""
+        t, x, y, yaw, tof = arrays
+        keep = (t >= self._times[0]) & (t <= t_ref + 1e-9) & np.isfinite(tof)
+        if not keep.any():
+            return None
+        order = np.argsort(t[keep], kind="stable")
+        t, x, y, yaw, tof = (a[keep][order] for a in (t, x, y, yaw, tof))
+        base_at = np.array([self._odom_at(float(tk), max(bisect.bisect_right(self._times,
+                                                                             float(tk)), 1))
+                            for tk in t])
+        rel, p_fac, v_fac = echoes.relative_sensor_chain(
+            odom_ref, base_at, np.stack([x, y, yaw], axis=-1), self.config.odom_noise)
+        return t, 0.5e-6 * self._c_mps * tof, rel, p_fac, v_fac
+
+    def _echo_for(self, chain: tuple[Array, Array, Array, Array, Array],
+                  kind: str | None, index: int, lm: Landmark, state: Gaussian
+                  ) -> EchoObservation | None:
+        """The chain's readings of map feature (kind, index), screened one by one against
+        ``state``; None when none is left."""
+        t, z, rel, p_fac, v_fac = chain
+        if kind == "point":
+            feat = self.fmap.point(index)
+            kap = float(self.fmap.point_kappa_us[index])
+        else:
+            feat = self.fmap.wall(index)
+            kap = float(self.fmap.wall_kappa_us[index])
+        if not (math.isfinite(kap) and kap > 0):
+            fitted = float(lm.params[2]) if np.asarray(lm.params).shape == (3,) else math.nan
+            kap = min(max(fitted, 0.05), 10.0) if math.isfinite(fitted) else 1.0
+        eo = EchoObservation(z, rel, p_fac, v_fac, kap, feat, float(t[-1]), self._c_mps)
+        eo.linearize(state.mean)
+        eo = eo.subset(echoes.screen(state, eo, self.config.echo_screen_probability))
+        return eo if len(eo) else None
+
+    def _associate_echoes(self, chain: tuple[Array, Array, Array, Array, Array],
+                          lm: Landmark, state: Gaussian
+                          ) -> tuple[EchoObservation, Association] | None:
+        """Which map feature explains a segment's readings (those the fit could not
+        associate): each candidate's readings screened, the stacked squared Mahalanobis
+        distance gated; a match needs most readings and no close second."""
+        _, z, rel, _, _ = chain
+        n = len(z)
+        need = max(ECHO_MIN_READINGS, math.ceil(ECHO_MIN_FRACTION * n))
+        if n < need:
+            return None
+        sensor_xy = se2.transform_points(state.mean, rel[-1, :2])
+        cands: list[tuple[str, int]] = []
+        cfg = self.config.association
+        cands += [("point", int(k)) for k in np.flatnonzero(
+            self.fmap.points_visible_from(sensor_xy, cfg.max_range_m))]
+        cands += [("wall", int(k)) for k in np.flatnonzero(
+            self.fmap.walls_facing(sensor_xy, cfg.wall_margin_m, cfg.max_range_m))]
+        scored: list[tuple[int, float, float, EchoObservation, str, int]] = []
+        zmed = float(np.median(z))
+        sd_xy = math.sqrt(max(state.cov[0, 0] + state.cov[1, 1], 0.0))
+        for kind, k in cands:
+            feat = self.fmap.point(k) if kind == "point" else self.fmap.wall(k)
+            rng, _, _, _ = echoes.geometry(state.mean, rel, feat)
+            if abs(float(np.median(rng)) - zmed) > 0.05 + 4 * sd_xy:
+                continue
+            eo = self._echo_for(chain, kind, k, lm, state)
+            if eo is None or len(eo) < need:
+                continue
+            h, hx, r = eo.measure(state.mean)
+            nu = eo.z_m - h
+            s = hx @ state.cov @ hx.T + r
+            try:
+                d2 = float(nu @ np.linalg.solve(s, nu))
+                logdet = float(np.linalg.slogdet(s)[1])
+            except np.linalg.LinAlgError:
+                continue
+            if not d2 <= ekf.chi2_gate(len(eo), self.config.echo_gate_probability):
+                continue
+            scored.append((len(eo), d2, logdet, eo, kind, k))
+        if not scored:
+            return None
+        most = max(sc[0] for sc in scored)
+        top = [sc for sc in scored if sc[0] == most]
+        ll = np.array([-0.5 * sc[1] - 0.5 * sc[2] for sc in top])
+        b = int(np.argmax(ll))
+        share = float(1.0 / np.sum(np.exp(ll - ll[b])))
+        if share < cfg.min_match_probability:
+            return None
+        _, d2, _, eo, kind, k = top[b]
+        feat = eo.feature
+        return eo, Association("matched", "point" if kind == "point" else "wall", k, feat, d2,
+                               len(eo), math.nan, len(top), share)
 
     def add_observation(self, obs: Observation, t_ref: float) -> FusionOutcome:
         """Associate and fuse an observation of the pose at ``t_ref`` (rewinding if needed)."""
@@ -568,7 +793,14 @@ class Localizer:
             self.stats.outcomes["singular"] += 1
             self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, "singular")
-        entry = _Entry(max(t_ref, base.t), odom_ref, new_state, obs, assoc.feature)
+        return self._insert_fused(i, base, t_ref, odom_ref, new_state, obs, assoc.feature,
+                                  assoc)
+
+    def _insert_fused(self, i: int, base: _Entry, t_ref: float, odom_ref: Array,
+                      new_state: Gaussian, obs: Observation | EchoObservation,
+                      feature: Feature, assoc: Association) -> FusionOutcome:
+        """Insert a fused belief into the history at ``i`` and replay what follows."""
+        entry = _Entry(max(t_ref, base.t), odom_ref, new_state, obs, feature)
         self._entries.insert(i, entry)
         self._times.insert(i, entry.t)
         self._replay(i + 1)
@@ -670,7 +902,9 @@ class Localizer:
         for j in range(start, len(self._entries)):
             prev, e = self._entries[j - 1], self._entries[j]
             state = ekf.predict(prev.state, se2.between(prev.odom, e.odom), noise)
-            if e.obs is not None and e.feature is not None:
+            if isinstance(e.obs, EchoObservation):
+                state, _ = echoes.update(state, e.obs)
+            elif e.obs is not None and e.feature is not None:
                 state, _ = ekf.update(state, e.obs, e.feature, gate_probability=None)
             e.state = state
             self.stats.replayed_steps += 1
@@ -723,8 +957,12 @@ class Localizer:
                 if isinstance(self._source, SegmentFitSource) and \
                         self._source.max_readings is None:
                     self._source.max_readings = n
+                if isinstance(self._source, SegmentFitSource) and \
+                        self._source.min_echoes is None:
+                    self._source.min_echoes = self.segment_min_echoes
             else:
-                self._source = SegmentFitSource(self._c_mps, max_readings=n)
+                self._source = SegmentFitSource(self._c_mps, max_readings=n,
+                                                min_echoes=self.segment_min_echoes)
         bx, by, bth = (float(v) for v in base)
         mx, my, mth = (float(v) for v in mount)
         c, s = math.cos(bth), math.sin(bth)

@@ -165,7 +165,8 @@ class OfflinePipeline:
             n = loc.config.segment_max_readings
             if n is None:
                 n = 400 if ready[0].pan_deg is not None else 8
-            self._source = SegmentFitSource(loc._c_mps, max_readings=n)
+            self._source = SegmentFitSource(loc._c_mps, max_readings=n,
+                                            min_echoes=loc.segment_min_echoes)
         t = np.array([r.t_s for r in ready])
         # odometry pose at each reading: linear between records, yaw the short way round
         tt, tr = np.array(self._track_t), np.array(self._track)
@@ -214,12 +215,11 @@ class OfflinePipeline:
             self._rows += part
             pos = upto
 
-        statuses = loc.config.fit_statuses
         now = [lm for lm in self._landmarks if lm.ref_t_s < horizon]
         self._landmarks = [lm for lm in self._landmarks if not lm.ref_t_s < horizon]
         now.sort(key=lambda lm: lm.ref_t_s)
         for lm in now:
-            if lm.status.value in statuses:
+            if loc.fuses(lm):
                 # the odometry up to the first record at or after the reference reading
                 j = int(np.searchsorted(pending_t, lm.ref_t_s, side="left"))
                 enter(min(j + 1, len(odom)))

@@ -184,7 +184,9 @@ def test_buffers_stay_bounded(ring_log, fmap):
     pipe.finish()
     assert pipe.rows == loc.stats.odom
     assert worst < 120  # ~ a few seconds of odometry at 20 Hz
-    assert loc.history_len < 400
+    # history_s = 10 s: 200 odom entries plus the fused segments (reading-level fusion
+    # fuses some 25 a second, lone echoes included), plus the trim's slack of 64
+    assert loc.history_len < 800
 
 
 _t = st.floats(-5, 60, allow_nan=False)

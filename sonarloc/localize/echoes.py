@@ -1,0 +1,269 @@
+"""Every reading of a fitted segment as a measurement: Kuc's forward model in the filter.
+
+A fitted landmark summarises a segment's readings in the ``odom`` frame, so odometry
+error inside the segment distorts it, and its (range, bearing) is only as good as the
+fit. Once the fit has told *which* map feature the segment saw (data association), the
+readings themselves can be fused: each one is a time of flight predicted from the map
+feature and the robot pose by the forward model
+
+    Tm_i = 2 r_i / c + delay(theta_i, kappa) + count bias,
+
+``r_i`` the range from the transducer to the reflecting point (a wall's normal-incidence
+point, a pole's surface), ``theta_i`` that point's angle off the transducer axis and
+``delay`` the threshold delay of the ranging module (eq. 3, kappa·exp(theta²/2 sigma²),
+with the piston pattern and waveform effects of :func:`sonarloc.physics.tiers.
+delay_moments_us` where they matter). A conventional sonar filter takes ``c Tm / 2`` for
+the range and is biased by the delay (millimetres off axis); here it is predicted, and
+its derivative in ``theta`` carries bearing information.
+
+All readings of a segment form one stacked update relative to ``base_link`` at the
+segment's reference time. The transducer poses relative to that reference come from
+odometry; their errors (the odometry increments' noise between each reading and the
+reference, correlated because the increments nest) enter the measurement covariance
+through the model's sensitivity to the transducer pose::
+
+    R = diag(sd_i²) + G Σ_s Gᵀ
+
+``sd_i``: timing jitter, the delay's spread (amplitude fluctuation) and counting;
+``Σ_s``: the joint covariance of the relative transducer poses, stored in factored form
+(``cov(s_i, s_j) = P_i V_j`` for readings i no later than j), so a 400-reading pan
+segment costs O(n²) scalars, not O(n²) 3×3 blocks.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from sonarloc import se2
+from sonarloc.localize import ekf
+from sonarloc.localize.ekf import Feature, Gaussian, Innovation, OdomNoise
+from sonarloc.physics.tiers import Tier, delay_moments_us
+from sonarloc.physics.tof import ModuleParams
+
+Array = NDArray[np.float64]
+
+#: Step of the central difference of the delay model in theta [rad].
+_DTHETA_RAD = math.radians(0.05)
+
+
+@functools.lru_cache(maxsize=8)
+def _module(c_mps: float) -> ModuleParams:
+    return ModuleParams(c_mps=c_mps)
+
+
+def delay_model(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float = 343.0
+                ) -> tuple[Array, Array, Array, Array]:
+    """Mean threshold delay, its slope in theta, its SD and the detection probability.
+
+    Parameters
+    ----------
+    theta_rad : (n,) off-axis angle of the reflecting point [rad].
+    kappa_us : (n,) reflector strength [us].
+    c_mps : speed of sound (selects the module parameters).
+
+    Returns
+    -------
+    mean_us, slope_us_per_rad, sd_us, p_detect : (n,) each; NaN where no echo is
+        expected (beyond the detection arc).
+    """
+    th = np.asarray(theta_rad, dtype=float)
+    kap = np.broadcast_to(np.asarray(kappa_us, dtype=float), th.shape)
+    params = _module(float(c_mps))
+    grid = np.stack([th - _DTHETA_RAD, th, th + _DTHETA_RAD])
+    m = delay_moments_us(grid, np.broadcast_to(kap, grid.shape), Tier.AUTO, params, 41)
+    slope = (m.mean_us[2] - m.mean_us[0]) / (2 * _DTHETA_RAD)
+    return m.mean_us[1], slope, m.sd_us[1], m.p_detect[1]
+
+
+def reading_sd_us(delay_sd_us: ArrayLike, c_mps: float = 343.0) -> Array:
+    """SD of a reading around its predicted mean: jitter, delay spread and counting."""
+    p = _module(float(c_mps))
+    return np.sqrt(p.jitter_sd_us**2 + np.asarray(delay_sd_us, dtype=float) ** 2
+                   + p.count_period_us**2 / 12.0)
+
+
+def relative_sensor_chain(base_ref: ArrayLike, base_at: ArrayLike, sensor_at: ArrayLike,
+                          noise: OdomNoise) -> tuple[Array, Array, Array]:
+    """Transducer poses relative to ``base_link`` at the reference time, with the
+    factored joint covariance of their odometry errors.
+
+    Parameters
+    ----------
+    base_ref : (3,) odometry pose of ``base_link`` at the reference time.
+    base_at : (n, 3) odometry poses of ``base_link`` at the readings' times, in time
+        order, none after the reference.
+    sensor_at : (n, 3) odometry poses of the transducers at those times.
+    noise : odometry increment noise model.
+
+    Returns
+    -------
+    rel : (n, 3) transducer poses in ``base_link`` at the reference time.
+    p_fac, v_fac : (n, 3, 3) with ``cov(err s_i, err s_j) = p_fac[i] @ v_fac[j]`` for
+        i <= j (reading i no later than reading j).
+    """
+    ref = np.asarray(base_ref, dtype=float)
+    base = np.asarray(base_at, dtype=float).reshape(-1, 3)
+    sens = np.asarray(sensor_at, dtype=float).reshape(-1, 3)
+    n = len(base)
+    b = se2.between(ref, base)                      # base at t_i in base at ref
+    rel = se2.between(ref, sens)                    # transducer at t_i in base at ref
+    mount = se2.between(base, sens)                 # transducer in base_link at t_i
+    # chain backwards from the reference: b_i = b_{i+1} ⊕ u_i, u_i = between(base_{i+1}, base_i)
+    nxt = np.vstack([base[1:], ref[None, :]])
+    u = se2.between(nxt, base)
+    q = noise.cov(u)
+    b_next = np.vstack([b[1:], np.zeros((1, 3))])
+    j1, j2 = se2.compose_jacobians(b_next, u)
+    sigma = np.zeros((n, 3, 3))
+    a_mat = np.zeros((n, 3, 3))
+    s_next = np.zeros((3, 3))
+    a_next = np.eye(3)
+    for i in range(n - 1, -1, -1):
+        s_i = j1[i] @ s_next @ j1[i].T + j2[i] @ q[i] @ j2[i].T
+        a_i = j1[i] @ a_next
+        sigma[i], a_mat[i] = 0.5 * (s_i + s_i.T), a_i
+        s_next, a_next = sigma[i], a_i
+    k, _ = se2.compose_jacobians(b, mount)          # d s_i / d b_i
+    p_fac = k @ a_mat
+    v_fac = np.linalg.solve(a_mat, sigma) @ np.swapaxes(k, -1, -2)
+    return rel, p_fac, v_fac
+
+
+def geometry(pose: Array, rel: Array, feature: Feature) -> tuple[Array, Array, Array, Array]:
+    """Range, off-axis angle and their derivatives wrt the transducer pose in map.
+
+    Returns range (n,), theta (n,), d range / d (x, y, psi) (n, 3), d theta / d (...)
+    (n, 3), and the transducer poses in map ``(n, 3)`` via the caller.
+    """
+    t = se2.compose(pose, rel)
+    px, py, psi = t[:, 0], t[:, 1], t[:, 2]
+    n = len(t)
+    dr = np.zeros((n, 3))
+    dth = np.zeros((n, 3))
+    if feature.kind == "point":
+        c = np.asarray(feature.params, dtype=float)
+        dx, dy = c[0] - px, c[1] - py
+        dist2 = np.maximum(dx * dx + dy * dy, 1e-18)
+        dist = np.sqrt(dist2)
+        rng = dist - float(np.asarray(feature.radius_m))
+        theta = se2.wrap_angle(np.arctan2(dy, dx) - psi)
+        dr[:, 0], dr[:, 1] = -dx / dist, -dy / dist
+        dth[:, 0], dth[:, 1] = dy / dist2, -dx / dist2
+    else:
+        rho, alpha = (float(v) for v in np.asarray(feature.params, dtype=float))
+        ca, sa = math.cos(alpha), math.sin(alpha)
+        signed = rho - px * ca - py * sa
+        sign = np.where(signed < 0, -1.0, 1.0)
+        rng = np.abs(signed)
+        direction = alpha + np.where(signed < 0, math.pi, 0.0)
+        theta = se2.wrap_angle(direction - psi)
+        dr[:, 0], dr[:, 1] = -sign * ca, -sign * sa
+    dth[:, 2] = -1.0
+    return rng, theta, dr, dth
+
+
+@dataclass
+class EchoObservation:
+    """A segment's readings of one map feature, relative to ``base_link`` at ``t_s``.
+
+    Attributes
+    ----------
+    z_m : (n,) readings as ranges ``c Tm / 2`` [m].
+    rel : (n, 3) transducer poses in ``base_link`` at the reference time (odometry).
+    p_fac, v_fac : (n, 3, 3) factored covariance of ``rel``'s errors
+        (:func:`relative_sensor_chain`).
+    kappa_us : strength used in the delay model (the map feature's, else the fit's).
+    feature : the associated map feature.
+    t_s : reference time.
+    c_mps : speed of sound.
+    lin_theta, lin_mean, lin_slope, lin_sd : (n,) the delay model linearised at the
+        first evaluation (off-axis angle [rad], mean [us], slope [us/rad], SD [us]);
+        re-used when the update is replayed on a slightly different belief.
+    """
+
+    z_m: Array
+    rel: Array
+    p_fac: Array
+    v_fac: Array
+    kappa_us: float
+    feature: Feature
+    t_s: float
+    c_mps: float = 343.0
+    lin_theta: Array | None = None
+    lin_mean: Array | None = None
+    lin_slope: Array | None = None
+    lin_sd: Array | None = None
+
+    def __len__(self) -> int:
+        return len(self.z_m)
+
+    def subset(self, keep: NDArray[np.bool_]) -> EchoObservation:
+        """The observation restricted to readings ``keep`` (n,) (linearisation kept)."""
+        def sel(a: Array | None) -> Array | None:
+            return None if a is None else a[keep]
+        return EchoObservation(self.z_m[keep], self.rel[keep], self.p_fac[keep],
+                               self.v_fac[keep], self.kappa_us, self.feature, self.t_s,
+                               self.c_mps, sel(self.lin_theta), sel(self.lin_mean),
+                               sel(self.lin_slope), sel(self.lin_sd))
+
+    def linearize(self, pose: ArrayLike) -> EchoObservation:
+        """Evaluate the delay model at the off-axis angles seen from ``pose`` (3,)."""
+        _, theta, _, _ = geometry(np.asarray(pose, dtype=float), self.rel, self.feature)
+        mean, slope, sd, _ = delay_model(theta, self.kappa_us, self.c_mps)
+        self.lin_theta, self.lin_mean, self.lin_slope, self.lin_sd = theta, mean, slope, sd
+        return self
+
+    def measure(self, pose: ArrayLike) -> tuple[Array, Array, Array]:
+        """Predicted ranges (n,), Jacobian wrt the pose H (n, 3) and covariance R (n, n).
+
+        The delay model is taken from the stored linearisation (see :meth:`linearize`).
+        """
+        if self.lin_theta is None or self.lin_mean is None or self.lin_slope is None \
+                or self.lin_sd is None:
+            self.linearize(pose)
+        assert self.lin_theta is not None and self.lin_mean is not None
+        assert self.lin_slope is not None and self.lin_sd is not None
+        x = np.asarray(pose, dtype=float)
+        rng, theta, dr, dth = geometry(x, self.rel, self.feature)
+        us_to_m = 0.5e-6 * self.c_mps
+        bias_us = 0.5 * _module(float(self.c_mps)).count_period_us
+        dtheta = se2.wrap_angle(theta - self.lin_theta)
+        delay = self.lin_mean + self.lin_slope * dtheta
+        h = rng + us_to_m * (delay + bias_us)
+        dh_dt = dr + (us_to_m * self.lin_slope)[:, None] * dth   # wrt transducer pose in map
+        # transducer pose in map T = x ⊕ rel: dT/dx, dT/drel
+        jx, jrel = se2.compose_jacobians(x, self.rel)
+        hx = np.einsum("ni,nij->nj", dh_dt, jx)
+        g = np.einsum("ni,nij->nj", dh_dt, jrel)
+        sd_m = us_to_m * reading_sd_us(self.lin_sd, self.c_mps)
+        gp = np.einsum("ni,nij->nj", g, self.p_fac)
+        gv = np.einsum("nij,nj->ni", self.v_fac, g)
+        m = gp @ gv.T                       # m[i, j] = g_i P_i V_j g_j (valid for i <= j)
+        upper = np.triu(m)
+        r = upper + np.triu(m, 1).T + np.diag(sd_m**2)
+        return h, hx, ekf.symmetrize(r)
+
+
+def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
+           ) -> tuple[Gaussian, Innovation]:
+    """Stacked Kalman update of an unbatched belief with a segment's readings."""
+    h, hx, r = obs.measure(state.mean)
+    nu = obs.z_m - h
+    return ekf.kalman_update(state, nu, hx, r, gate)
+
+
+def screen(state: Gaussian, obs: EchoObservation, probability: float = 0.999
+           ) -> NDArray[np.bool_]:
+    """(n,) readings consistent one by one with the belief: finite model, detectable
+    angle, and ``nu_i² / S_ii`` inside the chi-square(1) gate of ``probability``."""
+    h, hx, r = obs.measure(state.mean)
+    nu = obs.z_m - h
+    s = np.einsum("ni,ij,nj->n", hx, state.cov, hx) + np.diag(r)
+    ok = np.isfinite(nu) & np.isfinite(s) & (s > 0)
+    d2 = np.where(ok, nu**2 / np.where(ok, s, 1.0), np.inf)
+    return np.asarray(ok & (d2 <= ekf.chi2_gate(1, probability)))
