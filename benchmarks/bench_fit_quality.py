@@ -91,6 +91,60 @@ def close_pair(seps_deg: Sequence[float], n_trials: int, rng: np.random.Generato
     return rows
 
 
+TIER_CASES = (("plane", 0.15, 1.5), ("pole", 0.67, 1.5), ("rod", 2.68, 1.5),
+              ("pole, 3 m", 0.67, 3.0), ("rod, 3 m", 2.68, 3.0))
+
+
+def tier_bias(n_trials: int, seed: int, data_tier: str, old_rule: bool
+              ) -> list[dict[str, float | str]]:
+    """Kappa bias of single reflectors in 0.3 deg pans of ``data_tier`` data; with
+    ``old_rule`` the selection of before 2026-11-21 (waveform had to beat gauss by 4 after
+    a score pre-screen at z > 1.5, refined from the Gaussian fit only)."""
+    from sonarloc.fit import select as S
+    saved = (S.WAVEFORM_THRESHOLD, S.WAVEFORM_SCORE_Z, S._rebracket)
+    if old_rule:
+        S.WAVEFORM_THRESHOLD, S.WAVEFORM_SCORE_Z = S.TIER_THRESHOLD, S.SCORE_Z
+        S._rebracket = lambda batch, idx, alt, bar, cfg: alt  # type: ignore[assignment]
+    rows: list[dict[str, float | str]] = []
+    try:
+        rng = np.random.default_rng(seed)
+        for name, kappa, r in TIER_CASES:
+            ks, wave, b_err = [], 0, []
+            t0 = time.process_time()
+            for _ in range(n_trials):
+                b = rng.uniform(-10, 10)
+                lms = fit_scan(pan_scan([Reflector.polar(r, b, kappa)], rng, -40, 40, 0.3,
+                                        tier=data_tier)).landmarks
+                lm = max(lms, key=lambda x: x.n_readings)
+                ks.append(lm.kappa_us)
+                wave += lm.tier == "waveform"
+                b_err.append(_bearing_err_deg(lm, b))
+            k = np.array(ks)
+            rows.append(dict(case=name, kappa=kappa, bias=float(k.mean() / kappa - 1),
+                             median=float(np.median(k) / kappa - 1),
+                             worst=float(k.max() / kappa - 1), waveform=wave / n_trials,
+                             bearing=float(np.sqrt(np.mean(np.square(b_err)))),
+                             ms=1e3 * (time.process_time() - t0) / n_trials))
+    finally:
+        S.WAVEFORM_THRESHOLD, S.WAVEFORM_SCORE_Z, S._rebracket = saved
+    return rows
+
+
+def tier_table(before: list[dict[str, float | str]], after: list[dict[str, float | str]]
+               ) -> list[str]:
+    out = ["| data | reflector | kappa (us) | mean bias before | after | median before | after "
+           "| worst before | after | waveform chosen before | after | bearing RMSE after (deg) "
+           "| CPU per scan before / after (ms) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for b, a in zip(before, after, strict=True):
+        out.append(f"| {a['data']} | {a['case']} | {a['kappa']} | {b['bias']:+.1%} | "
+                   f"{a['bias']:+.1%} | {b['median']:+.1%} | {a['median']:+.1%} | "
+                   f"{b['worst']:+.0%} | {a['worst']:+.0%} | {b['waveform']:.0%} | "
+                   f"{a['waveform']:.0%} | {float(a['bearing']):.3f} | "
+                   f"{float(b['ms']):.0f} / {float(a['ms']):.0f} |")
+    return out
+
+
 def _fmt(v: float, nd: int = 2) -> str:
     return "-" if not math.isfinite(v) else f"{v:.{nd}f}"
 
@@ -124,6 +178,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         lines += ["## Two poles close together (kappa 0.67 us, 1.5 m, 0.5 mm apart in range; "
                   "0.3 deg pan, gauss tier)", ""] + close_pair_table(rows) + [""]
         print("\n".join(close_pair_table(rows)), flush=True)
+    if "tier" in parts:
+        n = 12 if q else 100
+        before: list[dict[str, float | str]] = []
+        after: list[dict[str, float | str]] = []
+        for data in ("auto", "gauss"):
+            for old, dest in ((True, before), (False, after)):
+                rows_t = tier_bias(n, 5, data, old)   # same seed: the same scans
+                for r in rows_t:
+                    r["data"] = data
+                dest += rows_t
+        tbl = tier_table(before, after)
+        lines += ["## Kappa of single reflectors: tier selection before and after (0.3 deg "
+                  f"pans, {n} scans per row, the same scans before and after)", ""] + tbl + [""]
+        print("\n".join(tbl), flush=True)
     lines.append(f"Machine: {platform.machine()} {platform.python_version()}, "
                  f"{datetime.date.today().isoformat()}; {'--quick' if q else 'full run'}; "
                  "other jobs were running on the 2 shared cores (CPU times are indicative).")

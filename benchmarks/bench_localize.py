@@ -526,6 +526,231 @@ def map_building(seed: int, duration_s: float) -> list[MapErrors]:
     return out
 
 
+# --------------------------------------------------------------------------- relocalization
+
+
+def symmetric_room() -> Map:
+    """A 6 m x 4 m room with two poles placed point-symmetrically about its centre (a
+    half turn maps it onto itself) and a symmetric route."""
+    feats: list[dict[str, Any]] = [
+        {"type": "Feature", "properties": {"kind": "wall", "id": "room"},
+         "geometry": {"type": "Polygon", "coordinates": [[[0, 0], [6, 0], [6, 4], [0, 4],
+                                                          [0, 0]]]}},
+        {"type": "Feature", "properties": {"kind": "pole", "id": "p1", "radius_m": 0.0445},
+         "geometry": {"type": "Point", "coordinates": [1.5, 1.2]}},
+        {"type": "Feature", "properties": {"kind": "pole", "id": "p2", "radius_m": 0.0445},
+         "geometry": {"type": "Point", "coordinates": [4.5, 2.8]}},
+        {"type": "Feature", "properties": {"kind": "route", "id": "loop"},
+         "geometry": {"type": "LineString", "coordinates": [[1, 2], [3, 0.8], [5, 2], [3, 3.2],
+                                                            [1, 2]]}}]
+    return map_from_geojson({"type": "FeatureCollection", "features": feats})
+
+
+def _records(text: str) -> list[Record]:
+    from sonarloc.io.logfile import iter_log
+    return list(iter_log(io.StringIO(text)))
+
+
+def kidnap_records(records: list[Record], t_k: float, jump: np.ndarray) -> list[Record]:
+    """The robot carried off at ``t_k``: from then on the odometry is off by ``jump``
+    (composed at the kidnap pose) against the truth."""
+    out: list[Record] = []
+    ref = None
+    for r in records:
+        if isinstance(r, OdomRecord) and r.t_s >= t_k:
+            p = np.array([r.x_m, r.y_m, math.radians(r.yaw_deg)])
+            if ref is None:
+                ref = p
+            q = se2.compose(se2.compose(ref, jump), se2.between(ref, p))
+            r = OdomRecord(r.t_s, float(q[0]), float(q[1]), math.degrees(float(q[2])))
+        out.append(r)
+    return out
+
+
+@dataclass
+class RelocTrial:
+    kind: str
+    fixes: int = 0
+    wrong: int = 0            # fixes more than 10 cm from the truth
+    ambiguous: int = 0
+    attempts: int = 0
+    t_first_fix: float = math.nan   # after the kidnap / the start
+    t_recovered: float = math.nan   # from then on within 2 cm
+    err_fix_mm: float = math.nan
+    final_mm: float = math.nan
+    solve_s: list[float] = field(default_factory=list)
+
+
+def reloc_trial(records: list[Record], fmap: FeatureMap, t0: float, kind: str) -> RelocTrial:
+    from sonarloc.io.logfile import InitRecord
+    from sonarloc.localize import relocalize as rl
+
+    loc = Localizer(fmap, LocalizerConfig(relocalize=True))
+    truth = {r.t_s: r for r in records if isinstance(r, TruthRecord)}
+    tr = RelocTrial(kind)
+    assert loc._reloc is not None
+    reloc = loc._reloc
+    orig = reloc.solve
+
+    def timed(t_s: float) -> rl.Relocalization:
+        a = time.perf_counter()
+        out = orig(t_s)
+        tr.solve_s.append(time.perf_counter() - a)
+        return out
+
+    reloc.solve = timed  # type: ignore[method-assign]
+    errs: list[tuple[float, float]] = []
+    fixes_seen = 0
+    for r in records:
+        if kind == "no prior" and isinstance(r, InitRecord):
+            continue
+        est = loc.handle(r)
+        if est is None or not isinstance(r, OdomRecord):
+            continue
+        t = truth[r.t_s]
+        e = math.hypot(est.x_m - t.x_m, est.y_m - t.y_m)
+        errs.append((r.t_s, e))
+        found = loc.stats.relocalization["found"]
+        if found > fixes_seen and r.t_s >= t0:
+            fixes_seen = found
+            tr.fixes += 1
+            tr.wrong += e > 0.1
+            if math.isnan(tr.t_first_fix):
+                tr.t_first_fix = r.t_s - t0
+                tr.err_fix_mm = 1000 * e
+    loc.finish()
+    tr.ambiguous = loc.stats.relocalization["ambiguous"]
+    tr.attempts = sum(loc.stats.relocalization.values())
+    after = [(t, e) for t, e in errs if t >= t0]
+    if after:
+        tr.final_mm = 1000 * after[-1][1]
+        bad = [t for t, e in after if e >= 0.02]
+        if after[-1][1] < 0.02:
+            tr.t_recovered = (max(bad) if bad else after[0][0]) - t0
+    return tr
+
+
+def relocalization(n_seeds: int, duration_s: float) -> dict[str, list[RelocTrial]]:
+    room = load_map(ROOT / "maps" / "room.geojson")
+    fmap = FeatureMap.from_map(room)
+    jumps = [(0.0, 0.0, 60.0), (1.0, -0.5, 0.0), (-0.8, 0.6, -90.0), (0.5, 0.5, 180.0),
+             (0.0, 1.2, 30.0)]
+    out: dict[str, list[RelocTrial]] = {"kidnapped (room)": [], "no prior (room)": [],
+                                        "no prior (symmetric room)": []}
+    sym = symmetric_room()
+    sym_fmap = FeatureMap.from_map(sym)
+    for k in range(n_seeds):
+        recs = _records(simulate_text(Scenario("room", room, ring16()), 300 + k, duration_s))
+        j = jumps[k % len(jumps)]
+        t_k = 20.0
+        out["kidnapped (room)"].append(reloc_trial(
+            kidnap_records(recs, t_k, np.array([j[0], j[1], math.radians(j[2])])), fmap, t_k,
+            "kidnapped"))
+        out["no prior (room)"].append(reloc_trial(recs, fmap, 0.0, "no prior"))
+        srecs = _records(simulate_text(Scenario("sym", sym, ring16()), 400 + k, duration_s))
+        out["no prior (symmetric room)"].append(reloc_trial(srecs, sym_fmap, 0.0, "no prior"))
+        print(f"relocalization seed {k}: " + ", ".join(
+            f"{name}: fixes {v[-1].fixes} wrong {v[-1].wrong} amb {v[-1].ambiguous} "
+            f"t_fix {v[-1].t_first_fix:.1f} s final {v[-1].final_mm:.1f} mm"
+            for name, v in out.items()), file=sys.stderr)
+    return out
+
+
+def reloc_lines(reloc: dict[str, list[RelocTrial]], n_seeds: int, duration_s: float
+                ) -> list[str]:
+    lines = [f"## Global relocalization ({n_seeds} drives per case, ring16, {duration_s:g} s)",
+             "", "`LocalizerConfig(relocalize=True)` (`sonarloc localize --relocalize`). "
+             "*kidnapped*: at 20 s the odometry jumps against the truth (60 deg turn; 1.1 m; "
+             "1 m and -90 deg; 0.7 m and 180 deg; 1.2 m and 30 deg, one per drive), as if the "
+             "robot were carried off; *no prior*: the log's `init` record removed. *fix*: the "
+             "filter restarted at a relocalization; *wrong*: a fix more than 10 cm from the "
+             "truth; *recovered*: from then on within 2 cm of the truth to the end of the "
+             "drive (time after the kidnap / start); *ambiguous*: attempts that found several "
+             "poses about as likely and refused to pick one. The symmetric room (6 m x 4 m, "
+             "two poles point-symmetric about the centre) is ambiguous by construction: the "
+             "right answer there is no fix.", "",
+             "| case | recovered | fixes (wrong) | first fix after (s, median) | error at "
+             "first fix (mm, median) | recovered after (s, median / max) | final error (mm, "
+             "max) | attempts: ambiguous / all | solve time (ms, median) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, trials in reloc.items():
+        rec = [t for t in trials if math.isfinite(t.t_recovered)]
+        fixes = sum(t.fixes for t in trials)
+        wrong = sum(t.wrong for t in trials)
+
+        def med(v: list[float]) -> str:
+            v = [x for x in v if math.isfinite(x)]
+            return f"{float(np.median(v)):.1f}" if v else "-"
+
+        rec_t = [t.t_recovered for t in rec]
+        finals = [t.final_mm for t in trials if math.isfinite(t.final_mm)]
+        solve = [x for t in trials for x in t.solve_s]
+        lines.append(
+            f"| {name} | {len(rec)}/{len(trials)} | {fixes} ({wrong}) | "
+            f"{med([t.t_first_fix for t in trials])} | {med([t.err_fix_mm for t in trials])} | "
+            f"{med(rec_t)} / {(f'{max(rec_t):.1f}' if rec_t else '-')} | "
+            f"{_fmt(max(finals, default=math.nan))} | "
+            f"{sum(t.ambiguous for t in trials)} / {sum(t.attempts for t in trials)} | "
+            f"{1000 * float(np.median(solve)) if solve else math.nan:.0f} |")
+    return lines
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.1f}" if math.isfinite(v) else "-"
+
+
+def mapping_lines(mapping: list[MapErrors]) -> list[str]:
+    lines = ["## Map building (room, ring16, 3 laps, seed 200)", "",
+             "`sonarloc map build` on the simulated log, with poses from the truth, from "
+             "`sonarloc localize` (kuc, against the true map) and from odometry alone. "
+             "*found*: built points within 10 cm of the true poles/rods/corners that the "
+             "drive can see (a corner only from inside its walls' angle: the L's reflex "
+             "vertex has none), and built walls lying on a true wall (both ends < 2 cm "
+             "from its line). Worst centre error of the points found, worst end-to-line "
+             "distance of those walls; *extra*: built features more than 2 cm from any "
+             "true one (ghosts); *kinds right*: built points with a true point of the same "
+             "kind within 2 cm.", "",
+             "| poses | found | worst pole (mm) | worst rod (mm) | worst corner (mm) | "
+             "worst wall (mm) | extra | kinds right |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for me in mapping:
+        lines.append(f"| {me.poses} | {me.found} | {me.pole_mm:.1f} | {me.rod_mm:.1f} | "
+                     f"{me.corner_mm:.1f} | {me.wall_mm:.1f} | {me.extra} | {me.kinds} |")
+    return lines
+
+
+def run_sections(args: argparse.Namespace) -> int:
+    """``--sections``: run only map building and relocalization, and replace those
+    sections of the existing results file (the rest stays from its full run)."""
+    quick = args.quick
+    n_seeds = args.seeds or (1 if quick else 5)
+    lines = mapping_lines(map_building(200, 40.0 if quick else 174.0)) + [""]
+    dur = 30.0 if quick else 60.0
+    lines += reloc_lines(relocalization(n_seeds, dur), n_seeds, dur)
+    lines += ["", f"Map building and relocalization sections: {platform.machine()}, Python "
+              f"{platform.python_version()}, numpy {np.__version__}; "
+              f"{datetime.date.today().isoformat()}; {'--quick' if quick else 'full'} "
+              f"`--sections` run ({n_seeds} seed(s)), other jobs running on the machine "
+              "(solve times are indicative)."]
+    out = Path(args.out)
+    old = out.read_text(encoding="utf-8") if out.exists() else ""
+    cut = old.find("## Map building")
+    if cut < 0:
+        head, tail = old, ""
+    else:
+        head = old[:cut]
+        machine = old.find("\nMachine:", cut)
+        tail = old[machine:] if machine >= 0 else ""
+        reloc_note = tail.find("\nMap building and relocalization sections:")
+        if reloc_note >= 0:
+            tail = tail[:reloc_note] + "\n"
+    text = head + "\n".join(lines) + "\n" + tail
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text, encoding="utf-8")
+    print("\n".join(lines))
+    return 0
+
+
 # --------------------------------------------------------------------------- report
 
 
@@ -601,7 +826,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="log hours of the batch-mode full-pipeline replay (default 24, "
                          "quick 0.05)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "localize.md"))
+    ap.add_argument("--sections", action="store_true",
+                    help="run only map building and relocalization and replace those "
+                         "sections of the existing results file")
     args = ap.parse_args(argv)
+    if args.sections:
+        return run_sections(args)
     quick = args.quick
     n_seeds = args.seeds or (1 if quick else 5)
     duration = 20.0 if quick else None  # None: one lap of the route
@@ -655,6 +885,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     bsamples, b_wall, b_log, b_rmse, b_status = batch_soak(room_text, room_fmap, batch_hours,
                                                            120.0 if quick else 3600.0)
     mapping = map_building(200, 40.0 if quick else 174.0)
+    reloc_s = 30.0 if quick else 60.0
+    reloc = relocalization(n_seeds, reloc_s)
 
     lines = ["# Localization: Kuc landmarks vs odometry and conventional sonar EKFs", ""]
     lines += [
@@ -755,22 +987,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               "waiting for the batch fitter, open and waiting segments) at most "
               f"{max(x[3] for x in bsamples)}; position RMSE over the last lap "
               f"{b_rmse:.1f} mm; status at the end: {b_status}.", ""]
-    lines += ["## Map building (room, ring16, 3 laps, seed 200)", "",
-              "`sonarloc map build` on the simulated log, with poses from the truth, from "
-              "`sonarloc localize` (kuc, against the true map) and from odometry alone. "
-              "*found*: built points within 10 cm of the true poles/rods/corners that the "
-              "drive can see (a corner only from inside its walls' angle: the L's reflex "
-              "vertex has none), and built walls lying on a true wall (both ends < 2 cm "
-              "from its line). Worst centre error of the points found, worst end-to-line "
-              "distance of those walls; *extra*: built features more than 2 cm from any "
-              "true one (ghosts); *kinds right*: built points with a true point of the same "
-              "kind within 2 cm.", "",
-              "| poses | found | worst pole (mm) | worst rod (mm) | worst corner (mm) | "
-              "worst wall (mm) | extra | kinds right |",
-              "|---|---|---:|---:|---:|---:|---:|---:|"]
-    for me in mapping:
-        lines.append(f"| {me.poses} | {me.found} | {me.pole_mm:.1f} | {me.rod_mm:.1f} | "
-                     f"{me.corner_mm:.1f} | {me.wall_mm:.1f} | {me.extra} | {me.kinds} |")
+    lines += mapping_lines(mapping) + [""]
+    lines += reloc_lines(reloc, n_seeds, reloc_s)
     lines += ["", f"Machine: {platform.machine()} {platform.processor() or ''}, Python "
               f"{platform.python_version()}, numpy {np.__version__}; "
               f"{datetime.date.today().isoformat()}; "

@@ -130,7 +130,7 @@ class LocalizerConfig:
         outside the gate, ambiguous) make the status ``lost``.
     lost_sd_m : a position SD above this makes the status ``lost``.
     dead_reckoning_after_s : no accepted observation for this long: ``dead_reckoning``.
-    relocalize : when ``lost`` (or started without a prior), try a global
+    relocalize : (method ``kuc``) when ``lost`` (or started without a prior), try a global
         relocalization (:mod:`~sonarloc.localize.relocalize`) every
         ``relocalization.every_s`` from the fits since the trouble began, and restart
         the filter at an unambiguous winner. Without a prior, no estimate is reported
@@ -181,6 +181,9 @@ class LocalizerConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"`{name}` must be non-negative, got {v!r}")
+        if self.relocalize and self.method != "kuc":
+            raise ValueError(f"`relocalize` needs fitted landmarks: method 'kuc', got "
+                             f"{self.method!r}")
         if not (isinstance(self.lost_after_rejections, int) and self.lost_after_rejections >= 1):
             raise ValueError(f"`lost_after_rejections` must be a positive integer, got "
                              f"{self.lost_after_rejections!r}")
@@ -775,6 +778,9 @@ class Localizer:
     def add_observation(self, obs: Observation, t_ref: float) -> FusionOutcome:
         """Associate and fuse an observation of the pose at ``t_ref`` (rewinding if needed)."""
         self.stats.observations += 1
+        if self._unknown:
+            self.stats.outcomes["relocalizing"] += 1
+            return FusionOutcome(t_ref, None, False, "relocalizing: no pose yet")
         i = bisect.bisect_right(self._times, t_ref)
         if i == 0 or t_ref < self._times[-1] - self.config.history_s:
             self.stats.outcomes["too_old"] += 1

@@ -140,6 +140,8 @@ def test_observed_landmarks_cluster_and_skip_bad_fits():
 
 
 def test_config_validation():
+    with pytest.raises(ValueError, match="relocalize"):
+        LocalizerConfig(method="conventional", relocalize=True)
     with pytest.raises(ValueError, match="window_s"):
         RelocalizeConfig(window_s=0.0)
     with pytest.raises(ValueError, match="min_inliers"):
