@@ -207,7 +207,12 @@ class LocalizerNode:
     def reason(self) -> str:
         """Why the status is what it is (e.g. "no landmark fused for 6.2 s")."""
         est = self.localizer.estimate
-        return "no prior or no odometry yet" if est is None else est.reason
+        if est is None:
+            reloc = self.localizer.relocalization
+            if reloc is not None:  # started without a prior (config relocalize=True)
+                return f"relocalizing: {reloc.reason}"
+            return "no prior or no odometry yet"
+        return est.reason
 
     def landmarks(self, since_t_s: float = -math.inf) -> list[LandmarkReport]:
         """Recent fitted landmarks (reference time >= ``since_t_s``), oldest first."""

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +47,9 @@ class FitConfig:
     margin_deg : how far beyond the arc covered by echoes a minimum may lie.
     rounds, iterations : reweighting rounds and (at most) damped Fisher-scoring steps
         per round.
+    follow_variances : the TOF variances follow every accepted step (iteratively
+        reweighted: a step is judged with the variances at its start, the next one
+        taken with those at its end); otherwise they are held fixed within a round.
     tolerance : a fit has converged when the expected decrease of the objective
         (-log-likelihood; the Newton decrement) is below this.
     outlier_sigma : standardised residual beyond which an echo is dropped as a spike
@@ -88,6 +92,7 @@ class FitConfig:
     kappa_guess_us: float = 1.0
     second_start_dcost: float = 6.0
     chunk_readings: int = 65536
+    follow_variances: bool = False
 
     def __post_init__(self) -> None:
         for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
@@ -103,6 +108,23 @@ class FitConfig:
         if not (0.0 <= self.max_outlier_fraction < 1.0):
             raise ValueError(
                 f"`max_outlier_fraction` must be in [0, 1), got {self.max_outlier_fraction!r}")
+
+    @classmethod
+    def batch(cls, **changes: Any) -> FitConfig:
+        """Settings for bulk fitting of clean segments: a 6 deg grid and one round whose
+        variances follow every step (``follow_variances``). Same accuracy as the default
+        on single-reflector segments (benchmarks/results/fit.md), about 1.3-1.5x faster;
+        on ill-posed segments (corners, merged wall and corner) it may settle elsewhere
+        than the default, so the online pipeline keeps the default."""
+        return replace(cls(grid_step_deg=6.0, rounds=1, follow_variances=True), **changes)
+
+    @classmethod
+    def fast(cls, **changes: Any) -> FitConfig:
+        """The quickest sound settings: a 12 deg grid bracket and one damped Gauss-Newton
+        step that is kept only if it lowers the objective (so it cannot diverge); errors
+        about 1.6x the converged fit's, still well below a per-segment ``curve_fit``'s."""
+        return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True),
+                       **changes)
 
     def with_speed_of_sound(self, c_mps: float) -> FitConfig:
         """The same settings with another speed of sound [m/s]."""
@@ -153,17 +175,22 @@ def pack_segments(
     The reference of each segment is its last reading with a finite echo (its last
     reading if it has none). Non-finite TOFs (NaN, inf) are no-echo readings.
     """
-    cols = []
-    lengths = np.zeros(len(segments), dtype=np.int64)
+    n = len(segments)
+    if n == 0:
+        return pack_flat(np.zeros(0, dtype=np.int64), *(np.zeros(0),) * 5, n_segments=0)
     for b, seg in enumerate(segments):
-        arrs = [np.asarray(a, dtype=float).reshape(-1) for a in seg]
-        if len(arrs) != 5 or len({a.size for a in arrs}) != 1:
+        if len(seg) != 5:
             raise ValueError(f"segment {b}: expected 5 arrays of equal length")
-        lengths[b] = arrs[0].size
-        cols.append(arrs)
-    f = [np.concatenate([c[k] for c in cols]) if cols else np.zeros(0) for k in range(5)]
-    return pack_flat(np.repeat(np.arange(len(segments)), lengths), f[0], f[1], f[2], f[3],
-                     f[4], n_segments=len(segments))
+    cols = [[seg[k] for seg in segments] for k in range(5)]
+    sizes = np.array([[a.size if isinstance(a, np.ndarray) else np.size(a) for a in c]
+                      for c in cols], dtype=np.int64)                      # (5, n)
+    lengths = sizes[0]
+    if np.any(sizes != lengths):
+        b = int(np.flatnonzero((sizes != lengths).any(0))[0])
+        raise ValueError(f"segment {b}: expected 5 arrays of equal length")
+    f = [np.concatenate(c, axis=None, dtype=float) for c in cols]
+    return pack_flat(np.repeat(np.arange(n), lengths), f[0], f[1], f[2], f[3], f[4],
+                     n_segments=n)
 
 
 def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array,
@@ -194,33 +221,26 @@ def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_ra
         ref_yaw = np.where(has, yaw_rad[rr], 0.0)
         ref_t = np.where(has, t_s[rr], 0.0)
 
-    def pad(mask: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+    def pad(mask: NDArray[np.bool_], fill: tuple[float, float, float, float]
+            ) -> tuple[list[Array], NDArray[np.bool_]]:
+        """(x, y, yaw, tof) of the readings in ``mask``, padded per segment, and validity."""
         s = seg[mask]
         count = np.bincount(s, minlength=B)
         first = np.cumsum(count) - count
-        col = np.arange(s.size) - first[s]
-        return s, col, max(int(count.max(initial=0)), 1)
+        width = max(int(count.max(initial=0)), 1)
+        lin = s * width + (np.arange(s.size) - first[s])      # flat index in (B, width)
+        out = []
+        for values, f in zip((x_m[mask] - ref_xy[s, 0], y_m[mask] - ref_xy[s, 1],
+                              yaw_rad[mask], tof_us[mask]), fill, strict=True):
+            a = np.full(B * width, f)
+            a[lin] = values
+            out.append(a.reshape(B, width))
+        ok = np.zeros(B * width, dtype=bool)
+        ok[lin] = True
+        return out, ok.reshape(B, width)
 
-    sd, cd, Nd = pad(det)
-    sn, cn, Nn = pad(~det)
-    px = np.zeros((B, Nd))
-    py = np.zeros((B, Nd))
-    yw = np.zeros((B, Nd))
-    tof = np.full((B, Nd), np.nan)
-    valid = np.zeros((B, Nd), dtype=bool)
-    px[sd, cd] = x_m[det] - ref_xy[sd, 0]
-    py[sd, cd] = y_m[det] - ref_xy[sd, 1]
-    yw[sd, cd] = yaw_rad[det]
-    tof[sd, cd] = tof_us[det]
-    valid[sd, cd] = True
-    npx = np.zeros((B, Nn))
-    npy = np.zeros((B, Nn))
-    nyw = np.zeros((B, Nn))
-    nvalid = np.zeros((B, Nn), dtype=bool)
-    npx[sn, cn] = x_m[~det] - ref_xy[sn, 0]
-    npy[sn, cn] = y_m[~det] - ref_xy[sn, 1]
-    nyw[sn, cn] = yaw_rad[~det]
-    nvalid[sn, cn] = True
+    (px, py, yw, tof), valid = pad(det, (0.0, 0.0, 0.0, np.nan))
+    (npx, npy, nyw, _), nvalid = pad(~det, (0.0, 0.0, 0.0, np.nan))
     return SegmentBatch(px, py, yw, tof, valid, npx, npy, nyw, nvalid, ref_xy, ref_yaw, ref_t)
 
 
@@ -287,6 +307,8 @@ def _axis_bearings(kind: str, batch: SegmentBatch, y: Array, tau: float
     """
     if kind == "line":
         bear = batch.yaw
+    elif not _is_moving(batch):       # seen from the reference: the beam axis itself
+        bear = np.where(batch.valid, M._wrap_fast(batch.yaw), 0.0)
     else:
         R = np.where(batch.valid, y / tau, 0.0)
         bear = np.arctan2(batch.py + R * np.sin(batch.yaw), batch.px + R * np.cos(batch.yaw))
@@ -312,65 +334,139 @@ def _evaluate_s2(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, 
     """:func:`_evaluate`, also returning the variances (B, Nd) it used; ``s2=None``: the
     variances at ``p`` itself (what :func:`_variances` gives, without evaluating the
     model twice)."""
+    return _evaluate_core(kind, tier, p, batch, y, use, s2, cfg, want_derivs)[1:]
+
+
+def _evaluate_core(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array,
+                   use: NDArray, s2: Array | None, cfg: FitConfig, want_derivs: bool = True,
+                   s2_other: Array | None = None
+                   ) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """:func:`_evaluate_s2` preceded by the objective with the variances ``s2_other``
+    instead (the same as the objective without them), from the same model pass."""
     mod = cfg.module
     tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
-    geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw)
-    g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod, derivative=want_derivs)
+    moving = _is_moving(batch)
+    if moving:
+        geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw, moving=True)
+        theta, R = geo.theta, geo.R
+    else:                      # stationary: R = r, theta = phi - yaw
+        theta, R = _angle_diff(phi, batch.yaw), r
+    g, dlng, lng = M.beam_log_factor(theta, tier, mod, derivative=want_derivs)
     det = cfg.detection
     z = M.detection_z(K, lng, mod) if det else None
     et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
     if s2 is None:
         s2 = M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform" else None)
-    w = np.where(use, 1.0 / np.sqrt(s2), 0.0)               # 1/s, 0 where unused
-    e = (y - tau * geo.R - et.delay) * w
-    F = (e * e).sum(-1)
+    w = use / np.sqrt(s2)                                    # 1/s, 0 where unused
+    res = y - tau * R - et.delay
+    e = res * w
+    F = np.einsum("bn,bn->b", e, e)
+    F_other = F
+    if s2_other is not None:
+        F_other = np.einsum("bn,bn->b", res * res, use / s2_other)
     if det:
-        F = F - 2.0 * (et.log_p * use).sum(-1)
+        dF = 2.0 * np.einsum("bn,bn->b", et.log_p, use.astype(float))
+        F -= dF
+        F_other = F_other - dF if s2_other is not None else F
     B = p.shape[0]
     grad = np.zeros((B, 3))
     H = np.zeros((B, 3, 3))
-    if want_derivs:
-        a = et.ddelay_du * K * dg                            # d mean / d theta
-        if geo.moving:
-            cols = [(tau * geo.dR_dr + a * geo.dtheta_dr) * w,
-                    (tau * geo.dR_dphi + a * geo.dtheta_dphi) * w]
-        else:
-            cols = [np.broadcast_to(tau * w, w.shape), a * w]
-        cols.append(et.ddelay_du * g * w)
-        Jw = np.stack(cols, axis=1)                          # (B, 3, Nd)
-        grad -= np.einsum("bkn,bn->bk", Jw, e)
-        H += np.matmul(Jw, np.swapaxes(Jw, 1, 2))
-    F = F + _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
-    if not det:
-        return F, grad, H, e, s2
     sa = M.sigma_a(mod)
+    inv_ksa = 1.0 / (K * sa)                                 # d z / d kappa, (B, 1)
     if want_derivs:
-        dlng = np.where(g < 1e11, dg / g, 0.0) / sa
-        dzk = np.broadcast_to(1.0 / (K * sa), g.shape)
-        if geo.moving:
-            dz = np.stack([dlng * geo.dtheta_dr, dlng * geo.dtheta_dphi, dzk], axis=1)
+        jk = et.ddelay_du * g                                # d mean / d kappa
+        a = jk * K * dlng                                    # d mean / d theta
+        cols: list[Array | None]
+        if moving:
+            cols = [tau * geo.dR_dr + a * geo.dtheta_dr, tau * geo.dR_dphi + a * geo.dtheta_dphi,
+                    jk]
         else:
-            dz = np.stack([np.zeros(g.shape), dlng, dzk], axis=1)  # (B, 3, Nd)
-        grad -= np.einsum("bkn,bn->bk", dz, et.dlogp_dz * use)
-        H += np.matmul(dz * (et.curv * use)[:, None, :], np.swapaxes(dz, 1, 2))
+            cols = [np.full((B, 1), tau), a, jk]
+        _gram(H, grad, cols, w * w, w * e)
+        if det:
+            dz = dlng / sa                                   # d z / d theta
+            zc: list[Array | None] = ([dz * geo.dtheta_dr, dz * geo.dtheta_dphi, inv_ksa]
+                                      if moving else [None, dz, inv_ksa])
+            _gram(H, grad, zc, et.curv * use, et.dlogp_dz * use)
+    prior = _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
+    F = F + prior
+    F_other = F_other + prior if s2_other is not None else F
+    if not det:
+        return F_other, F, grad, H, e, s2
     nv = batch.ne_valid
-    if nv.any():
-        ng = M.geometry(kind, r, phi, batch.ne_px, batch.ne_py, batch.ne_yaw)
-        gn, dgn, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=want_derivs)
+    if nv.shape[1] and nv.any():
+        if moving:
+            ng = M.geometry(kind, r, phi, batch.ne_px, batch.ne_py, batch.ne_yaw, moving=True)
+            thn = ng.theta
+        else:
+            thn = _angle_diff(phi, batch.ne_yaw)
+        _, dlgn, lgn = M.beam_log_factor(thn, tier, mod, derivative=want_derivs, want_g=False)
         zn = M.detection_z(K, lgn, mod)
         lpn, dlpn, _, curvn = M.noecho_terms(zn, want_info=False)
-        F = F - 2.0 * (lpn * nv).sum(-1)
+        dFn = 2.0 * np.einsum("bn,bn->b", lpn, nv.astype(float))
+        F = F - dFn
+        F_other = F_other - dFn if s2_other is not None else F
         if want_derivs:
-            dlgn = np.where(gn < 1e11, dgn / gn, 0.0) / sa
-            dzkn = np.broadcast_to(1.0 / (K * sa), gn.shape)
-            if ng.moving:
-                dzn = np.stack([dlgn * ng.dtheta_dr, dlgn * ng.dtheta_dphi, dzkn], axis=1)
+            dzn = dlgn / sa
+            zcn: list[Array | None] = ([dzn * ng.dtheta_dr, dzn * ng.dtheta_dphi, inv_ksa]
+                                       if moving else [None, dzn, inv_ksa])
+            _gram(H, grad, zcn, curvn * nv, dlpn * nv)
+    return F_other, F, grad, H, e, s2
+
+
+def _gram(H: Array, grad: Array, cols: Sequence[Array | None], wH: Array, wg: Array) -> None:
+    """``H[k, l] += sum_n wH c_k c_l`` and ``grad[k] -= sum_n wg c_k`` over readings n.
+
+    ``cols``: three columns, each (B, N), (B, 1) (the same for all readings) or None
+    (zero); ``wH``, ``wg``: (B, N) weights.
+    """
+    sw: Array | None = None
+    sg: Array | None = None
+    dense: list[Array | None] = []          # wH * c of the columns that vary by reading
+    for c in cols:
+        if c is not None and c.shape[1] == 1:
+            if sw is None:
+                sw, sg = wH.sum(1), wg.sum(1)
+            dense.append(None)
+        else:
+            dense.append(None if c is None else wH * c)
+    for k in range(3):
+        ck, dk = cols[k], dense[k]
+        if ck is None:
+            continue
+        grad[:, k] -= (ck[:, 0] * sg if dk is None and sg is not None
+                       else np.einsum("bn,bn->b", wg, ck))
+        for m in range(k, 3):
+            cm, dm = cols[m], dense[m]
+            if cm is None:
+                continue
+            if dk is None and dm is None and sw is not None:
+                v = ck[:, 0] * cm[:, 0] * sw
+            elif dk is None and dm is not None:
+                v = ck[:, 0] * dm.sum(1)
+            elif dm is None and dk is not None:
+                v = cm[:, 0] * dk.sum(1)
             else:
-                dzn = np.stack([np.zeros(gn.shape), dlgn, dzkn], axis=1)
-            grad -= np.einsum("bkn,bn->bk", dzn, dlpn * nv)
-            H += np.matmul(dzn * (curvn * nv)[:, None, :], np.swapaxes(dzn, 1, 2))
-    return F, grad, H, e, s2
+                v = np.einsum("bn,bn->b", dk if dk is not None else wH * ck, cm)
+            H[:, k, m] += v
+            if m != k:
+                H[:, m, k] += v
+
+
+def _angle_diff(a: Array, b: Array) -> Array:
+    """``a - b`` wrapped to [-pi, pi] (broadcast); the bounds of the (small) inputs tell
+    when no wrapping is needed, which saves passes over the (large) result."""
+    if a.size and b.size:
+        amax, amin, bmax, bmin = a.max(), a.min(), b.max(), b.min()
+        if amax - bmin <= np.pi and amin - bmax >= -np.pi:
+            return a - b
+    return M._wrap_fast(a - b)
+
+
+def _is_moving(batch: SegmentBatch) -> bool:
+    """Whether any reading was taken away from its segment's reference position."""
+    return bool(batch.px.any() or batch.py.any() or batch.ne_px.any() or batch.ne_py.any())
 
 
 def tof_jacobian(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConfig
@@ -435,7 +531,7 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
         y0 = np.nanmin(np.where(use, y, np.inf), axis=1)
     y0 = np.where(np.isfinite(y0), y0, 0.0)
     bear, centre = _axis_bearings(kind, batch, np.where(use, y, y0[:, None]), tau)
-    rel = M.wrap_angle(bear - centre[:, None])
+    rel = M._wrap_fast(bear - centre[:, None])
     lo = np.min(np.where(use, rel, np.inf), axis=1)
     hi = np.max(np.where(use, rel, -np.inf), axis=1)
     lo = np.where(np.isfinite(lo), lo, 0.0)
@@ -458,35 +554,39 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     offs = np.where(pad, hi[:, None] + margin, offs)                          # (B, G)
     phis = centre[:, None] + offs
     r0 = y0 / tau
-    geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
-                     batch.py[:, None, :], batch.yaw[:, None, :])
-    g, _, lg = M.beam_delay_factor(geo.theta, tier, mod, derivative=False)
+    moving = _is_moving(batch)
+    if moving:
+        geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
+                         batch.py[:, None, :], batch.yaw[:, None, :], moving=True)
+        theta = geo.theta
+    else:
+        theta = _angle_diff(phis[:, :, None], batch.yaw[:, None, :])
+    g, _, lg = M.beam_log_factor(theta, tier, mod, derivative=False)
     scale = np.exp(0.5 * M.sigma_a(mod) ** 2)
     usef = use[:, None, :].astype(float)
-    gu = np.multiply(g, scale)
-    gu *= usef                                                                # (B, G, Nd)
+    gu = g * usef                                  # (B, G, Nd); the profile's g is scale gu
     # bearing-independent weights (the on-axis variance), so that the profile costs of
     # the nodes compare (weights from the model at each node would discount far-off
     # readings) and weigh against the detection terms as a likelihood does
     w0 = 1.0 / float(M.tof_variance_us2(0.0, mod))
     yc = np.where(use, y - y0[:, None], 0.0)                                 # (B, Nd)
     S0 = use.sum(1)[:, None].astype(float)
-    S1 = gu.sum(-1)
-    S2 = np.einsum("bgn,bgn->bg", gu, gu)
-    if geo.moving:   # the range offsets of the readings depend on the node
+    S1 = gu.sum(-1) * scale
+    S2 = np.einsum("bgn,bgn->bg", gu, gu) * (scale * scale)
+    if moving:   # the range offsets of the readings depend on the node
         ycg = (yc[:, None, :] - tau * (geo.R - r0[:, None, None])) * usef
         Sy = ycg.sum(-1)
         Syy = np.einsum("bgn,bgn->bg", ycg, ycg)
-        Sgy = np.einsum("bgn,bgn->bg", gu, ycg)
+        Sgy = np.einsum("bgn,bgn->bg", gu, ycg) * scale
     else:
         Sy = yc.sum(-1)[:, None]
         Syy = np.einsum("bn,bn->b", yc, yc)[:, None]
-        Sgy = np.matmul(gu, yc[:, :, None])[..., 0]
+        Sgy = np.matmul(gu, yc[:, :, None])[..., 0] * scale
     if cfg.detection:
         # echoes were detected: the one nearest the axis must be detectable (z < 2)
-        g_min = np.min(g, axis=-1, where=use[:, None, :], initial=np.inf)
+        lg_min = np.min(lg, axis=-1, where=use[:, None, :], initial=np.inf)
         kmax = (mod.detection_limit_us * np.exp(2.0 * M.sigma_a(mod)) * scale
-                / np.where(np.isfinite(g_min), g_min, 1.0))
+                * np.exp(-np.where(np.isfinite(lg_min), lg_min, 0.0)))
     else:
         kmax = np.full(phis.shape, np.inf)
     T, Keff, sse = _profile_2x2(S0, S1, S2, Sy, Sgy, Syy, cfg.kappa_min_us * scale, kmax)
@@ -503,11 +603,14 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
         np.maximum(zd, 0.0, out=zd)
         zd *= usef
         cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zd, zd)
-        if batch.ne_valid.any():
-            ng = M.geometry(kind, r0[:, None, None], phis[:, :, None],
-                            batch.ne_px[:, None, :], batch.ne_py[:, None, :],
-                            batch.ne_yaw[:, None, :])
-            _, _, lgn = M.beam_delay_factor(ng.theta, tier, mod, derivative=False)
+        if batch.ne_valid.shape[1] and batch.ne_valid.any():
+            if moving:
+                thn = M.geometry(kind, r0[:, None, None], phis[:, :, None],
+                                 batch.ne_px[:, None, :], batch.ne_py[:, None, :],
+                                 batch.ne_yaw[:, None, :], moving=True).theta
+            else:
+                thn = _angle_diff(phis[:, :, None], batch.ne_yaw[:, None, :])
+            lgn = M.beam_log_factor(thn, tier, mod, derivative=False, want_g=False)[2]
             # (1.4 - z) sa = (ln L + 1.4 sa - ln kappa) - ln g, formed in place
             zn = np.subtract((np.log(mod.detection_limit_us) + 1.4 * sa
                               - np.log(np.maximum(K, 1e-300)))[..., None], lgn)
@@ -550,22 +653,53 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
 _EARLY_TOLERANCE = 100.0
 
 
+_STATE_FIELDS = ("p", "converged", "F", "H", "e", "s2")
+
+
+@dataclass
+class _State:
+    """A fit's state at its parameters: objective F (B,) (without the variances'
+    log-determinant), Fisher matrix H (B, 3, 3), standardised residuals e (B, Nd) and
+    the TOF variances s2 (B, Nd) they were computed with."""
+
+    p: Array
+    converged: NDArray[np.bool_]
+    F: Array
+    H: Array
+    e: Array
+    s2: Array
+
+    def full_cost(self, use: NDArray) -> Array:
+        """-2 log-likelihood (B,) with the TOF variances' log-determinant."""
+        return self.F + np.where(use, np.log(2.0 * np.pi * self.s2), 0.0).sum(1)
+
+    def take(self, idx: NDArray[np.int64]) -> _State:
+        """The state of segments ``idx``."""
+        return _State(*(getattr(self, f)[idx] for f in _STATE_FIELDS))
+
+    def put(self, idx: NDArray[np.int64], other: _State) -> None:
+        """Replace segments ``idx`` by ``other``'s (same width)."""
+        for name in _STATE_FIELDS:
+            getattr(self, name)[idx] = getattr(other, name)
+
+
 def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
-            cfg: FitConfig, rounds: int) -> tuple[Array, NDArray[np.bool_]]:
+            cfg: FitConfig, rounds: int) -> _State:
     """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective.
 
     A segment stops when its Newton decrement g^T H^-1 g (the expected decrease of the
     objective) falls below ``cfg.tolerance``; stopped segments are frozen for the rest
     of the round (so no result depends on the other segments of the batch) and left
-    out of the remaining iterations.
+    out of the remaining iterations. Returns the state at the result (variances of the
+    last round's start: the weights a round's steps were taken with).
     """
     B = p.shape[0]
     p = p.copy()
     lam = np.full(B, 1e-1)
-    converged = np.zeros(B, dtype=bool)
+    done = np.zeros(B, dtype=bool)
     for rnd in range(rounds):
         # variances from the current delays, fixed for this round
-        F, grad, H, _, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg)
+        F, grad, H, E, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg)
         # rounds before the last stop early: the next round moves the weights anyway
         tol = cfg.tolerance * (1.0 if rnd == rounds - 1 else _EARLY_TOLERANCE)
         done = np.zeros(B, dtype=bool)
@@ -575,9 +709,11 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             # steps in (r, phi, log kappa): the delays scale with kappa and the detection
             # margin with log kappa, so this is where the objective is nearly quadratic
             kap = p[act, 2]
-            ga = grad[act] * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)
-            Ha = H[act] * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)[:, :, None]
-            Ha = Ha * np.stack([np.ones_like(kap), np.ones_like(kap), kap], axis=1)[:, None, :]
+            ga = grad[act]
+            ga[:, 2] *= kap
+            Ha = H[act]
+            Ha[:, 2, :] *= kap[:, None]
+            Ha[:, :, 2] *= kap[:, None]
             diag = np.maximum(np.einsum("bkk->bk", Ha), 1e-12)
             A = Ha + (lam[act, None] * diag)[:, :, None] * np.eye(3)[None]
             try:
@@ -601,54 +737,73 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             q[:, :2] += delta[:, :2]
             q[:, 0] = np.maximum(q[:, 0], 1e-3)
             q[:, 2] = np.maximum(q[:, 2] * np.exp(delta[:, 2]), cfg.kappa_min_us)
-            Fq, gq, Hq, _ = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg)
-            ok = np.isfinite(Fq) & (Fq <= F[act]) & ~done[act]
+            if cfg.follow_variances:
+                # the step is judged with the current variances; the state at the new
+                # point carries its own (iteratively reweighted), from the same pass
+                Fa, Fq, gq, Hq, eq, s2q = _evaluate_core(kind, tier, q, sub, ys, us, None,
+                                                         cfg, s2_other=s2s)
+            else:
+                Fq, gq, Hq, eq = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg)
+                Fa, s2q = Fq, s2s
+            ok = np.isfinite(Fa) & (Fa <= F[act]) & ~done[act]
             ia = act[ok]
-            p[ia], F[ia], grad[ia], H[ia] = q[ok], Fq[ok], gq[ok], Hq[ok]
+            p[ia], F[ia], grad[ia], H[ia], E[ia] = q[ok], Fq[ok], gq[ok], Hq[ok], eq[ok]
+            if cfg.follow_variances:
+                s2[ia] = s2q[ok]
+                s2s = s2s.copy() if s2s is s2 else s2s
+                s2s[ok] = s2q[ok]
             lam[act] = np.where(ok, np.maximum(lam[act] / 4.0, 1e-9),
                                 np.minimum(lam[act] * 8.0, 1e9))
             done[act[~ok & (lam[act] >= 1e9)]] = True
-        converged = done
-    return p, converged
-
-
-def _full_cost(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
-               cfg: FitConfig) -> Array:
-    """-2 log-likelihood (B,) at ``p``, with the TOF variances' log-determinant."""
-    F, _, _, _, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg, want_derivs=False)
-    return F + np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
+    return _State(p, done, F, H, E, s2)
 
 
 def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
-           start_fit: BatchFit | None = None) -> tuple[Array, NDArray[np.bool_], Array]:
+           start_fit: BatchFit | None = None) -> tuple[_State, Array]:
     """Grid bracket + refinement (from a second start where the grid is ambiguous), or
     refinement from another model's fit of the same segments (``start_fit``)."""
     if start_fit is not None:
-        p, conv = _refine(kind, tier, start_fit.local.copy(), batch, y, use, cfg, cfg.rounds)
-        return p, conv, start_fit.arc.copy()
+        st = _refine(kind, tier, start_fit.local.copy(), batch, y, use, cfg, cfg.rounds)
+        return st, start_fit.arc.copy()
     start, start2, second, arc = _grid_start(kind, tier, batch, y, use, cfg)
-    p, conv = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
+    st = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
     idx = np.flatnonzero(second)
     if idx.size:
         sub = _take(batch, idx)
-        p2, conv2 = _refine(kind, tier, start2[idx], sub, y[idx], use[idx], cfg, cfg.rounds)
-        f1 = _full_cost(kind, tier, p[idx], sub, y[idx], use[idx], cfg)
-        f2 = _full_cost(kind, tier, p2, sub, y[idx], use[idx], cfg)
-        better = f2 < f1
-        p[idx[better]] = p2[better]
-        conv[idx[better]] = conv2[better]
-    return p, conv, arc
+        st2 = _refine(kind, tier, start2[idx], sub, y[idx], use[idx], cfg, cfg.rounds)
+        f1 = st.take(idx).full_cost(use[idx])
+        f2 = st2.full_cost(use[idx])
+        better = np.flatnonzero(f2 < f1)
+        if better.size:
+            st.put(idx[better], st2.take(better))
+    return st, arc
 
 
 def _covariance(H: Array) -> Array:
-    """Inverse of Fisher matrices (B, 3, 3), finite even when singular (huge variance)."""
+    """Inverse of Fisher matrices (B, 3, 3), finite even when singular (huge variance).
+
+    Well-conditioned ones (smallest eigenvalue above 1e-12 of the largest, from
+    det / trace^3) by cofactors; the rest by eigendecomposition with a floor.
+    """
     Hs = 0.5 * (H + np.swapaxes(H, -1, -2))
     Hs = np.where(np.isfinite(Hs), Hs, 0.0)
-    w, V = np.linalg.eigh(Hs)
-    floor = np.maximum(w.max(axis=-1, keepdims=True) * 1e-14, 1e-30)
-    inv = 1.0 / np.maximum(w, floor)
-    inv = np.minimum(inv, 1e30)
-    return np.einsum("bij,bj,bkj->bik", V, inv, V)
+    a, b, c = Hs[:, 0, 0], Hs[:, 0, 1], Hs[:, 0, 2]
+    d, e, f = Hs[:, 1, 1], Hs[:, 1, 2], Hs[:, 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    tr = a + d + f
+    good = (det > 1e-12 * tr ** 3) & (tr > 0)
+    inv_det = 1.0 / np.where(good, det, 1.0)
+    out = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1).reshape(-1, 3, 3)
+    out *= inv_det[:, None, None]
+    bad = np.flatnonzero(~good)
+    if bad.size:
+        w, V = np.linalg.eigh(Hs[bad])
+        floor = np.maximum(w.max(axis=-1, keepdims=True) * 1e-14, 1e-30)
+        inv = np.minimum(1.0 / np.maximum(w, floor), 1e30)
+        out[bad] = np.einsum("bij,bj,bkj->bik", V, inv, V)
+    return out
 
 
 def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
@@ -683,13 +838,9 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     B = batch.size
     n_d = batch.valid.sum(1)
     n_n = batch.ne_valid.sum(1)
-    width = batch.px.shape[1] + batch.ne_px.shape[1]
-    if B <= 1 or (B * width <= cfg.chunk_readings
-                  and B * width <= 1.3 * max(int((n_d + n_n).sum()), 1)):
-        return _fit_direct(batch, kind, tier, cfg, offsets_us, use, start)
-    # sort by size and fit in chunks of about chunk_readings padded readings, each
-    # trimmed to its own widest segment: no work on padding, arrays stay in cache
-    order = np.lexsort((n_n, n_d))
+    chunks = _plan_chunks(n_d, n_n, cfg.chunk_readings)
+    # chunks of segments of similar size, each trimmed to its own widest segment: little
+    # work on padding, arrays of a bounded size
     out_local = np.zeros((B, 3))
     out_cov = np.zeros((B, 3, 3))
     out_vec = {name: np.zeros(B) for name in ("cost", "chi2", "robust_cost")}
@@ -699,12 +850,7 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     Nd = batch.px.shape[1]
     out_used = np.zeros((B, Nd), dtype=bool)
     out_resid = np.zeros((B, Nd))
-    a = 0
-    while a < B:
-        b = a + 1
-        while b < B and (b + 1 - a) * int(n_d[order[b]] + n_n[order[b]] + 2) <= cfg.chunk_readings:
-            b += 1
-        idx = order[a:b]
+    for idx in chunks:
         wd = max(int(n_d[idx].max()), 1)
         wn = max(int(n_n[idx].max()), 1)
         sub = _trim(_take(batch, idx), wd, wn)
@@ -718,9 +864,59 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
             out_vec[name][idx] = getattr(part, name)
         out_n[idx], out_conv[idx], out_arc[idx] = part.n_used, part.converged, part.arc
         out_used[idx, :wd], out_resid[idx, :wd] = part.used, part.resid
-        a = b
     return BatchFit(kind, tier, out_local, out_cov, out_vec["cost"], out_vec["chi2"], out_n,
                     out_used, out_resid, out_arc, out_conv, out_vec["robust_cost"])
+
+
+_CALL_OVERHEAD_READINGS = 2000
+"""Fixed cost of fitting one chunk (Python and numpy call overhead), in padded readings."""
+
+
+def _plan_chunks(n_d: NDArray[np.int64], n_n: NDArray[np.int64], chunk_readings: int
+                 ) -> list[NDArray[np.int64]]:
+    """Split segments into chunks of similar size (indices), minimising the padded work.
+
+    Segments are sorted by (echoes, no-echo readings); a chunk is a run of the sorted
+    order of padded size ``count * (max echoes + max no-echo)`` (cut further to stay
+    below ``chunk_readings``) and costs that plus a fixed per-call overhead. The best
+    split into runs is found by dynamic programming over the distinct echo counts.
+    """
+    B = n_d.size
+    if B == 0:
+        return [np.arange(0)]
+    order = np.lexsort((n_n, n_d))
+    nd_s, nn_s = n_d[order], n_n[order]
+    # groups of equal echo count (boundaries in the sorted order)
+    starts = np.flatnonzero(np.r_[True, nd_s[1:] != nd_s[:-1]])
+    ends = np.r_[starts[1:], B]
+    G = starts.size
+    w_d = np.maximum(nd_s[ends - 1], 1).astype(float)                   # group widths
+    w_n = np.maximum(np.maximum.reduceat(nn_s, starts), 1).astype(float)
+    cum = np.r_[0, ends].astype(float)                                  # segments before
+    best = np.zeros(G + 1)
+    prev = np.zeros(G + 1, dtype=np.int64)
+    for j in range(1, G + 1):
+        # runs of groups i..j-1 (i = 0..j-1)
+        mn = np.maximum.accumulate(w_n[:j][::-1])[::-1]
+        count = cum[j] - cum[:j]
+        padded = count * (w_d[j - 1] + mn)
+        pieces = np.maximum(np.ceil(padded / chunk_readings), 1.0)
+        cost = best[:j] + padded + pieces * _CALL_OVERHEAD_READINGS
+        i = int(np.argmin(cost))
+        best[j], prev[j] = cost[i], i
+    runs = []
+    j = G
+    while j > 0:
+        i = int(prev[j])
+        runs.append((int(starts[i]), int(ends[j - 1])))
+        j = i
+    chunks = []
+    for a, b in reversed(runs):
+        width = int(max(nd_s[b - 1], 1) + max(nn_s[a:b].max(), 1)) + 2
+        per = max(chunk_readings // width, 1)
+        for c in range(a, b, per):
+            chunks.append(order[c:min(c + per, b)])
+    return chunks
 
 
 def _trim(batch: SegmentBatch, wd: int, wn: int) -> SegmentBatch:
@@ -750,13 +946,12 @@ def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
         use0 = use0 & use
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
-    p, conv, arc = _solve(kind, tier, batch, y, use0, cfg, start)
-    F, _, H, e, s2 = _evaluate_s2(kind, tier, p, batch, y, use0, None, cfg)
+    st, arc = _solve(kind, tier, batch, y, use0, cfg, start)
     # spikes: drop the worst echoes beyond outlier_sigma, then fit those segments again
-    bad = use0 & (np.abs(e) > cfg.outlier_sigma)
+    bad = use0 & (np.abs(st.e) > cfg.outlier_sigma)
     if bad.any():
         max_drop = np.floor(cfg.max_outlier_fraction * use0.sum(1)).astype(int)
-        order = np.argsort(-np.abs(np.where(bad, e, 0.0)), axis=1)
+        order = np.argsort(-np.abs(np.where(bad, st.e, 0.0)), axis=1)
         rank = np.empty_like(order)
         np.put_along_axis(rank, order, np.arange(order.shape[1])[None, :].repeat(
             order.shape[0], 0), axis=1)
@@ -765,12 +960,12 @@ def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
             use0 = use0 & ~drop
             idx = np.flatnonzero(drop.any(1))
             sub = _take(batch, idx)
-            p2, c2, _ = _solve(kind, tier, sub, y[idx], use0[idx], cfg)
-            F2, _, H2, e2, s2b = _evaluate_s2(kind, tier, p2, sub, y[idx], use0[idx], None, cfg)
-            p[idx], conv[idx], s2[idx], F[idx], H[idx], e[idx] = p2, c2, s2b, F2, H2, e2
+            st2, _ = _solve(kind, tier, sub, y[idx], use0[idx], cfg)
+            st.put(idx, st2)
+    p, conv, F, H, e = st.p, st.converged, st.F, st.H, st.e
     chi2 = (e * e).sum(1)
     # full -2 log-likelihood (with the variances' log-determinant) to compare models
-    F = F + np.where(use0, np.log(2.0 * np.pi * s2), 0.0).sum(1)
+    F = st.full_cost(use0)
     n_used = use0.sum(1)
     dof = np.maximum(n_used - 3, 1)
     inflate = np.maximum(chi2 / dof, 1.0)

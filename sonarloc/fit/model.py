@@ -81,7 +81,7 @@ class Geometry:
 
 
 def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLike,
-             yaw: ArrayLike) -> Geometry:
+             yaw: ArrayLike, moving: bool | None = None) -> Geometry:
     """Range [m] and off-axis angle [rad] of readings for a local landmark (r, phi).
 
     Parameters
@@ -90,6 +90,7 @@ def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLi
     r, phi : (..., 1) local landmark parameters (broadcast against the readings).
     px, py, yaw : (..., n) transducer positions relative to the reference position [m]
         and axis directions [rad, frame].
+    moving : whether any position is nonzero, if the caller knows (saves the check).
     """
     r = np.asarray(r, dtype=float)
     phi = np.asarray(phi, dtype=float)
@@ -98,10 +99,12 @@ def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLi
     yaw = np.asarray(yaw, dtype=float)
     if kind not in KINDS:
         raise ValueError(f"`kind` must be 'point' or 'line', got {kind!r}")
-    if kind == "line" or not (px.any() or py.any()):
+    if moving is None:
+        moving = bool(px.any() or py.any())
+    if kind == "line" or not moving:
         # walls, and points seen from one spot (stationary pan): theta = phi - yaw
         theta = _wrap_fast(phi - yaw)
-        if px.any() or py.any():
+        if moving:
             c, s = np.cos(phi), np.sin(phi)
             R = r - (px * c + py * s)
             dR_dphi = px * s - py * c
@@ -111,8 +114,7 @@ def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLi
         shape = np.broadcast_shapes(np.shape(R), theta.shape)
         one, zero = np.ones(()), np.zeros(())
         b = [np.broadcast_to(a, shape) for a in (R, theta, one, dR_dphi, zero, one)]
-        return Geometry(b[0], b[1], b[2], b[3], b[4], b[5],
-                        moving=bool(px.any() or py.any()))
+        return Geometry(b[0], b[1], b[2], b[3], b[4], b[5], moving=moving)
     c, s = np.cos(phi), np.sin(phi)
     qx = r * c - px
     qy = r * s - py
@@ -150,6 +152,30 @@ def beam_delay_factor(theta: ArrayLike, tier: str, params: ModuleParams,
     if tier in ("piston", "waveform"):
         return _piston_table(params.diameter_m, params.carrier_hz, params.c_mps).lookup(
             t, derivative)
+    raise ValueError(f"`tier` must be one of {', '.join(TIERS)}; got {tier!r}")
+
+
+def beam_log_factor(theta: ArrayLike, tier: str, params: ModuleParams,
+                    derivative: bool = True, want_g: bool = True
+                    ) -> tuple[Array, Array, Array]:
+    """g = 1 / rel_amp(theta), d ln g / d theta [1/rad] and ln g (the fitter's form).
+
+    As :func:`beam_delay_factor` (``dg = g * dlng``); ``d ln g / d theta`` is 0 where g
+    is capped. Without ``derivative`` the second array is ``ln g``; without ``want_g``
+    the first is ``ln g`` too (no exponential computed).
+    """
+    t = np.asarray(theta, dtype=float)
+    if tier == "gauss":
+        inv_s2 = 1.0 / np.deg2rad(params.sigma_deg) ** 2
+        cap = np.log(_G_MAX)
+        e = np.minimum((0.5 * inv_s2) * (t * t), cap)
+        g = np.exp(e) if want_g else e
+        if not derivative:
+            return g, e, e
+        return g, np.where(e < cap, t * inv_s2, 0.0), e
+    if tier in ("piston", "waveform"):
+        return _piston_table(params.diameter_m, params.carrier_hz, params.c_mps).lookup_log(
+            t, derivative, want_g)
     raise ValueError(f"`tier` must be one of {', '.join(TIERS)}; got {tier!r}")
 
 
@@ -196,6 +222,42 @@ class _HermiteTable:
                 + s * (3.0 * s - 2.0) * d1) / self.step
         dg = np.where(beyond, 0.0, g * dlng * np.sign(theta))
         return g, dg, lng
+
+
+    @functools.cached_property
+    def coef(self) -> Array:
+        """(n, 4) power-basis coefficients of each interval's cubic in s (same curve)."""
+        return _hermite_coef(self.f, self.df * self.step)
+
+    def lookup_log(self, theta: Array, derivative: bool, want_g: bool
+                   ) -> tuple[Array, Array, Array]:
+        """(g, d ln g / d theta, ln g) as :func:`beam_log_factor` returns them (one row
+        gather and Horner's rule: the fitter's hot path)."""
+        u = np.abs(theta) * (1.0 / self.step)
+        coef = self.coef
+        n = coef.shape[0]
+        i = np.minimum(u.astype(np.intp), n - 1)
+        s = u - i
+        c = np.take(coef, i, axis=0)
+        c1, c2, c3 = c[..., 1], c[..., 2], c[..., 3]
+        lng = c[..., 0] + s * (c1 + s * (c2 + s * c3))
+        beyond = u >= n
+        lng = np.where(beyond, np.log(_G_MAX), lng)
+        g = np.exp(lng) if want_g else lng
+        if not derivative:
+            return g, lng, lng
+        dlng = (c1 + s * (2.0 * c2 + 3.0 * s * c3)) * (1.0 / self.step)
+        return g, np.where(beyond, 0.0, dlng * np.sign(theta)), lng
+
+
+def _hermite_coef(f: Array, d: Array) -> Array:
+    """Coefficients (n, 4) of the cubic Hermite interpolant through values ``f`` (n+1)
+    with slopes ``d`` (n+1, per unit of the local coordinate s in [0, 1])."""
+    f0, f1, d0, d1 = f[:-1], f[1:], d[:-1], d[1:]
+    coef = np.stack([f0, d0, 3.0 * (f1 - f0) - 2.0 * d0 - d1, 2.0 * (f0 - f1) + d0 + d1],
+                    axis=1)
+    coef.setflags(write=False)
+    return coef
 
 
 @functools.lru_cache(maxsize=16)
@@ -310,48 +372,65 @@ def echo_terms(kappa: ArrayLike, g: ArrayLike, z: ArrayLike | None, params: Modu
             return EchoTerms(zeros, zeros, zeros, zeros, m, dm, var)
         d = u * scale
         return EchoTerms(zeros, zeros, zeros, zeros, d, np.full(u.shape, scale), (s * d) ** 2)
-    z = np.asarray(z, dtype=float)
-    log_p = np.zeros(u.shape)
-    dlogp = np.zeros(u.shape)
-    info = np.zeros(u.shape)
-    curv = np.zeros(u.shape)
-    ratio = np.ones(u.shape)
-    dratio = np.zeros(u.shape)
+    z = np.broadcast_to(np.asarray(z, dtype=float), u.shape)
     act = z > -_Z_HIGH
-    if act.any():
-        za = z[act]
-        # Phi and phi directly (ndtr costs half of log_ndtr) where Phi(-z) is far from
-        # underflow; the log form for the rest (z > 30: echoes the model cannot explain)
-        p0 = ndtr(-za)                            # P(echo)
+    n_act = int(np.count_nonzero(act))
+    waveform = tier == "waveform"
+    if n_act == z.size:               # all near the arc edge: no masking
+        log_p, m0, curv, ratio, dratio = _echo_core(z, s, waveform)
+    else:
+        log_p, dlogp_, curv, ratio, dratio = (np.zeros(u.shape), np.zeros(u.shape),
+                                              np.zeros(u.shape), np.ones(u.shape),
+                                              np.zeros(u.shape))
+        m0 = dlogp_
+        if n_act:
+            za = z[act]
+            lp_a, m0_a, curv_a, ratio_a, dratio_a = _echo_core(za, s, waveform)
+            log_p[act], m0[act], curv[act] = lp_a, m0_a, curv_a
+            if not waveform:
+                ratio[act], dratio[act] = ratio_a, dratio_a
+    dlogp = -m0
+    info = np.zeros(u.shape)
+    if want_info and n_act:
+        l0 = log_p[act]
+        lpdf = -0.5 * z[act] ** 2 - _LOG_SQRT_2PI
         with np.errstate(divide="ignore"):
-            l0 = np.log(p0)
-        lpdf = -0.5 * za * za - _LOG_SQRT_2PI
-        m0 = np.exp(lpdf) / np.maximum(p0, 1e-300)  # phi(z) / Phi(-z)
-        far = za > _Z_FAST
-        if far.any():
-            l0[far] = log_ndtr(-za[far])
-            m0[far] = np.exp(lpdf[far] - l0[far])
-        log_p[act] = l0
-        dlogp[act] = -m0
-        curv[act] = m0 * (m0 - za)
-        if tier != "waveform":
-            zs = za + s
-            ra = ndtr(-zs) / np.maximum(p0, 1e-300)   # Phi(-z-s) / Phi(-z)
-            m1 = np.exp(-0.5 * zs * zs - _LOG_SQRT_2PI) / np.maximum(p0, 1e-300)
-            if far.any():
-                ra[far] = np.exp(log_ndtr(-zs[far]) - l0[far])
-                m1[far] = np.exp(-0.5 * zs[far] ** 2 - _LOG_SQRT_2PI - l0[far])
-            ratio[act] = ra
-            dratio[act] = -m1 + ra * m0
-        if want_info:
-            with np.errstate(divide="ignore"):
-                lq = np.log(-np.expm1(l0))        # log Phi(z), accurate for all z
-            info[act] = np.exp(2.0 * lpdf - l0 - lq)
-    if tier == "waveform":
+            lq = np.log(-np.expm1(l0))        # log Phi(z), accurate for all z
+        info[act] = np.exp(2.0 * lpdf - l0 - lq)
+    if waveform:
         m, dm, var = waveform_delay_table(params).lookup(u)
         return EchoTerms(log_p, dlogp, info, curv, m, dm, var)
-    d = u * scale * ratio
+    d = u * (scale * ratio)
     return EchoTerms(log_p, dlogp, info, curv, d, scale * (ratio + dratio / s), (s * d) ** 2)
+
+
+def _echo_core(z: Array, s: float, waveform: bool
+               ) -> tuple[Array, Array, Array, Array, Array]:
+    """log Phi(-z), phi(z)/Phi(-z), the curvature of -log Phi(-z), and (not for the
+    waveform tier) the truncation ratio Phi(-z-s)/Phi(-z) and its derivative by z."""
+    # Phi and phi directly (ndtr costs half of log_ndtr) where Phi(-z) is far from
+    # underflow; the log form for the rest (z > 30: echoes the model cannot explain)
+    p0 = ndtr(-z)                                   # P(echo)
+    inv_p0 = 1.0 / np.maximum(p0, 1e-300)
+    with np.errstate(divide="ignore"):
+        l0 = np.log(p0)
+    lpdf = -0.5 * z * z - _LOG_SQRT_2PI
+    m0 = np.exp(lpdf) * inv_p0                      # phi(z) / Phi(-z)
+    far = z > _Z_FAST
+    any_far = bool(far.any())
+    if any_far:
+        l0[far] = log_ndtr(-z[far])
+        m0[far] = np.exp(lpdf[far] - l0[far])
+    curv = m0 * (m0 - z)
+    if waveform:
+        return l0, m0, curv, m0, m0
+    zs = z + s
+    ratio = ndtr(-zs) * inv_p0                      # Phi(-z-s) / Phi(-z)
+    m1 = np.exp(-0.5 * zs * zs - _LOG_SQRT_2PI) * inv_p0
+    if any_far:
+        ratio[far] = np.exp(log_ndtr(-zs[far]) - l0[far])
+        m1[far] = np.exp(-0.5 * zs[far] ** 2 - _LOG_SQRT_2PI - l0[far])
+    return l0, m0, curv, ratio, ratio * m0 - m1
 
 
 @dataclass(frozen=True, eq=False)
@@ -365,27 +444,38 @@ class _DelayTable:
     var: Array
     small_scale: float
 
+    @functools.cached_property
+    def coef(self) -> Array:
+        """(n, 6): the mean's cubic in s (power basis) and the variance's line, per
+        interval."""
+        c = _hermite_coef(self.mean, self.dmean_dx * self.dx)
+        out = np.concatenate([c, self.var[:-1, None], np.diff(self.var)[:, None]], axis=1)
+        out.setflags(write=False)
+        return out
+
     def lookup(self, u: Array) -> tuple[Array, Array, Array]:
         """Mean delay, its derivative by u, and the delay variance at eq. 3 delays u."""
         x = np.log(np.maximum(u, 1e-300))
-        n = self.mean.size - 1
-        t = (x - self.x0) / self.dx
+        coef = self.coef
+        n = coef.shape[0]
+        t = (x - self.x0) * (1.0 / self.dx)
         below = t < 0.0
         tc = np.clip(t, 0.0, n)
         i = np.minimum(tc.astype(np.intp), n - 1)
         s = tc - i
-        f0, f1 = self.mean[i], self.mean[i + 1]
-        d0, d1 = self.dmean_dx[i] * self.dx, self.dmean_dx[i + 1] * self.dx
-        s2 = s * s
-        m = f0 + s2 * (3.0 - 2.0 * s) * (f1 - f0) + s * (1.0 - s) * ((1.0 - s) * d0 - s * d1)
-        dm_dx = ((6.0 * s * (1.0 - s)) * (f1 - f0) + (1.0 - s) * (1.0 - 3.0 * s) * d0
-                 + s * (3.0 * s - 2.0) * d1) / self.dx
+        c = np.take(coef, i, axis=0)
+        c1, c2, c3 = c[..., 1], c[..., 2], c[..., 3]
+        m = c[..., 0] + s * (c1 + s * (c2 + s * c3))
+        dm_dx = (c1 + s * (2.0 * c2 + 3.0 * s * c3)) * (1.0 / self.dx)
         dm_dx = np.where(t > n, 0.0, dm_dx)
-        var = self.var[i] + s * (self.var[i + 1] - self.var[i])
+        var = c[..., 4] + s * c[..., 5]
         # below the table (u < 1e-3 us) the module is eq. 3 with a log-normal gain
-        m = np.where(below, u * self.small_scale, m)
-        dm_du = np.where(below, self.small_scale, dm_dx / np.maximum(u, 1e-300))
-        var = np.where(below, (0.25 * u) ** 2, var)
+        if below.any():
+            m = np.where(below, u * self.small_scale, m)
+            dm_du = np.where(below, self.small_scale, dm_dx / np.maximum(u, 1e-300))
+            var = np.where(below, (0.25 * u) ** 2, var)
+        else:
+            dm_du = dm_dx / np.maximum(u, 1e-300)
         return m, dm_du, var
 
 
@@ -433,23 +523,37 @@ def noecho_terms(z: ArrayLike, want_info: bool = True
     Exact where z < 7; beyond, P = 1 to 1.3e-12 and the constants are used.
     """
     z = np.asarray(z, dtype=float)
+    act = z < _Z_HIGH
+    n_act = int(np.count_nonzero(act))
+    if n_act == z.size:
+        za = z
+    else:
+        za = z[act]
+    # Phi directly (half the cost of log_ndtr) where it is far from underflow
+    p = ndtr(za)
+    with np.errstate(divide="ignore"):
+        lp = np.log(p)
+    lpdf = -0.5 * za * za - _LOG_SQRT_2PI
+    low = za < -_Z_FAST
+    if low.any():
+        lp[low] = log_ndtr(za[low])
+    m = np.exp(lpdf - lp)
+    cv = m * (za + m)
+    info_a = None
+    if want_info:
+        with np.errstate(divide="ignore"):
+            lq = np.log(-np.expm1(lp))
+        info_a = np.exp(2.0 * lpdf - lp - lq)
+    if n_act == z.size:
+        return lp, m, info_a if info_a is not None else np.zeros(z.shape), cv
     log_p = np.zeros(z.shape)
     dlogp = np.zeros(z.shape)
     info = np.zeros(z.shape)
     curv = np.zeros(z.shape)
-    act = z < _Z_HIGH
-    if act.any():
-        za = z[act]
-        lp = log_ndtr(za)
-        lpdf = -0.5 * za * za - _LOG_SQRT_2PI
-        m = np.exp(lpdf - lp)
-        log_p[act] = lp
-        dlogp[act] = m
-        curv[act] = m * (za + m)
-        if want_info:
-            with np.errstate(divide="ignore"):
-                lq = np.log(-np.expm1(lp))
-            info[act] = np.exp(2.0 * lpdf - lp - lq)
+    if n_act:
+        log_p[act], dlogp[act], curv[act] = lp, m, cv
+        if info_a is not None:
+            info[act] = info_a
     return log_p, dlogp, info, curv
 
 

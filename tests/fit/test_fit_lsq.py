@@ -188,3 +188,74 @@ def test_waveform_tier_removes_the_late_echo_bias(rng, kappa, data_tier):
     assert np.median(w.local[:, 2]) == pytest.approx(kappa, rel=0.1)
     assert np.median(g.local[:, 2]) > 1.2 * kappa
     assert np.median(w.cost) < np.median(g.cost)
+
+
+@pytest.mark.parametrize("kind", ["point", "line"])
+@pytest.mark.parametrize("moving", [False, True])
+@pytest.mark.parametrize("tier", ["gauss", "piston"])
+def test_fisher_matrix_is_jacobian_gram_plus_detection_curvature(rng, kind, moving, tier):
+    # the fitter's H, accumulated column by column, against its definition written out
+    # with stacked Jacobians: sum J J^T / s^2 over echoes + sum curv dz dz^T over
+    # echoes and no-echo readings
+    from sonarloc.fit.lsq import _evaluate, _variances, tof_jacobian
+
+    t = np.arange(80) * 0.05
+    x = (0.02 * np.arange(80) - 0.8) if moving else np.zeros(80)
+    yaw = np.deg2rad(np.linspace(-40, 40, 80)) + np.pi / 2
+    sc = simulate_readings(t, x, 0.0, yaw, [Reflector.point(0.1, 1.4, 0.67)], rng,
+                           tier="gauss")
+    batch = pack_segments([(sc.t_s, sc.x_m, sc.y_m, sc.yaw_rad, sc.tof_us)] * 2)
+    assert batch.ne_valid.any()
+    cfg = FitConfig()
+    y = np.where(batch.valid, batch.tof_us - 1.0, 0.0)
+    p = np.array([[1.4, np.pi / 2 + 0.03, 0.6], [1.41, np.pi / 2 - 0.05, 1.3]])
+    s2 = _variances(kind, tier, p, batch, cfg)
+    _, _, H, _ = _evaluate(kind, tier, p, batch, y, batch.valid, s2, cfg)
+    J, _, _ = tof_jacobian(kind, tier, p, batch, cfg)
+    Jw = J * batch.valid[:, None, :]
+    ref = Jw @ np.swapaxes(Jw, 1, 2)
+    sa = M.sigma_a(cfg.module)
+    for px, py, yw, ok in ((batch.px, batch.py, batch.yaw, batch.valid),
+                           (batch.ne_px, batch.ne_py, batch.ne_yaw, batch.ne_valid)):
+        geo = M.geometry(kind, p[:, :1], p[:, 1:2], px, py, yw)
+        g, dg, lng = M.beam_delay_factor(geo.theta, tier, cfg.module)
+        z = M.detection_z(p[:, 2:3], lng, cfg.module)
+        curv = (M.echo_terms(p[:, 2:3], g, z, cfg.module).curv if ok is batch.valid
+                else M.noecho_terms(z)[3])
+        dlng = dg / g / sa
+        dz = np.stack([dlng * geo.dtheta_dr, dlng * geo.dtheta_dphi,
+                       np.broadcast_to(1.0 / (p[:, 2:3] * sa), g.shape)], axis=1)
+        ref = ref + (dz * (curv * ok)[:, None, :]) @ np.swapaxes(dz, 1, 2)
+    np.testing.assert_allclose(H, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+
+
+def test_covariance_inverts_fisher_and_survives_singular(rng):
+    from sonarloc.fit.lsq import _covariance
+
+    A = rng.normal(size=(50, 3, 3))
+    H = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(3)
+    H[0] = np.diag([1e6, 1.0, 0.0])                     # singular: huge, finite variance
+    H[1] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])   # rank one
+    H[2] = np.nan                                       # non-finite input
+    C = _covariance(H)
+    assert np.all(np.isfinite(C))
+    np.testing.assert_allclose(C[3:] @ H[3:], np.broadcast_to(np.eye(3), (47, 3, 3)),
+                               atol=1e-6)
+    assert C[0, 2, 2] == pytest.approx(1e8) and C[0, 0, 0] == pytest.approx(1e-6)  # floored
+    assert np.all(np.linalg.eigvalsh(C[:3]) > 0)
+
+
+def test_batch_and_fast_presets(rng):
+    # batch: the default's answer (to a fraction of an SD); fast: one guarded step from
+    # a coarse grid, coarser but sound (no divergence, sub-degree bearings)
+    batch = _pan_batch(rng, 80, 1.5, 8.0, 0.67, step=0.5)
+    ref = fit_batch(batch, "point", "gauss")
+    sd = np.sqrt(np.einsum("bkk->bk", ref.cov))
+    b = fit_batch(batch, "point", "gauss", FitConfig.batch())
+    assert np.all(np.abs(b.local - ref.local) < 0.2 * sd)
+    f = fit_batch(batch, "point", "gauss", FitConfig.fast())
+    assert np.all(np.isfinite(f.local)) and np.all(np.isfinite(f.cov))
+    err_b = np.rad2deg(M.wrap_angle(f.local[:, 1] - np.deg2rad(8.0)))
+    assert np.sqrt(np.mean(err_b ** 2)) < 0.8
+    assert np.all(np.abs(f.local[:, 0] - 1.5) < 3e-3)
+    assert FitConfig.fast(iterations=3).iterations == 3

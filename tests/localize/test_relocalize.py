@@ -257,3 +257,19 @@ def test_cli_relocalize_without_init(run_cli, room_log, tmp_path):
     truth = {r.t_s: r for r in room_log if isinstance(r, TruthRecord)}
     last = truth[float(track.t_s[-1])]
     assert math.hypot(track.x_m[-1] - last.x_m, track.y_m[-1] - last.y_m) < 0.02
+
+
+def test_node_without_a_prior_says_it_is_relocalizing(room_log):
+    from sonarloc.api import LocalizerNode
+
+    node = LocalizerNode.from_map_file(MAPS / "room.geojson",
+                                       config=LocalizerConfig(relocalize=True))
+    reasons = set()
+    for r in room_log:
+        if isinstance(r, InitRecord) or r.t_s > 12.0:
+            continue
+        node.feed(r)
+        if node.estimate is None:
+            reasons.add(node.reason)
+    assert node.status == "tracking"
+    assert any(x.startswith("relocalizing: ") for x in reasons)
