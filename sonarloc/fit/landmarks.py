@@ -29,6 +29,36 @@ from sonarloc.io.scancsv import ScanReadings
 
 Array = NDArray[np.float64]
 
+OCCLUDED_KAPPA_LOG_SD = 0.35
+"""Relative SD of kappa above which a segment occluded on both sides (by nearer echoes)
+is ``FLAT``: wall and pole differ by a factor 4.5 in kappa (ln 1.5), so telling them
+apart at two SDs needs the SD of ln kappa below ~0.35."""
+
+OCCLUDED_CURVATURE_DCOST = 9.0
+"""A segment occluded on both sides must fit better with its curvature than with a flat
+curve (kappa at the prior's lower bound, range and bearing refitted) by this much -2 log-
+likelihood (3 SDs) for its strength to count: the Wald SD of kappa is optimistic there,
+the likelihood being flat towards small kappa."""
+
+
+def _curvature_support(batch: SegmentBatch, j: int, local: Array, tier: str,
+                       cfg: FitConfig, extra: dict[str, object]) -> float:
+    """-2 log-likelihood rise from the fit to the best flat curve (kappa at the prior's
+    lower bound) for segment ``j`` (stored in ``extra["curvature_dcost"]``)."""
+    from sonarloc.fit.pair import _SCALE, _minimise, _Segment, _unscale
+    if tier == "conventional" or not np.all(np.isfinite(local)):
+        return math.inf
+    seg = _Segment(batch, j, cfg, tier)
+    x = np.array([local[0] / _SCALE[0], local[1] / _SCALE[1], math.log(local[2])])
+    c_fit = float(seg.cost(_unscale(x[None, :]))[0])
+    flat = x.copy()
+    flat[2] = math.log(cfg.kappa_lo_us)
+    _, c_flat = _minimise(seg, flat, fixed=2)
+    d = c_flat - c_fit
+    extra["curvature_dcost"] = d
+    return d
+
+
 SegmentLike = Segment | ScanReadings | tuple[Array, Array, Array, Array, Array]
 _Cleaned = tuple[Array, Array, Array, Array, Array, NDArray[np.int64]]
 
@@ -138,6 +168,9 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
         m: dict[str, object] = {"n_bad_input": int(n_bad[i])}
         if isinstance(s, Segment):
             m.update(seg_id=s.seg_id, closed_by=s.closed_by)
+            if any(s.occluded):
+                m["occluded"] = ("both" if all(s.occluded) else
+                                 "first" if s.occluded[0] else "last")
         meta.append(m)
     out: list[Landmark | None] = [None] * n
     for i in np.flatnonzero(n_echo < 3).tolist():
@@ -251,6 +284,28 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             status = FitStatus.FLAT
             reason = (f"kappa {local[j, 2]:.3f} us sits at the lower bound of the prior: "
                       "the curve is too flat to fix strength and bearing")
+        elif (meta[j].get("occluded") == "both" and sel.extra[j].get("kind_basis") != "motion"
+              and (sd[j, 2] > OCCLUDED_KAPPA_LOG_SD * local[j, 2]
+                   or _curvature_support(batch, j, local[j], str(sel.tier[j]), cfg, extra)
+                   < OCCLUDED_CURVATURE_DCOST)):
+            # no arc end of its own and a curve too flat to give the strength: a pole
+            # and a wall (0.67 / 0.15 us) cannot be told apart from one viewpoint
+            status = FitStatus.FLAT
+            reason = (f"occluded on both sides by nearer echoes (the arc's ends say nothing "
+                      f"about this reflector) and the curve within does not fix its strength "
+                      f"(kappa {local[j, 2]:.2f} +- {sd[j, 2]:.2f} us; a flat curve costs "
+                      f"{float(extra.get('curvature_dcost', math.nan)):.1f} in -2 log-"  # type: ignore[arg-type]
+                      f"likelihood, < {OCCLUDED_CURVATURE_DCOST:g} needed): strength and kind "
+                      "(wall or pole) not determined")
+        elif ("occluded" in meta[j] and sel.extra[j].get("kind_basis") == "strength"
+              and abs(math.log(local[j, 2] / KAPPA_WALL_US)) < 2.0 * sd[j, 2] / local[j, 2]):
+            # an arc end hidden by a nearer echo: the strength rests on the curve and
+            # that cannot place it on either side of the wall/pole boundary
+            status = FitStatus.FLAT
+            reason = (f"occluded ({meta[j]['occluded']} end) and kappa {local[j, 2]:.2f} +- "
+                      f"{sd[j, 2]:.2f} us straddles the wall/pole boundary ({KAPPA_WALL_US} "
+                      "us); one viewpoint cannot tell them apart otherwise: kind not "
+                      "determined")
         elif sd[j, 1] > flat_sd:
             status = FitStatus.FLAT
             reason = (f"curve too flat for its bearing (SD {math.degrees(sd[j, 1]):.1f} deg "
@@ -302,8 +357,10 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
         cuts = np.unique(np.concatenate([even, jumps]))
         for c in cuts.tolist():
             pos = int(echo[c])
-            cand.append((i, Segment(r.select(slice(0, pos)), seg.seg_id, seg.closed_by),
-                         Segment(r.select(slice(pos, None)), seg.seg_id, seg.closed_by)))
+            cand.append((i, Segment(r.select(slice(0, pos)), seg.seg_id, seg.closed_by,
+                                    (seg.occluded[0], False)),
+                         Segment(r.select(slice(pos, None)), seg.seg_id, seg.closed_by,
+                                 (False, seg.occluded[1]))))
     if not cand:
         return [[lm] for lm in landmarks]
     fits = fit_segments([c[1] for c in cand] + [c[2] for c in cand], cfg)

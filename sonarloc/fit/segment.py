@@ -105,7 +105,8 @@ class SegmenterConfig:
 class Segment:
     """The readings of one landmark pass, in arrival order.
 
-    ``readings`` holds its echoes and the no-echo readings that bound it (NaN TOF).
+    ``readings`` holds its echoes and the no-echo readings that bound it (NaN TOF);
+    ``occluded`` says which ends of the arc a nearer echo hid.
     ``closed_by``: ``"misses"`` (left the beam or hidden), ``"gap"`` (time gap),
     ``"full"`` (``max_readings``), ``"crowded"`` (``max_open``) or ``"flush"`` (end of
     stream). ``seg_id`` counts segments from 0 in the order they were opened.
@@ -114,6 +115,11 @@ class Segment:
     readings: ScanReadings
     seg_id: int
     closed_by: str
+    occluded: tuple[bool, bool] = (False, False)
+    """Whether the (first, last) edge of the arc was hidden by a nearer echo: the
+    reading of the same transducer just before the first echo / just after the last one
+    pointed at the landmark but a nearer reflector answered, so the arc's end there
+    says nothing about this landmark's strength."""
 
     @property
     def n_echo(self) -> int:
@@ -148,6 +154,8 @@ class _Open:
     trailing: int = 0       # no-echo readings attached after the last echo
     sensors: set[int] = field(default_factory=set)
     arc: list[tuple[float, float]] = field(default_factory=list)  # of ``last`` (cached)
+    occluded_lead: bool = False     # the reading before the first echo: a nearer echo
+    occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
 
 
 class Segmenter:
@@ -246,6 +254,9 @@ class Segmenter:
                     continue
                 off = self._off_axis(s, x, y, yaw)
                 if off <= miss:
+                    if (R < s.last[4] - self._gate_m and s.trailing == 0 and s.misses == 0
+                            and sensor == s.last[5]):
+                        s.occluded_trail = True   # a nearer reflector answered right after
                     # a farther echo won: this landmark was not detected (censor)
                     if (R > s.last[4] + self._gate_m and sensor in s.sensors
                             and s.trailing < self.config.censor_window):
@@ -263,6 +274,7 @@ class Segmenter:
                 best.arc = self._arc_points(best)
                 best.misses = 0
                 best.trailing = 0
+                best.occluded_trail = False
                 best.sensors.add(sensor)
                 if len(best.rows) >= self.config.max_readings:
                     closed += self._close(best, "full")
@@ -373,6 +385,13 @@ class Segmenter:
                         and r_range > R + self._gate_m):
                     lead.append((r[0], r[1], r[2], r[3], math.nan, r[5]))
         s = _Open(self._next_id, lead + [row], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
+        # the reading of this sensor just before: a nearer echo there hid this landmark
+        prev = [(r, rr) for r, rr in dq if r is not row] if dq else []
+        if prev:
+            r, r_range = prev[-1]
+            s.occluded_lead = (t - r[0] <= self.config.max_gap_s
+                               and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
+                               and r_range < R - self._gate_m)
         s.arc = self._arc_points(s)
         self._next_id += 1
         self._open.append(s)
@@ -391,4 +410,4 @@ class Segmenter:
             np.asarray(cols[2], dtype=float), np.asarray(cols[3], dtype=float),
             np.asarray(cols[4], dtype=float), np.asarray(cols[5], dtype=np.int64))
         self.stats.segments += 1
-        return [Segment(readings, s.seg_id, why)]
+        return [Segment(readings, s.seg_id, why, (s.occluded_lead, s.occluded_trail))]

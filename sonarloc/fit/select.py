@@ -64,6 +64,11 @@ stricter screen of the other tiers (``SCORE_Z``) kept such fits (measured: 10 % 
 auto-tier poles, kappa +150 %); z > 0 finds as many as no screen at all, at half the
 extra cost on Gaussian data."""
 
+TIER_TIE = 9.0
+"""Where ``gauss`` is kept and the waveform fit is worse by less than this (-2 log-
+likelihood), kappa's variance gets the squared difference of the two fits' kappas
+(``extra["kappa_waveform_us"]``): the data cannot say which strength is meant."""
+
 SCORE_Z = 1.5
 """Score-test statistic above which the residuals of a Gaussian fit are taken to lean
 towards another tier, which is then fitted (a cheap pre-screen: the likelihood ratio
@@ -290,6 +295,7 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     B = sel.kind.shape[0]
     basis = np.full(B, "gauss: the tiers agree within the data", dtype=object)
     dcost = {t: np.full(B, np.nan) for t in ("waveform", "piston")}
+    kappa_alt = np.full(B, np.nan)
     for kind in ("point", "line"):
         idx = np.flatnonzero((sel.kind == kind) & (sel.tier == "gauss"))
         if idx.size == 0:
@@ -325,6 +331,17 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         basis[idx[differ_w & ~tried]] = "gauss: residuals do not lean towards another tier"
         basis[idx[tried]] = "data cannot tell: gauss kept"
         for k, (tier, alt, rows) in enumerate(best):
+            if tier == "waveform":
+                # gauss kept while the module's own model nearly ties: kappa depends on
+                # the model (the Gaussian one absorbs the waveform's extra delay), so its
+                # SD covers the waveform fit's kappa
+                near = np.flatnonzero((choice[rows] == -1)
+                                      & (alt.robust_cost - base[rows] < TIER_TIE))
+                for r in near.tolist():
+                    b = int(idx[rows[r]])
+                    dk = float(alt.local[r, 2] - sel.local[b, 2])
+                    sel.cov[b, 2, 2] += dk * dk
+                    kappa_alt[b] = float(alt.local[r, 2])
             pick = np.flatnonzero(choice[rows] == k)
             if pick.size:
                 sel.put(idx[rows[pick]], alt.take(pick))
@@ -352,6 +369,8 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         for t, d in dcost.items():
             if np.isfinite(d[b]):
                 ex[f"dcost_{t}"] = float(d[b])
+        if np.isfinite(kappa_alt[b]) and sel.tier[b] == "gauss":
+            ex["kappa_waveform_us"] = float(kappa_alt[b])
 
 
 def runs_z(signs: NDArray[np.bool_], n: NDArray[np.int64]) -> Array:

@@ -742,10 +742,9 @@ class Localizer:
         scored: list[tuple[int, float, float, EchoObservation, str, int]] = []
         zmed = float(np.median(z))
         sd_xy = math.sqrt(max(state.cov[0, 0] + state.cov[1, 1], 0.0))
-        for kind, k in cands:
-            feat = self.fmap.point(k) if kind == "point" else self.fmap.wall(k)
-            rng, _, _, _ = echoes.geometry(state.mean, rel, feat)
-            if abs(float(np.median(rng)) - zmed) > 0.05 + 4 * sd_xy:
+        near = self._median_ranges(cands, state.mean, rel)
+        for (kind, k), med in zip(cands, near.tolist(), strict=True):
+            if abs(med - zmed) > 0.05 + 4 * sd_xy:
                 continue
             eo = self._echo_for(chain, kind, k, lm, state)
             if eo is None or len(eo) < need:
@@ -774,6 +773,36 @@ class Localizer:
         feat = eo.feature
         return eo, Association("matched", "point" if kind == "point" else "wall", k, feat, d2,
                                len(eo), math.nan, len(top), share)
+
+    def _median_ranges(self, cands: list[tuple[str, int]], mean: Array, rel: Array
+                       ) -> Array:
+        """(K,) median range of each candidate feature from the transducer poses ``rel``
+        (relative to the pose ``mean``): the range of :func:`echoes.geometry`, all
+        candidates in one array operation (the same arithmetic, element by element)."""
+        t = se2.compose(mean, rel)
+        px, py = t[:, 0], t[:, 1]
+        rows = []
+        pts = [k for kind, k in cands if kind == "point"]
+        if pts:
+            c = self.fmap.point_xy[pts]
+            dx, dy = c[:, 0:1] - px, c[:, 1:2] - py
+            dist = np.sqrt(np.maximum(dx * dx + dy * dy, 1e-18))
+            rows.append(dist - self.fmap.point_radius_m[pts][:, None])
+        walls = [k for kind, k in cands if kind != "point"]
+        if walls:
+            line = self.fmap.wall_line[walls]
+            ca = np.array([math.cos(float(a)) for a in line[:, 1]])[:, None]
+            sa = np.array([math.sin(float(a)) for a in line[:, 1]])[:, None]
+            rows.append(np.abs(line[:, 0:1] - px * ca - py * sa))
+        if not rows:
+            return np.zeros(0)
+        rng = np.concatenate(rows)
+        # back into the candidates' order (points first, then walls, as listed)
+        order = [i for i, (kind, _) in enumerate(cands) if kind == "point"] + \
+            [i for i, (kind, _) in enumerate(cands) if kind != "point"]
+        med = np.empty(len(cands))
+        med[order] = np.median(rng, axis=1)
+        return med
 
     def add_observation(self, obs: Observation, t_ref: float) -> FusionOutcome:
         """Associate and fuse an observation of the pose at ``t_ref`` (rewinding if needed)."""

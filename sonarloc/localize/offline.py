@@ -118,28 +118,13 @@ class OfflinePipeline:
             if self._waiting and (final or len(self._waiting) >= self.batch_segments
                                   or t_odom - float(self._waiting[0].readings.t_s[0])
                                   >= self.max_wait_s):
-                self._landmarks += self._source.fit(self._fittable(self._waiting))
+                self._landmarks += self._source.fit(self._waiting)
                 self._waiting = []
             for s in self._waiting:
                 horizon = min(horizon, float(s.readings.t_s[0]))
         self._fuse(horizon)
         self.loc.trim_history()
         self._trim_track()
-
-    def _fittable(self, segs: list[Any]) -> list[Any]:
-        """The segments whose fit can be fused. One with fewer echoes than the fitter
-        needs (``FitConfig.min_echoes``) always ends ``too_few_points``: unless that
-        status is fused, it is counted as such without fitting it."""
-        assert self._source is not None
-        if "too_few_points" in self.loc.config.fit_statuses:
-            return segs
-        need = self._source.fit_config.min_echoes
-        keep = [s for s in segs if s.n_echo >= need]
-        n_skip = len(segs) - len(keep)
-        if n_skip:
-            self.loc.stats.landmarks += n_skip
-            self.loc.stats.skipped["fit_too_few_points"] += n_skip
-        return keep
 
     def _trim_track(self) -> None:
         # keep the odometry the readings still waiting may need (and one record before)
