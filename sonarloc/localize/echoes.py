@@ -38,12 +38,18 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import special
 
 from sonarloc import se2
 from sonarloc.localize import ekf
 from sonarloc.localize.ekf import Feature, Gaussian, Innovation, OdomNoise
 from sonarloc.physics.reflectors import kappa_at_range_us
-from sonarloc.physics.tiers import Tier, delay_moments_us
+from sonarloc.physics.tiers import (
+    Tier,
+    delay_moments_us,
+    max_detection_angle_rad,
+    tabulated_piston_echo,
+)
 from sonarloc.physics.tof import ModuleParams
 
 Array = NDArray[np.float64]
@@ -61,6 +67,10 @@ def delay_model(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float = 343.0
                 ) -> tuple[Array, Array, Array, Array]:
     """Mean threshold delay, its slope in theta, its SD and the detection probability.
 
+    Interpolated in :class:`DelayTable` (within a few hundredths of a microsecond of
+    :func:`delay_model_direct`, see its notes); evaluated directly where the table has
+    no finite neighbours (the detection edge, strengths outside its range).
+
     Parameters
     ----------
     theta_rad : (n,) off-axis angle of the reflecting point [rad].
@@ -72,13 +82,175 @@ def delay_model(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float = 343.0
     mean_us, slope_us_per_rad, sd_us, p_detect : (n,) each; NaN where no echo is
         expected (beyond the detection arc).
     """
+    return delay_table(float(c_mps)).lookup(theta_rad, kappa_us)
+
+
+def delay_model_direct(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float = 343.0
+                       ) -> tuple[Array, Array, Array, Array]:
+    """:func:`delay_model` evaluated with :func:`~sonarloc.physics.tiers.delay_moments_us`
+    (``auto`` tier, 41 quadrature nodes; slope a central difference over
+    ``_DTHETA_RAD``). Same arguments and returns."""
     th = np.asarray(theta_rad, dtype=float)
     kap = np.broadcast_to(np.asarray(kappa_us, dtype=float), th.shape)
     params = _module(float(c_mps))
     grid = np.stack([th - _DTHETA_RAD, th, th + _DTHETA_RAD])
-    m = delay_moments_us(grid, np.broadcast_to(kap, grid.shape), Tier.AUTO, params, 41)
+    m = delay_moments_us(grid, np.broadcast_to(kap, grid.shape), Tier.AUTO, params,
+                         _DELAY_NODES)
     slope = (m.mean_us[2] - m.mean_us[0]) / (2 * _DTHETA_RAD)
     return m.mean_us[1], slope, m.sd_us[1], m.p_detect[1]
+
+
+#: Quadrature nodes of the delay moments.
+_DELAY_NODES = 41
+#: Strength grid of :class:`DelayTable`: log-spaced, ``_KAPPA_PER_DECADE`` rows a
+#: decade from ``_KAPPA_MIN_US`` to ``_KAPPA_MAX_US``.
+_KAPPA_MIN_US, _KAPPA_MAX_US, _KAPPA_PER_DECADE = 1e-3, 1e3, 80
+#: Detection of a row's strength is tabulated out to this many SDs of the gain.
+_TABLE_GAIN_SD = 8.0
+#: A table cell is interpolated only where the mean's second differences (in theta and
+#: in log kappa) at its corners stay below this [us]: the delay is smooth there and the
+#: bilinear interpolation within about half of it (0.015 us measured). Elsewhere (ripple
+#: jumps of the waveform tier, tier switches, the detection edge) it is evaluated directly.
+_SMOOTH_US = 0.03
+
+
+class DelayTable:
+    """The delay model (:func:`delay_model_direct`) tabulated over (|theta|, kappa).
+
+    Rows on a log-spaced strength grid (:data:`_KAPPA_PER_DECADE` a decade), each built
+    on first use over |theta| on the ``_DTHETA_RAD`` grid out to the row's detection
+    arc: ``mean / kappa``, ``sd / kappa`` and the central-difference slope ``/ kappa``
+    (exactly the direct slope at the nodes). Look-ups interpolate bilinearly in
+    (|theta|, log kappa) and scale by kappa; the slope is odd in theta, the rest even.
+    Dividing by kappa makes the eq. 3 part (delay proportional to kappa) exact in kappa;
+    the tier switches and the waveform crossing leave interpolation errors of a few
+    hundredths of a microsecond (tests/localize/test_echoes.py), against a 5 us timing
+    jitter. The detection probability is computed directly (closed form, cheap).
+    """
+
+    def __init__(self, params: ModuleParams) -> None:
+        self.params = params
+        self._h = math.log(10.0) / _KAPPA_PER_DECADE
+        self._ln_min = math.log(_KAPPA_MIN_US)
+        self._n_rows = int(round(math.log(_KAPPA_MAX_US / _KAPPA_MIN_US) / self._h)) + 1
+        self._width = int(math.ceil(math.pi / 2 / _DTHETA_RAD)) + 2
+        shape = (self._n_rows, self._width)
+        #: (row, |theta| node, 3): mean, slope and SD over kappa; NaN where undetected
+        self._vals = np.full(shape + (3,), np.nan)
+        #: (row, node): second difference of mean/kappa in |theta|
+        self._curv = np.full(shape, np.nan)
+        #: (row, node): the cell from this node to the next row and node is smooth
+        self._cell_ok = np.zeros(shape, dtype=bool)
+        self._row_built = np.zeros(self._n_rows, dtype=bool)
+        #: (row,) detection arc [rad]: nothing at least as strong is detected beyond it
+        self._arc = np.full(self._n_rows, np.inf)
+        self._cells_done = np.zeros(self._n_rows, dtype=bool)
+
+    def _build_row(self, j: int) -> None:
+        kap = math.exp(self._ln_min + j * self._h)
+        arc = float(max_detection_angle_rad(kap, self.params, _TABLE_GAIN_SD))
+        n = min(int(arc / _DTHETA_RAD) + 3, self._width)
+        if n < self._width:
+            self._arc[j] = arc
+        th = np.arange(-1, n + 1) * _DTHETA_RAD     # one node each side for the slope
+        m = delay_moments_us(th, kap, Tier.AUTO, self.params, _DELAY_NODES)
+        mean = m.mean_us
+        self._curv[j, :n] = np.abs(mean[2:] - 2 * mean[1:-1] + mean[:-2]) / kap
+        self._vals[j, :n, 0] = mean[1:-1] / kap
+        self._vals[j, :n, 1] = (mean[2:] - mean[:-2]) / (2 * _DTHETA_RAD * kap)
+        self._vals[j, :n, 2] = m.sd_us[1:-1] / kap
+        self._row_built[j] = True
+
+    def _ensure(self, j_lo: int, j_hi: int) -> None:
+        """Build rows ``j_lo - 1 .. j_hi + 2`` and the smoothness of the cells of rows
+        ``j_lo .. j_hi``."""
+        for j in range(j_lo - 1, j_hi + 3):
+            if not self._row_built[j]:
+                self._build_row(j)
+        rows = np.arange(j_lo, j_hi + 1)
+        rows = rows[~self._cells_done[rows]]
+        if rows.size == 0:
+            return
+        m = self._vals[:, :, 0]
+        with np.errstate(invalid="ignore"):
+            def node_curv(r: NDArray[np.intp]) -> Array:  # (len(r), width), NaN: rough
+                in_kappa = np.abs(m[r - 1] - 2 * m[r] + m[r + 1])
+                return np.maximum(in_kappa, self._curv[r])
+            c = np.maximum(node_curv(rows), node_curv(rows + 1))
+            c = np.maximum(c[:, :-1], c[:, 1:])
+            kap_hi = np.exp(self._ln_min + (rows + 1) * self._h)[:, None]
+            finite = np.asarray(np.isfinite(self._vals).all(axis=2))
+            fin = finite[rows] & finite[rows + 1]
+            fin = fin[:, :-1] & fin[:, 1:]
+            self._cell_ok[rows, :-1] = np.asarray(fin & (c * kap_hi <= _SMOOTH_US))
+        self._cells_done[rows] = True
+
+    def moments(self, theta_rad: ArrayLike, kappa_us: ArrayLike
+                ) -> tuple[Array, Array, Array]:
+        """Mean [us], slope [us/rad] and SD [us] of the delay: ``theta_rad`` (n,)
+        [rad] and ``kappa_us`` (n,) [us] broadcast (:func:`delay_model` without the
+        detection probability)."""
+        th = np.asarray(theta_rad, dtype=float)
+        kap = np.broadcast_to(np.asarray(kappa_us, dtype=float), th.shape)
+        shape = th.shape
+        th, kap = th.reshape(-1), kap.reshape(-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = np.abs(th) * (1.0 / _DTHETA_RAD)
+            lk = (np.log(kap) - self._ln_min) * (1.0 / self._h)
+            known = (lk >= 1) & (lk < self._n_rows - 2)
+            inside = known & (a < self._width - 1)
+        if not inside.all():
+            a = np.where(inside, a, 0.0)
+            lk = np.where(known, lk, 1.0)
+        i = a.astype(np.intp)
+        j = lk.astype(np.intp)
+        j_lo, j_hi = int(j.min(initial=1)), int(j.max(initial=1))
+        if not self._cells_done[j_lo:j_hi + 1].all():
+            self._ensure(j_lo, j_hi)
+        f = (a - i)[:, None]
+        g = (lk - j)[:, None]
+        flat = j * self._width + i
+        v = self._vals.reshape(-1, 3)
+        lo = v[flat] + f * (v[flat + 1] - v[flat])
+        hi = v[flat + self._width] + f * (v[flat + self._width + 1] - v[flat + self._width])
+        val = (lo + g * (hi - lo)) * kap[:, None]
+        mean, slope, sd = val[:, 0], val[:, 1] * np.sign(th), val[:, 2]
+        ok = inside & self._cell_ok.reshape(-1)[flat]
+        if not ok.all():
+            # beyond the detection arc of the weaker row: no echo (NaN), no evaluation
+            with np.errstate(invalid="ignore"):
+                dead = known & (np.abs(th) > self._arc[j])
+            fall = np.flatnonzero(~ok & ~dead & np.isfinite(th) & np.isfinite(kap)
+                                  & (kap > 0))
+            mean[~ok] = slope[~ok] = sd[~ok] = np.nan
+            if fall.size:
+                dm, ds, dsd, _ = delay_model_direct(th[fall], kap[fall], self.params.c_mps)
+                mean[fall], slope[fall], sd[fall] = dm, ds, dsd
+        return mean.reshape(shape), slope.reshape(shape), sd.reshape(shape)
+
+    def lookup(self, theta_rad: ArrayLike, kappa_us: ArrayLike
+               ) -> tuple[Array, Array, Array, Array]:
+        """:func:`delay_model` for this module (see :meth:`moments`), with the
+        detection probability."""
+        mean, slope, sd = self.moments(theta_rad, kappa_us)
+        th = np.asarray(theta_rad, dtype=float)
+        kap = np.broadcast_to(np.asarray(kappa_us, dtype=float), th.shape)
+        return mean, slope, sd, self._p_detect(th, kap)
+
+    def _p_detect(self, th: Array, kap: Array) -> Array:
+        a = tabulated_piston_echo(th, self.params)
+        sig = self.params.amplitude_fluctuation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_need = np.log(kap / self.params.detection_limit_us) - np.log(a)
+        if sig > 0:
+            return np.asarray(special.ndtr(-log_need / sig), dtype=float)
+        return (log_need <= 0).astype(float)
+
+
+@functools.lru_cache(maxsize=8)
+def delay_table(c_mps: float = 343.0) -> DelayTable:
+    """The (lazily filled) :class:`DelayTable` of the module at this speed of sound."""
+    return DelayTable(_module(float(c_mps)))
 
 
 def reading_sd_us(delay_sd_us: ArrayLike, c_mps: float = 343.0) -> Array:
@@ -239,7 +411,7 @@ class EchoObservation:
     def linearize(self, pose: ArrayLike) -> EchoObservation:
         """Evaluate the delay model at the off-axis angles seen from ``pose`` (3,)."""
         rng, theta, _, _ = geometry(np.asarray(pose, dtype=float), self.rel, self.feature)
-        mean, slope, sd, _ = delay_model(theta, self.kappa_at(rng), self.c_mps)
+        mean, slope, sd = delay_table(float(self.c_mps)).moments(theta, self.kappa_at(rng))
         self.lin_theta, self.lin_mean, self.lin_slope, self.lin_sd = theta, mean, slope, sd
         return self
 
