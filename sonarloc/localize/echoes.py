@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -100,6 +100,9 @@ def delay_model_direct(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float =
     return m.mean_us[1], slope, m.sd_us[1], m.p_detect[1]
 
 
+#: Largest change of a reading's off-axis angle [rad] (0.03 deg) for which
+#: :meth:`EchoObservation.linearize` keeps the delay model it has.
+RELINEARIZE_RAD = 5e-4
 #: Quadrature nodes of the delay moments.
 _DELAY_NODES = 41
 #: Strength grid of :class:`DelayTable`: log-spaced, ``_KAPPA_PER_DECADE`` rows a
@@ -395,24 +398,43 @@ class EchoObservation:
     lin_slope: Array | None = None
     lin_sd: Array | None = None
     compressed: Compressed | None = None
+    #: the pose of the last :meth:`measure` and its result (pose, h, H, R)
+    _measured: tuple[Array, Array, Array, Array] | None = field(
+        default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.z_m)
 
     def subset(self, keep: NDArray[np.bool_]) -> EchoObservation:
-        """The observation restricted to readings ``keep`` (n,) (linearisation kept)."""
+        """The observation restricted to readings ``keep`` (n,) (linearisation and the
+        last :meth:`measure` kept)."""
         def sel(a: Array | None) -> Array | None:
             return None if a is None else a[keep]
-        return EchoObservation(self.z_m[keep], self.rel[keep], self.p_fac[keep],
-                               self.v_fac[keep], self.kappa_us, self.feature, self.t_s,
-                               self.c_mps, self.kind, sel(self.lin_theta),
-                               sel(self.lin_mean), sel(self.lin_slope), sel(self.lin_sd))
+        out = EchoObservation(self.z_m[keep], self.rel[keep], self.p_fac[keep],
+                              self.v_fac[keep], self.kappa_us, self.feature, self.t_s,
+                              self.c_mps, self.kind, sel(self.lin_theta),
+                              sel(self.lin_mean), sel(self.lin_slope), sel(self.lin_sd))
+        if self._measured is not None:
+            x, h, hx, r = self._measured
+            idx = np.flatnonzero(keep)
+            out._measured = (x, h[idx], hx[idx], r[np.ix_(idx, idx)])
+        return out
 
     def linearize(self, pose: ArrayLike) -> EchoObservation:
-        """Evaluate the delay model at the off-axis angles seen from ``pose`` (3,)."""
+        """Evaluate the delay model at the off-axis angles seen from ``pose`` (3,).
+
+        Kept as it is when no angle moved more than :data:`RELINEARIZE_RAD` from the
+        stored linearisation (:meth:`measure` extrapolates it along its slope; the
+        curvature term is below a thousandth of a microsecond there).
+        """
         rng, theta, _, _ = geometry(np.asarray(pose, dtype=float), self.rel, self.feature)
+        if self.lin_theta is not None and len(self.lin_theta) == len(theta) and \
+                float(np.max(np.abs(se2.wrap_angle(theta - self.lin_theta)),
+                             initial=0.0)) <= RELINEARIZE_RAD:
+            return self
         mean, slope, sd = delay_table(float(self.c_mps)).moments(theta, self.kappa_at(rng))
         self.lin_theta, self.lin_mean, self.lin_slope, self.lin_sd = theta, mean, slope, sd
+        self._measured = None
         return self
 
     def kappa_at(self, range_m: Array) -> Array:
@@ -432,6 +454,8 @@ class EchoObservation:
         assert self.lin_theta is not None and self.lin_mean is not None
         assert self.lin_slope is not None and self.lin_sd is not None
         x = np.asarray(pose, dtype=float)
+        if self._measured is not None and np.array_equal(self._measured[0], x):
+            return self._measured[1], self._measured[2], self._measured[3]
         rng, theta, dr, dth = geometry(x, self.rel, self.feature)
         us_to_m = 0.5e-6 * self.c_mps
         bias_us = 0.5 * _module(float(self.c_mps)).count_period_us
@@ -449,7 +473,9 @@ class EchoObservation:
         m = gp @ gv.T                       # m[i, j] = g_i P_i V_j g_j (valid for i <= j)
         upper = np.triu(m)
         r = upper + np.triu(m, 1).T + np.diag(sd_m**2)
-        return h, hx, ekf.symmetrize(r)
+        r = ekf.symmetrize(r)
+        self._measured = (x.copy(), h, hx, r)
+        return h, hx, r
 
 
 @dataclass(frozen=True)
@@ -506,6 +532,7 @@ def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
     the same update on a slightly moved belief (a delayed observation fused before it)
     moves the prediction by ``H (x - x0)``, and costs a 3-row update.
     """
+    last: tuple[Compressed, tuple[Gaussian, Innovation]] | None = None
     if obs.compressed is None:
         # iterated: relinearise (geometry and the delay model) at the updated mean, so a
         # first update from a belief degrees off does not trust a slope taken there
@@ -515,7 +542,8 @@ def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
             obs.compressed = compress(obs, x_lin)
             if obs.compressed is None:
                 break
-            moved = _reduced_update(state, obs.compressed)[0].mean
+            last = (obs.compressed, _reduced_update(state, obs.compressed))
+            moved = last[1][0].mean
             step = moved - x_lin
             step[2] = float(se2.wrap_angle(step[2]))
             x_lin = moved
@@ -525,7 +553,7 @@ def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
     if c is None:
         h, hx, r = obs.measure(state.mean)
         return ekf.kalman_update(state, obs.z_m - h, hx, r, gate)
-    new, innov = _reduced_update(state, c)
+    new, innov = last[1] if last is not None and last[0] is c else _reduced_update(state, c)
     d2 = innov.d2 + c.resid2
     accepted = np.asarray(~innov.singular & (d2 <= gate))
     if not bool(accepted):
