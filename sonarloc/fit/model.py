@@ -224,25 +224,40 @@ class _HermiteTable:
         return g, dg, lng
 
 
+    @functools.cached_property
+    def coef(self) -> Array:
+        """(n, 4) power-basis coefficients of each interval's cubic in s (same curve)."""
+        return _hermite_coef(self.f, self.df * self.step)
+
     def lookup_log(self, theta: Array, derivative: bool, want_g: bool
                    ) -> tuple[Array, Array, Array]:
-        """(g, d ln g / d theta, ln g) as :func:`beam_log_factor` returns them."""
+        """(g, d ln g / d theta, ln g) as :func:`beam_log_factor` returns them (one row
+        gather and Horner's rule: the fitter's hot path)."""
         u = np.abs(theta) * (1.0 / self.step)
-        n = self.f.size - 1
+        coef = self.coef
+        n = coef.shape[0]
         i = np.minimum(u.astype(np.intp), n - 1)
         s = u - i
-        f0, f1 = self.f[i], self.f[i + 1]
-        d0, d1 = self.df[i] * self.step, self.df[i + 1] * self.step
-        s2 = s * s
-        lng = f0 + s2 * (3.0 - 2.0 * s) * (f1 - f0) + s * (1.0 - s) * ((1.0 - s) * d0 - s * d1)
+        c = np.take(coef, i, axis=0)
+        c1, c2, c3 = c[..., 1], c[..., 2], c[..., 3]
+        lng = c[..., 0] + s * (c1 + s * (c2 + s * c3))
         beyond = u >= n
         lng = np.where(beyond, np.log(_G_MAX), lng)
         g = np.exp(lng) if want_g else lng
         if not derivative:
             return g, lng, lng
-        dlng = ((6.0 * s * (1.0 - s)) * (f1 - f0) + (1.0 - s) * (1.0 - 3.0 * s) * d0
-                + s * (3.0 * s - 2.0) * d1) / self.step
+        dlng = (c1 + s * (2.0 * c2 + 3.0 * s * c3)) * (1.0 / self.step)
         return g, np.where(beyond, 0.0, dlng * np.sign(theta)), lng
+
+
+def _hermite_coef(f: Array, d: Array) -> Array:
+    """Coefficients (n, 4) of the cubic Hermite interpolant through values ``f`` (n+1)
+    with slopes ``d`` (n+1, per unit of the local coordinate s in [0, 1])."""
+    f0, f1, d0, d1 = f[:-1], f[1:], d[:-1], d[1:]
+    coef = np.stack([f0, d0, 3.0 * (f1 - f0) - 2.0 * d0 - d1, 2.0 * (f0 - f1) + d0 + d1],
+                    axis=1)
+    coef.setflags(write=False)
+    return coef
 
 
 @functools.lru_cache(maxsize=16)
@@ -429,27 +444,38 @@ class _DelayTable:
     var: Array
     small_scale: float
 
+    @functools.cached_property
+    def coef(self) -> Array:
+        """(n, 6): the mean's cubic in s (power basis) and the variance's line, per
+        interval."""
+        c = _hermite_coef(self.mean, self.dmean_dx * self.dx)
+        out = np.concatenate([c, self.var[:-1, None], np.diff(self.var)[:, None]], axis=1)
+        out.setflags(write=False)
+        return out
+
     def lookup(self, u: Array) -> tuple[Array, Array, Array]:
         """Mean delay, its derivative by u, and the delay variance at eq. 3 delays u."""
         x = np.log(np.maximum(u, 1e-300))
-        n = self.mean.size - 1
-        t = (x - self.x0) / self.dx
+        coef = self.coef
+        n = coef.shape[0]
+        t = (x - self.x0) * (1.0 / self.dx)
         below = t < 0.0
         tc = np.clip(t, 0.0, n)
         i = np.minimum(tc.astype(np.intp), n - 1)
         s = tc - i
-        f0, f1 = self.mean[i], self.mean[i + 1]
-        d0, d1 = self.dmean_dx[i] * self.dx, self.dmean_dx[i + 1] * self.dx
-        s2 = s * s
-        m = f0 + s2 * (3.0 - 2.0 * s) * (f1 - f0) + s * (1.0 - s) * ((1.0 - s) * d0 - s * d1)
-        dm_dx = ((6.0 * s * (1.0 - s)) * (f1 - f0) + (1.0 - s) * (1.0 - 3.0 * s) * d0
-                 + s * (3.0 * s - 2.0) * d1) / self.dx
+        c = np.take(coef, i, axis=0)
+        c1, c2, c3 = c[..., 1], c[..., 2], c[..., 3]
+        m = c[..., 0] + s * (c1 + s * (c2 + s * c3))
+        dm_dx = (c1 + s * (2.0 * c2 + 3.0 * s * c3)) * (1.0 / self.dx)
         dm_dx = np.where(t > n, 0.0, dm_dx)
-        var = self.var[i] + s * (self.var[i + 1] - self.var[i])
+        var = c[..., 4] + s * c[..., 5]
         # below the table (u < 1e-3 us) the module is eq. 3 with a log-normal gain
-        m = np.where(below, u * self.small_scale, m)
-        dm_du = np.where(below, self.small_scale, dm_dx / np.maximum(u, 1e-300))
-        var = np.where(below, (0.25 * u) ** 2, var)
+        if below.any():
+            m = np.where(below, u * self.small_scale, m)
+            dm_du = np.where(below, self.small_scale, dm_dx / np.maximum(u, 1e-300))
+            var = np.where(below, (0.25 * u) ** 2, var)
+        else:
+            dm_du = dm_dx / np.maximum(u, 1e-300)
         return m, dm_du, var
 
 
