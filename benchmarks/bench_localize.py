@@ -62,7 +62,7 @@ from sonarloc.maps.geojson import Map, load_map, map_from_geojson  # noqa: E402
 from sonarloc.world.rig import PanRig, Rig, ring16  # noqa: E402
 from sonarloc.world.simulate import simulate_records  # noqa: E402
 
-METHODS = ("odometry", "conventional", "specular", "kuc", "kuc live")
+METHODS = ("odometry", "conventional", "specular", "kuc fit", "kuc", "kuc live")
 WARMUP_S = 5.0
 
 
@@ -118,13 +118,17 @@ class Run:
     fused: int = 0
     observations: int = 0
     landmarks: int = 0
+    readings: int = 0
 
 
 def method_config(method: str) -> tuple[LocalizerConfig, Mode]:
-    """``kuc live``: the kuc method fed record by record (``--online``); the others as
-    ``sonarloc localize`` runs them (kuc and odometry in batches)."""
+    """``kuc live``: the kuc method fed record by record (``--online``); ``kuc fit``: kuc
+    fusing the fitted landmarks instead of their readings; the others as ``sonarloc
+    localize`` runs them (kuc and odometry in batches)."""
     if method == "kuc live":
         return LocalizerConfig(method="kuc"), "online"
+    if method == "kuc fit":  # the fitted landmarks fused, not their readings (ablation)
+        return LocalizerConfig(method="kuc", kuc_fusion="fit"), "auto"
     return LocalizerConfig(method=method), "auto"  # type: ignore[arg-type]
 
 
@@ -147,7 +151,7 @@ def localize_run(text: str, fmap: FeatureMap, truth: dict[float, np.ndarray],
     nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
     st = res.localizer.stats
     return Run(t, err, nees, res.wall_time_s, res.log_duration_s, st.accepted,
-               st.observations, st.landmarks)
+               st.observations, st.landmarks, st.echoes_fused)
 
 
 @dataclass
@@ -163,6 +167,7 @@ class Summary:
     fused: int
     observations: int
     landmarks: int
+    readings: int = 0
 
 
 def summarize(runs: list[Run]) -> Summary:
@@ -184,7 +189,7 @@ def summarize(runs: list[Run]) -> Summary:
         1000 * float(pos.max()), float(np.mean(avg)), inside,
         float(np.median([r.log_s / r.wall_s for r in runs])),
         sum(r.fused for r in runs), sum(r.observations for r in runs),
-        sum(r.landmarks for r in runs))
+        sum(r.landmarks for r in runs), sum(r.readings for r in runs))
 
 
 def truth_of(text: str) -> dict[float, np.ndarray]:
@@ -774,7 +779,7 @@ def plot(example: dict[str, Run], summaries: dict[str, dict[str, Summary]],
     ax.grid(alpha=0.3)
     ax = axes[0, 1]
     names = list(summaries)
-    width = 0.16
+    width = 0.13
     for j, m in enumerate(METHODS):
         vals = [summaries[s][m].steady_mm for s in names]
         ax.bar(np.arange(len(names)) + (j - 0.5 * (len(METHODS) - 1)) * width, vals, width,
@@ -896,10 +901,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         "*odometry*: dead reckoning from the init prior; *conventional*: each reading a range "
         "along the beam axis with a 10 deg bearing SD, walls ray-cast along the axis; "
         "*specular*: that reading with walls predicted at normal incidence (a stronger, "
-        "geometry-aware baseline); *kuc*: landmarks fitted with Kuc's forward model "
-        "(`sonarloc.fit`), fused at their reference times (*kuc*: the batch replay of "
-        "`sonarloc localize`, as if fitting took no time; *kuc live*: the same Localizer fed "
-        "record by record, each fit fused when it completes). RMSE over all odom steps of all "
+        "geometry-aware baseline); *kuc*: segments fitted with Kuc's forward model "
+        "(`sonarloc.fit`) and associated with the map (by the fit, else by their readings), "
+        "then each segment's readings fused through the forward model (time of flight = "
+        "range + the module's threshold delay off axis, odometry error inside the segment in "
+        "the covariance; `kuc_fusion=\"echoes\"`), at the segment's reference time (*kuc*: "
+        "the batch replay of `sonarloc localize`, as if fitting took no time; *kuc live*: "
+        "the same Localizer fed record by record, each segment fused when its fit "
+        "completes; *kuc fit*: the batch replay fusing the fitted landmarks themselves, "
+        "with 2 mm / 0.2 deg floors, as before reading-level fusion). RMSE over all odom "
+        "steps of all "
         f"drives; *steady* after a {WARMUP_S:g} s warm-up (the prior is off by ~5 cm / 2 deg). "
         "NEES: per time step averaged over the drives; *in band* = fraction of steps inside "
         "the 95 % chi-square band for that many drives. Speed: log time / wall time, "
@@ -912,20 +923,24 @@ def main(argv: Sequence[str] | None = None) -> int:
             s = by[m]
             obs = f"{s.fused} / {s.observations}" if m != "odometry" else "-"
             if m.startswith("kuc"):
-                obs += f" ({s.landmarks} fits)"
+                obs += f" ({s.landmarks} fits" + (f", {s.readings} readings)" if s.readings
+                                                  else ")")
             lines.append(f"| {name} | {m} | {s.rmse_mm:.1f} | {s.steady_mm:.1f} | "
                          f"{s.yaw_deg:.2f} | {s.steady_yaw_deg:.2f} | {s.max_mm:.0f} | "
                          f"{s.nees:.2f} | {100 * s.nees_inside:.0f} % | {obs} | "
                          f"{s.speed:.0f}x |")
     lines += ["", "Error of the other methods relative to *kuc* (steady position RMSE; > 1 "
               "means kuc is better):", "",
-              "| scenario | odometry / kuc | conventional / kuc | specular / kuc |",
-              "|---|---:|---:|---:|"]
+              "| scenario | odometry / kuc | conventional / kuc | specular / kuc | kuc fit / "
+              "kuc | yaw: conventional / kuc |",
+              "|---|---:|---:|---:|---:|---:|"]
     for name, by in summaries.items():
         k = by["kuc"].steady_mm
         lines.append(f"| {name} | {by['odometry'].steady_mm / k:.1f} | "
                      f"{by['conventional'].steady_mm / k:.2f} | "
-                     f"{by['specular'].steady_mm / k:.2f} |")
+                     f"{by['specular'].steady_mm / k:.2f} | "
+                     f"{by['kuc fit'].steady_mm / k:.2f} | "
+                     f"{by['conventional'].steady_yaw_deg / by['kuc'].steady_yaw_deg:.2f} |")
     lines += ["", "## Replay speed: batch against live (same logs, same run)", "",
               "*kuc* is `sonarloc localize` (batch replay: readings segmented in a lean "
               "loop, closed segments fitted up to 1024 at a time, each landmark fused at its "

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2 as chi2_dist
 
 from sonarloc.fit import model as M
+from sonarloc.fit import odomcov
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_flat
 from sonarloc.fit.pair import resolve_pairs
 from sonarloc.fit.result import FitStatus, Landmark
@@ -130,8 +131,30 @@ def _fallback(seg_arrays: _Cleaned, status: FitStatus, reason: str,
                     sensors=sensors, extra={**extra, "n_noecho": int((~finite).sum())})
 
 
-def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = None
-                 ) -> list[Landmark]:
+def _add_odometry_covariance(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
+                             sd_deg_per_m: float | None) -> None:
+    """Add the odometry curvature error's share to the covariances of moving segments
+    (:mod:`sonarloc.fit.odomcov`); recorded in ``extra`` as ``odom_range_sd_m`` /
+    ``odom_bearing_sd_deg``."""
+    sd = odomcov.CURVATURE_SD_DEG_PER_M if sd_deg_per_m is None else float(sd_deg_per_m)
+    if not (math.isfinite(sd) and sd >= 0.0):
+        raise ValueError(f"`odometry_sd_deg_per_m` must be non-negative, got {sd_deg_per_m!r}")
+    if sd == 0.0:
+        return
+    for kind in ("point", "line"):
+        for tier in set(sel.tier[sel.kind == kind]):
+            idx = np.flatnonzero((sel.kind == kind) & (sel.tier == tier))
+            extra = odomcov.odometry_covariance(_take(batch, idx), sel.rows(idx), cfg, sd)
+            sel.cov[idx] += extra
+            for j, b in enumerate(idx.tolist()):
+                if extra[j, 0, 0] > 0.0 or extra[j, 1, 1] > 0.0:
+                    sel.extra[b]["odom_range_sd_m"] = math.sqrt(extra[j, 0, 0])
+                    sel.extra[b]["odom_bearing_sd_deg"] = math.degrees(
+                        math.sqrt(extra[j, 1, 1]))
+
+
+def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = None,
+                 odometry_sd_deg_per_m: float | None = None) -> list[Landmark]:
     """Fit one landmark to each segment (vectorised over all of them).
 
     Parameters
@@ -139,6 +162,10 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     segments : :class:`Segment`, :class:`ScanReadings` or ``(t_s, x_m, y_m, yaw_rad,
         tof_us)`` arrays; poses in one fixed frame, TOF NaN = no echo.
     config : fitter settings (speed of sound, detection model, thresholds).
+    odometry_sd_deg_per_m : SD of the odometry's path-curvature error within a segment
+        (:mod:`sonarloc.fit.odomcov`), added to the covariance of segments taken while
+        moving; None: the default (calibrated on the simulator's default odometry); 0
+        for exact poses.
 
     Returns
     -------
@@ -198,6 +225,7 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
         sensors = [tuple(int(v) + s_lo for v in keys[cut[j]:cut[j + 1]] % width)
                    for j in range(todo.size)]
         sel = select_models(batch, cfg)
+        _add_odometry_covariance(batch, sel, cfg, odometry_sd_deg_per_m)
         lms = _landmarks(batch, sel, cfg, [meta[i] for i in todo.tolist()], sensors,
                          n_echo[todo], n_noecho[todo])
         for j, i in enumerate(todo.tolist()):
@@ -406,7 +434,8 @@ class FitReport:
 
 
 def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
-             segmenter: SegmenterConfig | None = None) -> FitReport:
+             segmenter: SegmenterConfig | None = None,
+             odometry_sd_deg_per_m: float | None = None) -> FitReport:
     """Segment a scan (in reading order) and fit every segment.
 
     Readings with non-finite poses or inf/zero/negative TOF are ignored (counted in
@@ -415,7 +444,8 @@ def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
     cfg = config or FitConfig()
     seg = Segmenter(segmenter, cfg.module)
     segments = list(seg.feed(scan))
-    return FitReport(_resolve(segments, fit_segments(segments, cfg), cfg), seg.stats)
+    return FitReport(_resolve(segments, fit_segments(segments, cfg, odometry_sd_deg_per_m),
+                              cfg), seg.stats)
 
 
 class OnlineFitter:
@@ -427,8 +457,10 @@ class OnlineFitter:
     """
 
     def __init__(self, config: FitConfig | None = None,
-                 segmenter: SegmenterConfig | None = None) -> None:
+                 segmenter: SegmenterConfig | None = None,
+                 odometry_sd_deg_per_m: float | None = None) -> None:
         self.config = config or FitConfig()
+        self.odometry_sd_deg_per_m = odometry_sd_deg_per_m
         self.segmenter = Segmenter(segmenter, self.config.module)
 
     @property
@@ -445,7 +477,8 @@ class OnlineFitter:
         return self._fit(closed) if closed else []
 
     def _fit(self, closed: list[Segment]) -> list[Landmark]:
-        return _resolve(closed, fit_segments(closed, self.config), self.config)
+        return _resolve(closed, fit_segments(closed, self.config, self.odometry_sd_deg_per_m),
+                        self.config)
 
 
 def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitConfig

@@ -85,6 +85,8 @@ SIDE_LOBE_STRONG_US = 0.3
 N_CANDIDATES = 48
 """Best grid nodes by the linear solves whose full likelihood is evaluated."""
 
+_LNK_LO, _LNK_HI = math.log(1e-4), math.log(1e4)   # ln kappa [us] evaluated within these
+
 _SCALE = np.array([1e-3, math.pi / 180.0, 1.0])   # mm, deg, ln kappa -> m, rad, ln kappa
 
 
@@ -146,7 +148,7 @@ class _Segment:
         """Per-reading terms of components q (S, 3) local (r, phi, ln kappa):
         echo mean (S, n), variance, log P(echo), log P(no echo); no-echo log P(no echo)."""
         mod = self.cfg.module
-        r, phi, K = q[:, 0:1], q[:, 1:2], np.exp(q[:, 2:3])
+        r, phi, K = q[:, 0:1], q[:, 1:2], np.exp(np.clip(q[:, 2:3], _LNK_LO, _LNK_HI))
         geo = M.geometry("point", r, phi, self.px, self.py, self.yaw)
         g, _, lg = M.beam_delay_factor(geo.theta, self.tier, mod, derivative=False)
         z = M.detection_z(K, lg, mod)
@@ -194,7 +196,8 @@ class _Segment:
         for t in terms:
             c = c - 2.0 * t[4].sum(1)
         for q in comps:
-            c = c + _kappa_penalty(np.exp(q[:, 2]), self.cfg)[0]
+            c = c + _kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)[0]
+        c = np.where(np.isfinite(c), c, 1e12)   # off the cliffs: the optimiser backs off
         if not detail:
             return c, np.zeros(0), np.zeros(0)
         resp = np.exp(np.stack(parts, axis=1) - ll[:, None, :])

@@ -5,6 +5,8 @@
   frozen :class:`Gaussian`).
 * :mod:`~sonarloc.localize.features`: the map as arrays of points and wall segments.
 * :mod:`~sonarloc.localize.associate`: chi-square gated, ambiguity-rejecting association.
+* :mod:`~sonarloc.localize.echoes`: reading-level fusion, each reading of an associated
+  segment a time of flight predicted by the forward model.
 * :mod:`~sonarloc.localize.localizer`: the :class:`Localizer` (thin state, message routing,
   delayed fits by rewind-and-replay, status).
 * :mod:`~sonarloc.localize.relocalize`: global relocalization from recent fits (when lost

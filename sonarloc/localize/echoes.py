@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from sonarloc import se2
 from sonarloc.localize import ekf
 from sonarloc.localize.ekf import Feature, Gaussian, Innovation, OdomNoise
+from sonarloc.physics.reflectors import kappa_at_range_us
 from sonarloc.physics.tiers import Tier, delay_moments_us
 from sonarloc.physics.tof import ModuleParams
 
@@ -167,6 +168,24 @@ def geometry(pose: Array, rel: Array, feature: Feature) -> tuple[Array, Array, A
     return rng, theta, dr, dth
 
 
+def feature_ranges(pose: ArrayLike, rel: ArrayLike, point_xy: ArrayLike, radius_m: ArrayLike,
+                   wall_line: ArrayLike) -> tuple[Array, Array]:
+    """Ranges from n transducers to P point features and W walls (perpendicular).
+
+    ``pose`` (3,) base_link in map; ``rel`` (n, 3) transducers in base_link;
+    ``point_xy`` (P, 2), ``radius_m`` (P,), ``wall_line`` (W, 2) (rho, alpha). Returns
+    (P, n) and (W, n) ranges [m] (geometry only: no delay, no visibility).
+    """
+    t = se2.compose(np.asarray(pose, dtype=float), np.asarray(rel, dtype=float))
+    c = np.asarray(point_xy, dtype=float).reshape(-1, 2)
+    rp = np.hypot(c[:, None, 0] - t[None, :, 0], c[:, None, 1] - t[None, :, 1]) \
+        - np.asarray(radius_m, dtype=float).reshape(-1, 1)
+    w = np.asarray(wall_line, dtype=float).reshape(-1, 2)
+    rw = np.abs(w[:, None, 0] - t[None, :, 0] * np.cos(w[:, None, 1])
+                - t[None, :, 1] * np.sin(w[:, None, 1]))
+    return rp, rw
+
+
 @dataclass
 class EchoObservation:
     """A segment's readings of one map feature, relative to ``base_link`` at ``t_s``.
@@ -177,8 +196,12 @@ class EchoObservation:
     rel : (n, 3) transducer poses in ``base_link`` at the reference time (odometry).
     p_fac, v_fac : (n, 3, 3) factored covariance of ``rel``'s errors
         (:func:`relative_sensor_chain`).
-    kappa_us : strength used in the delay model (the map feature's, else the fit's).
+    kappa_us : strength used in the delay model (the map feature's at 1.5 m, else the
+        fit's).
     feature : the associated map feature.
+    kind : its reflector kind (``pole``, ``rod``, ``point``, ``corner``, ``edge``,
+        ``wall``, ``plane``): a cylinder's strength grows with range
+        (:func:`~sonarloc.physics.reflectors.kappa_at_range_us`), the others' does not.
     t_s : reference time.
     c_mps : speed of sound.
     lin_theta, lin_mean, lin_slope, lin_sd : (n,) the delay model linearised at the
@@ -194,10 +217,12 @@ class EchoObservation:
     feature: Feature
     t_s: float
     c_mps: float = 343.0
+    kind: str = "wall"
     lin_theta: Array | None = None
     lin_mean: Array | None = None
     lin_slope: Array | None = None
     lin_sd: Array | None = None
+    compressed: Compressed | None = None
 
     def __len__(self) -> int:
         return len(self.z_m)
@@ -208,15 +233,21 @@ class EchoObservation:
             return None if a is None else a[keep]
         return EchoObservation(self.z_m[keep], self.rel[keep], self.p_fac[keep],
                                self.v_fac[keep], self.kappa_us, self.feature, self.t_s,
-                               self.c_mps, sel(self.lin_theta), sel(self.lin_mean),
-                               sel(self.lin_slope), sel(self.lin_sd))
+                               self.c_mps, self.kind, sel(self.lin_theta),
+                               sel(self.lin_mean), sel(self.lin_slope), sel(self.lin_sd))
 
     def linearize(self, pose: ArrayLike) -> EchoObservation:
         """Evaluate the delay model at the off-axis angles seen from ``pose`` (3,)."""
-        _, theta, _, _ = geometry(np.asarray(pose, dtype=float), self.rel, self.feature)
-        mean, slope, sd, _ = delay_model(theta, self.kappa_us, self.c_mps)
+        rng, theta, _, _ = geometry(np.asarray(pose, dtype=float), self.rel, self.feature)
+        mean, slope, sd, _ = delay_model(theta, self.kappa_at(rng), self.c_mps)
         self.lin_theta, self.lin_mean, self.lin_slope, self.lin_sd = theta, mean, slope, sd
         return self
+
+    def kappa_at(self, range_m: Array) -> Array:
+        """(n,) strength at the readings' ranges [us]."""
+        radius = float(np.asarray(self.feature.radius_m)) if self.feature.kind == "point" \
+            else 0.0
+        return kappa_at_range_us(self.kappa_us, self.kind, np.maximum(range_m, 1e-3), radius)
 
     def measure(self, pose: ArrayLike) -> tuple[Array, Array, Array]:
         """Predicted ranges (n,), Jacobian wrt the pose H (n, 3) and covariance R (n, n).
@@ -249,12 +280,85 @@ class EchoObservation:
         return h, hx, ekf.symmetrize(r)
 
 
+@dataclass(frozen=True)
+class Compressed:
+    """A stacked readings update linearised once and reduced to at most 3 rows.
+
+    Whitened by ``R = L Lᵀ`` and QR-factored, ``L⁻¹ H = Q Rq``: the update with
+    ``(Qᵀ L⁻¹ nu, Rq, I)`` equals the n-row one with ``(nu, H, R)`` exactly, and the
+    n-row squared Mahalanobis distance is the reduced one plus ``resid2``, the part of
+    the whitened innovation outside ``Q``'s span. ``x0``: the pose linearised at.
+    """
+
+    x0: Array
+    q_nu: Array    # (k,) Qᵀ L⁻¹ (z - h(x0))
+    rq: Array      # (k, 3)
+    resid2: float
+    n: int
+
+
+def compress(obs: EchoObservation, pose: ArrayLike) -> Compressed | None:
+    """Linearise ``obs`` at ``pose`` and reduce it (None if R is not positive definite)."""
+    x0 = np.asarray(pose, dtype=float).copy()
+    h, hx, r = obs.measure(x0)
+    nu = obs.z_m - h
+    try:
+        chol = np.linalg.cholesky(r)
+    except np.linalg.LinAlgError:
+        return None
+    sol = np.linalg.solve(chol, np.column_stack([hx, nu]))  # L⁻¹ [H | nu]
+    hw, nuw = sol[:, :3], sol[:, 3]
+    q, rq = np.linalg.qr(hw, mode="reduced")
+    q_nu = q.T @ nuw
+    resid2 = max(float(nuw @ nuw - q_nu @ q_nu), 0.0)
+    return Compressed(x0, q_nu, rq, resid2, len(nu))
+
+
+#: Linearisations of a first update (iterated EKF), at most.
+ITERATIONS = 3
+
+
+def _reduced_update(state: Gaussian, c: Compressed) -> tuple[Gaussian, Innovation]:
+    dx = state.mean - c.x0
+    dx[2] = float(se2.wrap_angle(dx[2]))
+    nu3 = c.q_nu - c.rq @ dx
+    return ekf.kalman_update(state, nu3, c.rq, np.eye(len(nu3)))
+
+
 def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
            ) -> tuple[Gaussian, Innovation]:
-    """Stacked Kalman update of an unbatched belief with a segment's readings."""
-    h, hx, r = obs.measure(state.mean)
-    nu = obs.z_m - h
-    return ekf.kalman_update(state, nu, hx, r, gate)
+    """Stacked Kalman update of an unbatched belief with a segment's readings.
+
+    Linearised at the first call's belief, relinearised at the updated mean up to
+    :data:`ITERATIONS` times (iterated EKF), and kept (:class:`Compressed`): a replay of
+    the same update on a slightly moved belief (a delayed observation fused before it)
+    moves the prediction by ``H (x - x0)``, and costs a 3-row update.
+    """
+    if obs.compressed is None:
+        # iterated: relinearise (geometry and the delay model) at the updated mean, so a
+        # first update from a belief degrees off does not trust a slope taken there
+        x_lin = state.mean
+        for _ in range(ITERATIONS):
+            obs.linearize(x_lin)
+            obs.compressed = compress(obs, x_lin)
+            if obs.compressed is None:
+                break
+            moved = _reduced_update(state, obs.compressed)[0].mean
+            step = moved - x_lin
+            step[2] = float(se2.wrap_angle(step[2]))
+            x_lin = moved
+            if abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-5:
+                break
+    c = obs.compressed
+    if c is None:
+        h, hx, r = obs.measure(state.mean)
+        return ekf.kalman_update(state, obs.z_m - h, hx, r, gate)
+    new, innov = _reduced_update(state, c)
+    d2 = innov.d2 + c.resid2
+    accepted = np.asarray(~innov.singular & (d2 <= gate))
+    if not bool(accepted):
+        new = state
+    return new, Innovation(innov.nu, innov.S, d2, gate, accepted, innov.singular)
 
 
 def screen(state: Gaussian, obs: EchoObservation, probability: float = 0.999

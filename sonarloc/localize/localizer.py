@@ -353,8 +353,13 @@ class SegmentFitSource:
 
         if not segs:
             return []
+        # too few echoes for the fitter: it would say so; skip the work
+        need = self.fit_config.min_echoes
+        long = [s for s in segs if getattr(s, "n_echo", need) >= need]
+        fitted = iter(fit_segments(long, self.fit_config)) if long else iter(())
         out = []
-        for s, lm in zip(segs, fit_segments(segs, self.fit_config), strict=True):
+        for s in segs:
+            lm = next(fitted) if getattr(s, "n_echo", need) >= need else _too_few(s, need)
             r = s.readings
             echo = np.isfinite(r.tof_us)
             if echo.any():
@@ -366,6 +371,22 @@ class SegmentFitSource:
                 self.on_fit(s, lm)
             out.append(lm)
         return out
+
+
+def _too_few(seg: Any, need: int) -> Landmark:
+    """The ``too_few_points`` result of a segment with fewer echoes than the fitter needs
+    (what :func:`~sonarloc.fit.landmarks.fit_segments` would return, without fitting)."""
+    from sonarloc.fit.result import FitStatus
+
+    r = seg.readings
+    echo = np.flatnonzero(np.isfinite(r.tof_us))
+    k = int(echo[-1]) if echo.size else len(r.t_s) - 1
+    nan3 = np.full(3, np.nan)
+    return Landmark("point", nan3, np.full((3, 3), np.nan), math.nan, math.nan,
+                    int(echo.size), float(r.t_s[k]),
+                    (float(r.x_m[k]), float(r.y_m[k]), float(r.yaw_rad[k])),
+                    FitStatus.TOO_FEW_POINTS, f"{echo.size} echoes; {need} are needed",
+                    sensors=tuple(sorted({int(v) for v in np.asarray(r.sensor)[echo]})))
 
 
 def _echo_arrays(lm: Landmark) -> tuple[Array, ...] | None:
@@ -618,6 +639,12 @@ class Localizer:
             return FusionOutcome(lm.ref_t_s, None, False, "landmark not usable")
         return self.add_observation(obs, lm.ref_t_s)
 
+    def fuses_status(self, status: str) -> bool:
+        """Whether a landmark of fit status ``status`` (with its readings attached by
+        :class:`SegmentFitSource`) can be fused."""
+        return status in self.config.fit_statuses or (
+            self.config.kuc_fusion == "echoes" and status in ECHO_ONLY_STATUSES)
+
     def fuses(self, lm: Landmark) -> bool:
         """Whether :meth:`add_landmark` tries to fuse ``lm`` (by its fit status, and with
         reading-level fusion whether its readings are attached)."""
@@ -716,7 +743,10 @@ class Localizer:
         if not (math.isfinite(kap) and kap > 0):
             fitted = float(lm.params[2]) if np.asarray(lm.params).shape == (3,) else math.nan
             kap = min(max(fitted, 0.05), 10.0) if math.isfinite(fitted) else 1.0
-        eo = EchoObservation(z, rel, p_fac, v_fac, kap, feat, float(t[-1]), self._c_mps)
+        kind_name = self.fmap.point_kind[index] if kind == "point" else \
+            self.fmap.wall_kind[index]
+        eo = EchoObservation(z, rel, p_fac, v_fac, kap, feat, float(t[-1]), self._c_mps,
+                             kind_name)
         eo.linearize(state.mean)
         eo = eo.subset(echoes.screen(state, eo, self.config.echo_screen_probability))
         return eo if len(eo) else None
@@ -733,19 +763,22 @@ class Localizer:
         if n < need:
             return None
         sensor_xy = se2.transform_points(state.mean, rel[-1, :2])
-        cands: list[tuple[str, int]] = []
         cfg = self.config.association
-        cands += [("point", int(k)) for k in np.flatnonzero(
-            self.fmap.points_visible_from(sensor_xy, cfg.max_range_m))]
-        cands += [("wall", int(k)) for k in np.flatnonzero(
-            self.fmap.walls_facing(sensor_xy, cfg.wall_margin_m, cfg.max_range_m))]
-        scored: list[tuple[int, float, float, EchoObservation, str, int]] = []
+        pts = np.flatnonzero(self.fmap.points_visible_from(sensor_xy, cfg.max_range_m))
+        walls = np.flatnonzero(self.fmap.walls_facing(sensor_xy, cfg.wall_margin_m,
+                                                      cfg.max_range_m))
+        # geometry-only pre-selection, all candidates at once: the median range of the
+        # readings must be near the candidate's (the delay adds at most ~2 mm)
+        tol = 0.05 + 4 * math.sqrt(max(state.cov[0, 0] + state.cov[1, 1], 0.0))
+        rng_p, rng_w = echoes.feature_ranges(state.mean, rel, self.fmap.point_xy[pts],
+                                             self.fmap.point_radius_m[pts],
+                                             self.fmap.wall_line[walls])
         zmed = float(np.median(z))
-        sd_xy = math.sqrt(max(state.cov[0, 0] + state.cov[1, 1], 0.0))
-        near = self._median_ranges(cands, state.mean, rel)
-        for (kind, k), med in zip(cands, near.tolist(), strict=True):
-            if abs(med - zmed) > 0.05 + 4 * sd_xy:
-                continue
+        cands = [("point", int(k)) for k in pts[np.abs(np.median(rng_p, axis=1) - zmed) <= tol]]
+        cands += [("wall", int(k)) for k in walls[np.abs(np.median(rng_w, axis=1) - zmed)
+                                                  <= tol]]
+        scored: list[tuple[int, float, float, EchoObservation, str, int]] = []
+        for kind, k in cands:
             eo = self._echo_for(chain, kind, k, lm, state)
             if eo is None or len(eo) < need:
                 continue
@@ -773,36 +806,6 @@ class Localizer:
         feat = eo.feature
         return eo, Association("matched", "point" if kind == "point" else "wall", k, feat, d2,
                                len(eo), math.nan, len(top), share)
-
-    def _median_ranges(self, cands: list[tuple[str, int]], mean: Array, rel: Array
-                       ) -> Array:
-        """(K,) median range of each candidate feature from the transducer poses ``rel``
-        (relative to the pose ``mean``): the range of :func:`echoes.geometry`, all
-        candidates in one array operation (the same arithmetic, element by element)."""
-        t = se2.compose(mean, rel)
-        px, py = t[:, 0], t[:, 1]
-        rows = []
-        pts = [k for kind, k in cands if kind == "point"]
-        if pts:
-            c = self.fmap.point_xy[pts]
-            dx, dy = c[:, 0:1] - px, c[:, 1:2] - py
-            dist = np.sqrt(np.maximum(dx * dx + dy * dy, 1e-18))
-            rows.append(dist - self.fmap.point_radius_m[pts][:, None])
-        walls = [k for kind, k in cands if kind != "point"]
-        if walls:
-            line = self.fmap.wall_line[walls]
-            ca = np.array([math.cos(float(a)) for a in line[:, 1]])[:, None]
-            sa = np.array([math.sin(float(a)) for a in line[:, 1]])[:, None]
-            rows.append(np.abs(line[:, 0:1] - px * ca - py * sa))
-        if not rows:
-            return np.zeros(0)
-        rng = np.concatenate(rows)
-        # back into the candidates' order (points first, then walls, as listed)
-        order = [i for i, (kind, _) in enumerate(cands) if kind == "point"] + \
-            [i for i, (kind, _) in enumerate(cands) if kind != "point"]
-        med = np.empty(len(cands))
-        med[order] = np.median(rng, axis=1)
-        return med
 
     def add_observation(self, obs: Observation, t_ref: float) -> FusionOutcome:
         """Associate and fuse an observation of the pose at ``t_ref`` (rewinding if needed)."""

@@ -30,7 +30,7 @@ landmarks in ``map``; the builder merges them across passes:
   plane-strength (kappa near 0.15 us) is a ``corner``, near 0.67 us a ``point``, near
   2.68 us a ``rod`` (``edge`` when within ``edge_near_wall_m`` of a built wall's end).
   Corners and edges are placed by the fit with R = 0 (a vertex has no radius). A point
-  on a built wall (within ``on_wall_m`` of its line, further than ``edge_near_wall_m``
+  on a built wall (within ``on_wall_m`` of its line, further than ``corner_gate_m``
   from its ends) is dropped: a wall echo fitted as a point. Clusters that converge
   within ``point_gate_m`` of each other are merged.
 
@@ -563,7 +563,7 @@ def _vertex_kind(centre: Array, view: Array, vertices: list[tuple[Array, Array, 
 
 def _inside_wall(centre: Array, walls: list[BuiltFeature], cfg: BuildConfig) -> bool:
     """True if ``centre`` lies on a built wall (within ``on_wall_m`` of its line) away
-    from its ends (further than ``edge_near_wall_m`` inside)."""
+    from its ends (further than ``corner_gate_m`` inside: a vertex reflects at the end)."""
     for w in walls:
         a, b = w.coords
         d = b - a
@@ -571,7 +571,7 @@ def _inside_wall(centre: Array, walls: list[BuiltFeature], cfg: BuildConfig) -> 
         u = d / length
         t = float((centre - a) @ u)
         off = abs(float((centre - a) @ np.array([-u[1], u[0]])))
-        if off <= cfg.on_wall_m and cfg.edge_near_wall_m < t < length - cfg.edge_near_wall_m:
+        if off <= cfg.on_wall_m and cfg.corner_gate_m < t < length - cfg.corner_gate_m:
             return True
     return False
 

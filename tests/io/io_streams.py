@@ -43,7 +43,7 @@ def device_records(stream: list[Record]) -> list[Record]:
     return [r for r in stream if r.type in ("rig", "odom", "tof")]
 
 
-def drain(sim, drv, quiet_s: float = 0.3, limit_s: float = 20.0) -> list:
+def drain(sim, drv, quiet_s: float = 1.0, limit_s: float = 30.0) -> list:
     """Everything a driver delivers until the module has finished and the line is quiet."""
     import time
 

@@ -55,9 +55,9 @@ def test_serve_sim_log_over_pty_and_record(run_cli, tmp_path) -> None:
     with LogWriter(log) as w:
         w.write_all(ring_stream(duration_s=1.0, pan=True))
     proc, url = serve("--log", str(log), "--pty", "--rate", "5", "--sent-log", str(sent),
-                      "--linger", "0.2")
+                      "--linger", "1.0")
     assert url.startswith("/dev/")
-    run_cli("record", url, "--out", str(out), "--timeout", "1.5", check=True)
+    run_cli("record", url, "--out", str(out), "--timeout", "3", check=True)
     finish(proc)
     assert out.read_text() == sent.read_text()
     assert len(out.read_text().splitlines()) == 1 + 201 + 51

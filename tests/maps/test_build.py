@@ -115,12 +115,15 @@ def test_point_on_a_wall_is_dropped_and_short_rare_walls_too(rng):
     for _ in range(5):  # a wall echo fitted as a weak point in the middle of the wall
         b.add(point_lm(np.array([2.0, 3.0]) + rng.normal(0, 0.002, 2), kappa=7.0),
               np.array([2.0, 2.0]))
+    for _ in range(5):  # the same near the wall's end (20 cm: not where a vertex reflects)
+        b.add(point_lm(np.array([3.8, 3.0]) + rng.normal(0, 0.002, 2), kappa=9.0),
+              np.array([3.5, 2.0]))
     for _ in range(4):  # a short, rarely seen line: corner echoes fitted as a wall
         b.add(line_lm(6.0, 0.3), np.array([5.0, 0.0]),
               feet=np.array([[6.0, 1.0], [6.0, 1.2]]))
     feats = b.features()
     assert [f.kind for f in feats] == ["wall"]
-    assert b.stats["dropped_on_wall"] == 1 and b.stats["dropped_short_wall"] == 1
+    assert b.stats["dropped_on_wall"] == 2 and b.stats["dropped_short_wall"] == 1
 
 
 def test_wall_line_from_feet_is_insensitive_to_pose_yaw_errors(rng):
