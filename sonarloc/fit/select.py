@@ -258,13 +258,20 @@ def misfit(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: st
     return bad
 
 
+REBRACKET_DCOST = 10.0
+"""An alternative tier refined from the Gaussian fit is bracketed again on the grid only
+when it stays worse than its bar by more than this (-2 log-likelihood): a wrong basin
+shows as hundreds of units, a tier the data do not follow (eq. 3 data) as a few."""
+
+
 def _rebracket(batch: SegmentBatch, idx: NDArray[np.int64], alt: BatchFit, bar: Array,
                cfg: FitConfig) -> BatchFit:
     """Refit, bracketed on the grid, the rows of ``alt`` (another tier refined from the
-    Gaussian fit of segments ``idx``) whose -2 log-likelihood stayed above ``bar``: a
+    Gaussian fit of segments ``idx``) whose -2 log-likelihood stayed above ``bar`` by
+    more than ``REBRACKET_DCOST``: a
     Gaussian fit whose kappa compensates for the missing late weak echoes can sit in
     another basin of the other tier's objective; keep the better of the two."""
-    redo = np.flatnonzero(alt.robust_cost > bar)
+    redo = np.flatnonzero(alt.robust_cost > bar + REBRACKET_DCOST)
     if redo.size == 0:
         return alt
     fresh = fit_batch(_take(batch, idx[redo]), alt.kind, alt.tier, cfg)
