@@ -887,8 +887,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     core = core_nees(50 if quick else 500, 200 if quick else 1000)
     samples, soak_wall, soak_log, soak_status = soak(room_text, room_fmap, soak_hours,
                                                      60.0 if quick else 300.0)
+    b_every = 120.0 if quick else min(3600.0, max(300.0, batch_hours * 300.0))
     bsamples, b_wall, b_log, b_rmse, b_status = batch_soak(room_text, room_fmap, batch_hours,
-                                                           120.0 if quick else 3600.0)
+                                                           b_every)
     mapping = map_building(200, 40.0 if quick else 174.0)
     reloc_s = 30.0 if quick else 60.0
     reloc = relocalization(n_seeds, reloc_s)
@@ -995,8 +996,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"batch fitter, on-time fusion, history) over {b_log / 3600:.1f} h of the "
               "looped drive, the records handed to the `OfflinePipeline` directly (no log "
               f"text to parse): {b_wall:.0f} s wall time ({b_log / b_wall:.0f}x real time). "
-              f"Resident memory {bf[1]:.1f} MB at {bf[0]:.1f} h, {bm[1]:.1f} MB at "
-              f"{bm[0]:.1f} h, {bl[1]:.1f} MB at {bl[0]:.1f} h "
+              f"Resident memory {bf[1]:.1f} MB at {bf[0]:.2f} h, {bm[1]:.1f} MB at "
+              f"{bm[0]:.2f} h, {bl[1]:.1f} MB at {bl[0]:.2f} h "
               f"({(bl[1] - bf[1]) / max(bl[0] - bf[0], 1e-9):+.3f} MB per hour); history "
               f"entries {bf[2]} / {bm[2]} / {bl[2]}; records held by the pipeline (odometry "
               "waiting for the batch fitter, open and waiting segments) at most "

@@ -45,6 +45,7 @@ class DriveReport:
     landmarks_ok: int = 0
     landmarks_matched: int = 0
     landmarks_rejected: int = 0
+    readings_fused: int = 0
     status: str = ""
     compute_s: float = math.nan
     compute_per_reading_us: float = math.nan
@@ -94,8 +95,10 @@ class DriveReport:
             f"  odometry only   {f(self.odom_pose_rmse_m * 100, '.1f')} cm, yaw "
             f"{f(self.odom_yaw_rmse_deg, '.2f')} deg   (estimate "
             f"{f(self.improvement, '.1f')}x better)",
-            f"  landmarks       {self.landmarks_fitted} fitted ({self.landmarks_ok} ok), "
-            f"{self.landmarks_matched} matched to the map, {self.landmarks_rejected} rejected",
+            f"  landmarks       {self.landmarks_fitted} segments ({self.landmarks_ok} fitted ok), "
+            f"{self.landmarks_matched} matched to the map and fused, "
+            f"{self.landmarks_rejected} rejected"
+            + (f"; {self.readings_fused} readings fused" if self.readings_fused else ""),
             f"  compute         {f(self.compute_per_reading_us, '.0f')} us per reading "
             f"(fit + filter), wall {f(self.wall_time_s, '.1f')} s, "
             f"{f(self.realtime_factor, '.1f')}x real time",
