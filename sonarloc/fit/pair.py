@@ -44,7 +44,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import minimize
 from scipy.special import ndtr
 from scipy.stats import chi2 as chi2_dist
 
@@ -219,51 +218,130 @@ def _minimise(seg: _Segment, x0: Array, fixed: int | None = None, maxiter: int =
               ) -> tuple[Array, float]:
     """Quasi-Newton (BFGS) on the scaled variables with a vectorised FD gradient;
     ``fixed``: index of a variable held at its start value (for profiles)."""
-    free = np.array([i for i in range(x0.size) if i != fixed])
-    d = free.size
+    xs, cs = _minimise_batch(seg, x0[None, :], None if fixed is None else [fixed], maxiter)
+    return xs[0], float(cs[0])
+
+
+def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None = None,
+                    maxiter: int = 60, gtol: float = 1e-2) -> tuple[Array, Array]:
+    """BFGS from several starts in lockstep: every iteration evaluates the trial points
+    of all unfinished starts and their central-difference gradient stencils in one
+    :meth:`_Segment.cost` call (the cost of a call is mostly per-call overhead, so S
+    starts cost about as much as one).
+
+    Parameters
+    ----------
+    x0 : (S, D) scaled starts (mm, deg, ln kappa per component).
+    fixed : per start, an index held at its start value (profiles), or None.
+    maxiter : BFGS iterations per start; ``gtol``: stop when the largest free gradient
+        component is below this (-2 log-likelihood per scaled unit).
+
+    Returns
+    -------
+    (S, D) optima (ln kappa clipped into the prior's reach) and (S,) their costs.
+    """
+    x = np.array(x0, dtype=float, copy=True)
+    S, D = x.shape
+    free = np.ones((S, D), dtype=bool)
+    for s, fix in enumerate(fixed or [None] * S):
+        if fix is not None:
+            free[s, fix] = False
     h = 1e-4
-    steps = np.zeros((2 * d + 1, x0.size))
-    steps[1 + np.arange(d), free] = h
-    steps[1 + d + np.arange(d), free] = -h
+    stencil = np.concatenate([np.zeros((1, D)), np.eye(D) * h, -np.eye(D) * h])  # (2D+1, D)
 
-    def full(xf: Array) -> Array:
-        x = x0.copy()
-        x[free] = xf
-        return x
+    def evaluate(pts: Array, rows: NDArray[np.intp]) -> tuple[Array, Array]:
+        c = np.asarray(seg.cost(_unscale((pts[:, None, :] + stencil).reshape(-1, D))))
+        c = c.reshape(pts.shape[0], 2 * D + 1)
+        g = (c[:, 1:D + 1] - c[:, D + 1:]) / (2.0 * h)
+        return c[:, 0], np.where(free[rows], g, 0.0)
 
-    def fun(xf: Array) -> tuple[float, Array]:
-        c = np.asarray(seg.cost(_unscale(full(xf)[None, :] + steps)))
-        return float(c[0]), (c[1:d + 1] - c[d + 1:]) / (2.0 * h)
-
-    res = minimize(fun, x0[free], jac=True, method="BFGS",
-                   options={"maxiter": maxiter, "gtol": 1e-2})
-    x = full(np.asarray(res.x, dtype=float))
+    rows_all = np.arange(S)
+    f, g = evaluate(x, rows_all)
+    Hinv = np.tile(np.eye(D), (S, 1, 1)) * free[:, :, None] * free[:, None, :]
+    first = np.ones(S, dtype=bool)
+    active = np.abs(g).max(1) > gtol
+    it = np.zeros(S, dtype=int)
+    while active.any():
+        rows = np.flatnonzero(active)
+        p = -np.einsum("sij,sj->si", Hinv[rows], g[rows])
+        slope = np.einsum("si,si->s", p, g[rows])
+        bad = ~(slope < 0)                       # not a descent direction: steepest descent
+        p[bad] = -g[rows][bad]
+        slope[bad] = -np.einsum("si,si->s", g[rows][bad], g[rows][bad])
+        alpha = np.where(first[rows], np.minimum(1.0, 1.0 / np.maximum(
+            np.linalg.norm(p, axis=1), 1e-300)), 1.0)
+        pending = np.ones(rows.size, dtype=bool)
+        x_new, f_new, g_new = x[rows].copy(), f[rows].copy(), g[rows].copy()
+        for _ in range(12):                      # backtracking (Armijo), all in one call
+            k = np.flatnonzero(pending)
+            if k.size == 0:
+                break
+            trial = x[rows[k]] + alpha[k, None] * p[k]
+            ft, gt = evaluate(trial, rows[k])
+            ok = ft <= f[rows[k]] + 1e-4 * alpha[k] * slope[k]
+            kk = k[ok]
+            x_new[kk], f_new[kk], g_new[kk] = trial[ok], ft[ok], gt[ok]
+            pending[kk] = False
+            alpha[k[~ok]] *= 0.3
+        moved = ~pending
+        sv = x_new - x[rows]
+        yv = g_new - g[rows]
+        sy = np.einsum("si,si->s", sv, yv)
+        for j in np.flatnonzero(moved & (sy > 1e-12)):
+            s_, y_, r = sv[j], yv[j], rows[j]
+            if first[r]:                         # scale the initial inverse Hessian
+                Hinv[r] *= sy[j] / float(y_ @ y_)
+            rho = 1.0 / sy[j]
+            V = np.eye(D) - rho * np.outer(s_, y_)
+            Hinv[r] = V @ Hinv[r] @ V.T + rho * np.outer(s_, s_)
+        first[rows[moved]] = False
+        f_old = f[rows]
+        x[rows], f[rows], g[rows] = x_new, f_new, g_new
+        it[rows] += 1
+        # converged: small gradient, or a step that no longer lowers the cost by FTOL
+        done = ((~moved) | (np.abs(g_new).max(1) <= gtol) | (it[rows] >= maxiter)
+                | (f_old - f_new < FTOL))
+        active[rows[done]] = False
     # ln kappa within the prior's reach (it is soft; keep the optimiser off the cliffs)
-    lk = x[2::3]
-    x[2::3] = np.clip(lk, math.log(seg.cfg.kappa_min_us), math.log(1e3))
-    return x, float(np.asarray(seg.cost(_unscale(x[None, :])))[0])
+    lk = x[:, 2::3]
+    clipped = np.clip(lk, math.log(seg.cfg.kappa_min_us), math.log(1e3))
+    if np.any(clipped != lk):
+        x[:, 2::3] = clipped
+        f = np.asarray(seg.cost(_unscale(x)))
+    return x, np.asarray(f, dtype=float)
+
+
+FTOL = 1e-4
+"""A quasi-Newton step lowering -2 log-likelihood by less than this ends the search."""
 
 
 PROFILE_STEPS = (-1.0, -0.4, 0.4, 1.0)
 """Steps in ln kappa of the profile that measures each bearing's real spread."""
 
 
-def _profile_bearing_sd(seg: _Segment, x: Array, c: float, k: int) -> float:
-    """Bearing SD [rad] of component ``k`` along its kappa profile.
+def _profile_bearing_sds(seg: _Segment, x: Array, c: float) -> list[float]:
+    """Bearing SD [rad] of each component along its kappa profile.
 
     Bearing and kappa of a reflector whose inner arm is hidden by the other trade off
     along a curved ridge the local (Hessian) covariance misses: hold ln kappa at a few
     steps away, refit the rest, and take the largest bearing shift per unit of
-    sqrt(-2 log-likelihood rise) (exact for a Gaussian likelihood).
+    sqrt(-2 log-likelihood rise) (exact for a Gaussian likelihood). All profile points
+    of both components are refitted together (:func:`_minimise_batch`).
     """
-    sd = 0.0
-    for step in PROFILE_STEPS:
-        x0 = x.copy()
-        x0[3 * k + 2] += step
-        xp, cp = _minimise(seg, x0, fixed=3 * k + 2)
-        dphi = math.radians(float(xp[3 * k + 1] - x[3 * k + 1]))
-        rise = max(cp - c, 1e-3)
-        sd = max(sd, abs(dphi) / math.sqrt(rise))
+    starts, fixed, comp = [], [], []
+    for k in range(2):
+        for step in PROFILE_STEPS:
+            x0 = x.copy()
+            x0[3 * k + 2] += step
+            starts.append(x0)
+            fixed.append(3 * k + 2)
+            comp.append(k)
+    xp, cp = _minimise_batch(seg, np.array(starts), fixed)
+    sd = [0.0, 0.0]
+    for j, k in enumerate(comp):
+        dphi = math.radians(float(xp[j, 3 * k + 1] - x[3 * k + 1]))
+        rise = max(float(cp[j]) - c, 1e-3)
+        sd[k] = max(sd[k], abs(dphi) / math.sqrt(rise))
     return sd
 
 
@@ -377,8 +455,8 @@ def fit_pair(batch: SegmentBatch, b: int, single_local: Array, tier: str,
     d1 = np.array([0.0, 1.0 / _SCALE[1] * math.radians(1.0), 0.0])
     starts.append(np.concatenate([x1 - d1, x1 + d1]))
     optima = []
-    for x0 in starts:
-        x, c = _minimise(seg, x0)
+    xs, cs = _minimise_batch(seg, np.array(starts))   # all starts in lockstep
+    for x, c in zip(xs, cs.tolist(), strict=True):
         if x[1] > x[4]:                       # components ordered by bearing
             x = np.concatenate([x[3:], x[:3]])
         optima.append((c, x))
@@ -412,7 +490,7 @@ def fit_pair(batch: SegmentBatch, b: int, single_local: Array, tier: str,
         cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
     ambiguous: dict[int, str] = {}
     if promising:
-        profile_sd = [_profile_bearing_sd(seg, best_x, best_c, k) for k in range(2)]
+        profile_sd = _profile_bearing_sds(seg, best_x, best_c)
         for k in range(2):
             cov_out[k, 1, 1] = max(cov_out[k, 1, 1], profile_sd[k] ** 2)
     # other optima that fit as well with other bearings: the bearings are ambiguous;
