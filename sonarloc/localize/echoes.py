@@ -43,7 +43,7 @@ from scipy import special
 from sonarloc import se2
 from sonarloc.localize import ekf
 from sonarloc.localize.ekf import Feature, Gaussian, Innovation, OdomNoise
-from sonarloc.physics.reflectors import kappa_at_range_us
+from sonarloc.physics.reflectors import ReflectorKind, kappa_at_range_us
 from sonarloc.physics.tiers import (
     Tier,
     delay_moments_us,
@@ -100,6 +100,9 @@ def delay_model_direct(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float =
     return m.mean_us[1], slope, m.sd_us[1], m.p_detect[1]
 
 
+#: Reflector kinds whose strength grows with range (cylinders,
+#: :func:`~sonarloc.physics.reflectors.kappa_at_range_us`); the others keep theirs.
+_GROWING_KINDS = frozenset(k.value for k in ReflectorKind if k.is_cylinder)
 #: Largest change of a reading's off-axis angle [rad] (0.03 deg) for which
 #: :meth:`EchoObservation.linearize` keeps the delay model it has.
 RELINEARIZE_RAD = 5e-4
@@ -439,6 +442,8 @@ class EchoObservation:
 
     def kappa_at(self, range_m: Array) -> Array:
         """(n,) strength at the readings' ranges [us]."""
+        if self.kind not in _GROWING_KINDS:   # walls, corners, edges: constant
+            return np.full(np.shape(range_m), float(self.kappa_us))
         radius = float(np.asarray(self.feature.radius_m)) if self.feature.kind == "point" \
             else 0.0
         return kappa_at_range_us(self.kappa_us, self.kind, np.maximum(range_m, 1e-3), radius)
