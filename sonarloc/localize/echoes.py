@@ -34,16 +34,22 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import special
 
 from sonarloc import se2
 from sonarloc.localize import ekf
 from sonarloc.localize.ekf import Feature, Gaussian, Innovation, OdomNoise
 from sonarloc.physics.reflectors import kappa_at_range_us
-from sonarloc.physics.tiers import Tier, delay_moments_us
+from sonarloc.physics.tiers import (
+    Tier,
+    delay_moments_us,
+    max_detection_angle_rad,
+    tabulated_piston_echo,
+)
 from sonarloc.physics.tof import ModuleParams
 
 Array = NDArray[np.float64]
@@ -61,6 +67,10 @@ def delay_model(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float = 343.0
                 ) -> tuple[Array, Array, Array, Array]:
     """Mean threshold delay, its slope in theta, its SD and the detection probability.
 
+    Interpolated in :class:`DelayTable` (within a few hundredths of a microsecond of
+    :func:`delay_model_direct`, see its notes); evaluated directly where the table has
+    no finite neighbours (the detection edge, strengths outside its range).
+
     Parameters
     ----------
     theta_rad : (n,) off-axis angle of the reflecting point [rad].
@@ -72,13 +82,178 @@ def delay_model(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float = 343.0
     mean_us, slope_us_per_rad, sd_us, p_detect : (n,) each; NaN where no echo is
         expected (beyond the detection arc).
     """
+    return delay_table(float(c_mps)).lookup(theta_rad, kappa_us)
+
+
+def delay_model_direct(theta_rad: ArrayLike, kappa_us: ArrayLike, c_mps: float = 343.0
+                       ) -> tuple[Array, Array, Array, Array]:
+    """:func:`delay_model` evaluated with :func:`~sonarloc.physics.tiers.delay_moments_us`
+    (``auto`` tier, 41 quadrature nodes; slope a central difference over
+    ``_DTHETA_RAD``). Same arguments and returns."""
     th = np.asarray(theta_rad, dtype=float)
     kap = np.broadcast_to(np.asarray(kappa_us, dtype=float), th.shape)
     params = _module(float(c_mps))
     grid = np.stack([th - _DTHETA_RAD, th, th + _DTHETA_RAD])
-    m = delay_moments_us(grid, np.broadcast_to(kap, grid.shape), Tier.AUTO, params, 41)
+    m = delay_moments_us(grid, np.broadcast_to(kap, grid.shape), Tier.AUTO, params,
+                         _DELAY_NODES)
     slope = (m.mean_us[2] - m.mean_us[0]) / (2 * _DTHETA_RAD)
     return m.mean_us[1], slope, m.sd_us[1], m.p_detect[1]
+
+
+#: Largest change of a reading's off-axis angle [rad] (0.03 deg) for which
+#: :meth:`EchoObservation.linearize` keeps the delay model it has.
+RELINEARIZE_RAD = 5e-4
+#: Quadrature nodes of the delay moments.
+_DELAY_NODES = 41
+#: Strength grid of :class:`DelayTable`: log-spaced, ``_KAPPA_PER_DECADE`` rows a
+#: decade from ``_KAPPA_MIN_US`` to ``_KAPPA_MAX_US``.
+_KAPPA_MIN_US, _KAPPA_MAX_US, _KAPPA_PER_DECADE = 1e-3, 1e3, 80
+#: Detection of a row's strength is tabulated out to this many SDs of the gain.
+_TABLE_GAIN_SD = 8.0
+#: A table cell is interpolated only where the mean's second differences (in theta and
+#: in log kappa) at its corners stay below this [us]: the delay is smooth there and the
+#: bilinear interpolation within about half of it (0.015 us measured). Elsewhere (ripple
+#: jumps of the waveform tier, tier switches, the detection edge) it is evaluated directly.
+_SMOOTH_US = 0.03
+
+
+class DelayTable:
+    """The delay model (:func:`delay_model_direct`) tabulated over (|theta|, kappa).
+
+    Rows on a log-spaced strength grid (:data:`_KAPPA_PER_DECADE` a decade), each built
+    on first use over |theta| on the ``_DTHETA_RAD`` grid out to the row's detection
+    arc: ``mean / kappa``, ``sd / kappa`` and the central-difference slope ``/ kappa``
+    (exactly the direct slope at the nodes). Look-ups interpolate bilinearly in
+    (|theta|, log kappa) and scale by kappa; the slope is odd in theta, the rest even.
+    Dividing by kappa makes the eq. 3 part (delay proportional to kappa) exact in kappa;
+    the tier switches and the waveform crossing leave interpolation errors of a few
+    hundredths of a microsecond (tests/localize/test_echoes.py), against a 5 us timing
+    jitter. The detection probability is computed directly (closed form, cheap).
+    """
+
+    def __init__(self, params: ModuleParams) -> None:
+        self.params = params
+        self._h = math.log(10.0) / _KAPPA_PER_DECADE
+        self._ln_min = math.log(_KAPPA_MIN_US)
+        self._n_rows = int(round(math.log(_KAPPA_MAX_US / _KAPPA_MIN_US) / self._h)) + 1
+        self._width = int(math.ceil(math.pi / 2 / _DTHETA_RAD)) + 2
+        shape = (self._n_rows, self._width)
+        #: (row, |theta| node, 3): mean, slope and SD over kappa; NaN where undetected
+        self._vals = np.full(shape + (3,), np.nan)
+        #: (row, node): second difference of mean/kappa in |theta|
+        self._curv = np.full(shape, np.nan)
+        #: (row, node): the cell from this node to the next row and node is smooth
+        self._cell_ok = np.zeros(shape, dtype=bool)
+        self._row_built = np.zeros(self._n_rows, dtype=bool)
+        #: (row,) detection arc [rad]: nothing at least as strong is detected beyond it
+        self._arc = np.full(self._n_rows, np.inf)
+        self._cells_done = np.zeros(self._n_rows, dtype=bool)
+
+    def _build_row(self, j: int) -> None:
+        kap = math.exp(self._ln_min + j * self._h)
+        arc = float(max_detection_angle_rad(kap, self.params, _TABLE_GAIN_SD))
+        n = min(int(arc / _DTHETA_RAD) + 3, self._width)
+        if n < self._width:
+            self._arc[j] = arc
+        th = np.arange(-1, n + 1) * _DTHETA_RAD     # one node each side for the slope
+        m = delay_moments_us(th, kap, Tier.AUTO, self.params, _DELAY_NODES)
+        mean = m.mean_us
+        self._curv[j, :n] = np.abs(mean[2:] - 2 * mean[1:-1] + mean[:-2]) / kap
+        self._vals[j, :n, 0] = mean[1:-1] / kap
+        self._vals[j, :n, 1] = (mean[2:] - mean[:-2]) / (2 * _DTHETA_RAD * kap)
+        self._vals[j, :n, 2] = m.sd_us[1:-1] / kap
+        self._row_built[j] = True
+
+    def _ensure(self, j_lo: int, j_hi: int) -> None:
+        """Build rows ``j_lo - 1 .. j_hi + 2`` and the smoothness of the cells of rows
+        ``j_lo .. j_hi``."""
+        for j in range(j_lo - 1, j_hi + 3):
+            if not self._row_built[j]:
+                self._build_row(j)
+        rows = np.arange(j_lo, j_hi + 1)
+        rows = rows[~self._cells_done[rows]]
+        if rows.size == 0:
+            return
+        m = self._vals[:, :, 0]
+        with np.errstate(invalid="ignore"):
+            def node_curv(r: NDArray[np.intp]) -> Array:  # (len(r), width), NaN: rough
+                in_kappa = np.abs(m[r - 1] - 2 * m[r] + m[r + 1])
+                return np.maximum(in_kappa, self._curv[r])
+            c = np.maximum(node_curv(rows), node_curv(rows + 1))
+            c = np.maximum(c[:, :-1], c[:, 1:])
+            kap_hi = np.exp(self._ln_min + (rows + 1) * self._h)[:, None]
+            finite = np.asarray(np.isfinite(self._vals).all(axis=2))
+            fin = finite[rows] & finite[rows + 1]
+            fin = fin[:, :-1] & fin[:, 1:]
+            self._cell_ok[rows, :-1] = np.asarray(fin & (c * kap_hi <= _SMOOTH_US))
+        self._cells_done[rows] = True
+
+    def moments(self, theta_rad: ArrayLike, kappa_us: ArrayLike
+                ) -> tuple[Array, Array, Array]:
+        """Mean [us], slope [us/rad] and SD [us] of the delay: ``theta_rad`` (n,)
+        [rad] and ``kappa_us`` (n,) [us] broadcast (:func:`delay_model` without the
+        detection probability)."""
+        th = np.asarray(theta_rad, dtype=float)
+        kap = np.broadcast_to(np.asarray(kappa_us, dtype=float), th.shape)
+        shape = th.shape
+        th, kap = th.reshape(-1), kap.reshape(-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = np.abs(th) * (1.0 / _DTHETA_RAD)
+            lk = (np.log(kap) - self._ln_min) * (1.0 / self._h)
+            known = (lk >= 1) & (lk < self._n_rows - 2)
+            inside = known & (a < self._width - 1)
+        if not inside.all():
+            a = np.where(inside, a, 0.0)
+            lk = np.where(known, lk, 1.0)
+        i = a.astype(np.intp)
+        j = lk.astype(np.intp)
+        j_lo, j_hi = int(j.min(initial=1)), int(j.max(initial=1))
+        if not self._cells_done[j_lo:j_hi + 1].all():
+            self._ensure(j_lo, j_hi)
+        f = (a - i)[:, None]
+        g = (lk - j)[:, None]
+        flat = j * self._width + i
+        v = self._vals.reshape(-1, 3)
+        lo = v[flat] + f * (v[flat + 1] - v[flat])
+        hi = v[flat + self._width] + f * (v[flat + self._width + 1] - v[flat + self._width])
+        val = (lo + g * (hi - lo)) * kap[:, None]
+        mean, slope, sd = val[:, 0], val[:, 1] * np.sign(th), val[:, 2]
+        ok = inside & self._cell_ok.reshape(-1)[flat]
+        if not ok.all():
+            # beyond the detection arc of the weaker row: no echo (NaN), no evaluation
+            with np.errstate(invalid="ignore"):
+                dead = known & (np.abs(th) > self._arc[j])
+            fall = np.flatnonzero(~ok & ~dead & np.isfinite(th) & np.isfinite(kap)
+                                  & (kap > 0))
+            mean[~ok] = slope[~ok] = sd[~ok] = np.nan
+            if fall.size:
+                dm, ds, dsd, _ = delay_model_direct(th[fall], kap[fall], self.params.c_mps)
+                mean[fall], slope[fall], sd[fall] = dm, ds, dsd
+        return mean.reshape(shape), slope.reshape(shape), sd.reshape(shape)
+
+    def lookup(self, theta_rad: ArrayLike, kappa_us: ArrayLike
+               ) -> tuple[Array, Array, Array, Array]:
+        """:func:`delay_model` for this module (see :meth:`moments`), with the
+        detection probability."""
+        mean, slope, sd = self.moments(theta_rad, kappa_us)
+        th = np.asarray(theta_rad, dtype=float)
+        kap = np.broadcast_to(np.asarray(kappa_us, dtype=float), th.shape)
+        return mean, slope, sd, self._p_detect(th, kap)
+
+    def _p_detect(self, th: Array, kap: Array) -> Array:
+        a = tabulated_piston_echo(th, self.params)
+        sig = self.params.amplitude_fluctuation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_need = np.log(kap / self.params.detection_limit_us) - np.log(a)
+        if sig > 0:
+            return np.asarray(special.ndtr(-log_need / sig), dtype=float)
+        return (log_need <= 0).astype(float)
+
+
+@functools.lru_cache(maxsize=8)
+def delay_table(c_mps: float = 343.0) -> DelayTable:
+    """The (lazily filled) :class:`DelayTable` of the module at this speed of sound."""
+    return DelayTable(_module(float(c_mps)))
 
 
 def reading_sd_us(delay_sd_us: ArrayLike, c_mps: float = 343.0) -> Array:
@@ -223,24 +398,43 @@ class EchoObservation:
     lin_slope: Array | None = None
     lin_sd: Array | None = None
     compressed: Compressed | None = None
+    #: the pose of the last :meth:`measure` and its result (pose, h, H, R)
+    _measured: tuple[Array, Array, Array, Array] | None = field(
+        default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.z_m)
 
     def subset(self, keep: NDArray[np.bool_]) -> EchoObservation:
-        """The observation restricted to readings ``keep`` (n,) (linearisation kept)."""
+        """The observation restricted to readings ``keep`` (n,) (linearisation and the
+        last :meth:`measure` kept)."""
         def sel(a: Array | None) -> Array | None:
             return None if a is None else a[keep]
-        return EchoObservation(self.z_m[keep], self.rel[keep], self.p_fac[keep],
-                               self.v_fac[keep], self.kappa_us, self.feature, self.t_s,
-                               self.c_mps, self.kind, sel(self.lin_theta),
-                               sel(self.lin_mean), sel(self.lin_slope), sel(self.lin_sd))
+        out = EchoObservation(self.z_m[keep], self.rel[keep], self.p_fac[keep],
+                              self.v_fac[keep], self.kappa_us, self.feature, self.t_s,
+                              self.c_mps, self.kind, sel(self.lin_theta),
+                              sel(self.lin_mean), sel(self.lin_slope), sel(self.lin_sd))
+        if self._measured is not None:
+            x, h, hx, r = self._measured
+            idx = np.flatnonzero(keep)
+            out._measured = (x, h[idx], hx[idx], r[np.ix_(idx, idx)])
+        return out
 
     def linearize(self, pose: ArrayLike) -> EchoObservation:
-        """Evaluate the delay model at the off-axis angles seen from ``pose`` (3,)."""
+        """Evaluate the delay model at the off-axis angles seen from ``pose`` (3,).
+
+        Kept as it is when no angle moved more than :data:`RELINEARIZE_RAD` from the
+        stored linearisation (:meth:`measure` extrapolates it along its slope; the
+        curvature term is below a thousandth of a microsecond there).
+        """
         rng, theta, _, _ = geometry(np.asarray(pose, dtype=float), self.rel, self.feature)
-        mean, slope, sd, _ = delay_model(theta, self.kappa_at(rng), self.c_mps)
+        if self.lin_theta is not None and len(self.lin_theta) == len(theta) and \
+                float(np.max(np.abs(se2.wrap_angle(theta - self.lin_theta)),
+                             initial=0.0)) <= RELINEARIZE_RAD:
+            return self
+        mean, slope, sd = delay_table(float(self.c_mps)).moments(theta, self.kappa_at(rng))
         self.lin_theta, self.lin_mean, self.lin_slope, self.lin_sd = theta, mean, slope, sd
+        self._measured = None
         return self
 
     def kappa_at(self, range_m: Array) -> Array:
@@ -260,6 +454,8 @@ class EchoObservation:
         assert self.lin_theta is not None and self.lin_mean is not None
         assert self.lin_slope is not None and self.lin_sd is not None
         x = np.asarray(pose, dtype=float)
+        if self._measured is not None and np.array_equal(self._measured[0], x):
+            return self._measured[1], self._measured[2], self._measured[3]
         rng, theta, dr, dth = geometry(x, self.rel, self.feature)
         us_to_m = 0.5e-6 * self.c_mps
         bias_us = 0.5 * _module(float(self.c_mps)).count_period_us
@@ -277,7 +473,9 @@ class EchoObservation:
         m = gp @ gv.T                       # m[i, j] = g_i P_i V_j g_j (valid for i <= j)
         upper = np.triu(m)
         r = upper + np.triu(m, 1).T + np.diag(sd_m**2)
-        return h, hx, ekf.symmetrize(r)
+        r = ekf.symmetrize(r)
+        self._measured = (x.copy(), h, hx, r)
+        return h, hx, r
 
 
 @dataclass(frozen=True)
@@ -334,6 +532,7 @@ def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
     the same update on a slightly moved belief (a delayed observation fused before it)
     moves the prediction by ``H (x - x0)``, and costs a 3-row update.
     """
+    last: tuple[Compressed, tuple[Gaussian, Innovation]] | None = None
     if obs.compressed is None:
         # iterated: relinearise (geometry and the delay model) at the updated mean, so a
         # first update from a belief degrees off does not trust a slope taken there
@@ -343,7 +542,8 @@ def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
             obs.compressed = compress(obs, x_lin)
             if obs.compressed is None:
                 break
-            moved = _reduced_update(state, obs.compressed)[0].mean
+            last = (obs.compressed, _reduced_update(state, obs.compressed))
+            moved = last[1][0].mean
             step = moved - x_lin
             step[2] = float(se2.wrap_angle(step[2]))
             x_lin = moved
@@ -353,7 +553,7 @@ def update(state: Gaussian, obs: EchoObservation, gate: float = math.inf
     if c is None:
         h, hx, r = obs.measure(state.mean)
         return ekf.kalman_update(state, obs.z_m - h, hx, r, gate)
-    new, innov = _reduced_update(state, c)
+    new, innov = last[1] if last is not None and last[0] is c else _reduced_update(state, c)
     d2 = innov.d2 + c.resid2
     accepted = np.asarray(~innov.singular & (d2 <= gate))
     if not bool(accepted):
