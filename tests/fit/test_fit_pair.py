@@ -104,3 +104,26 @@ def test_a_rejected_pair_says_why(rng):
     for lm in lms:
         if not lm.ok:
             assert lm.reason
+
+
+def test_lockstep_bfgs_matches_scipy_per_start_and_holds_fixed_variables(rng):
+    # the batched optimiser from several starts reaches (about) the optima scipy's BFGS
+    # finds from each start alone; a held variable keeps its start value
+    from scipy.optimize import minimize
+    refl = [Reflector.polar(1.5, -8.0, 0.67), Reflector.polar(1.5005, 8.0, 0.67)]
+    batch = _batch(pan_scan(refl, rng, -40, 40, 0.3))
+    seg = P._Segment(batch, 0, FitConfig(), "gauss")
+    starts = np.array([[1500.0, -6.0, math.log(0.5), 1500.0, 6.0, math.log(0.9)],
+                       [1499.0, -10.0, math.log(0.9), 1501.0, 9.0, math.log(0.5)],
+                       [1500.2, -1.0, math.log(0.3), 1500.2, 1.0, math.log(0.3)]])
+    xs, cs = P._minimise_batch(seg, starts)
+    def cost(v: np.ndarray) -> float:
+        return float(np.asarray(seg.cost(P._unscale(v[None, :])))[0])
+
+    for x0, x, c in zip(starts, xs, cs, strict=True):
+        ref = minimize(cost, x0, method="BFGS", options={"gtol": 1e-3, "maxiter": 400})
+        assert c <= ref.fun + 0.5
+        assert c == pytest.approx(cost(x))   # the returned cost is that of the optimum
+    assert cs.min() < float(np.asarray(seg.cost(P._unscale(starts))).min()) - 10.0
+    xf, _ = P._minimise_batch(seg, starts[:2], fixed=[2, None])
+    assert xf[0, 2] == starts[0, 2] and xf[1, 2] != starts[1, 2]
