@@ -673,14 +673,10 @@ class Localizer:
             return FusionOutcome(lm.ref_t_s, None, False, "no readings attached")
         t_echo = arrays[0]
         t_ref = float(lm.ref_t_s) if math.isfinite(lm.ref_t_s) else float(np.max(t_echo))
-        i = bisect.bisect_right(self._times, t_ref)
-        if i == 0 or t_ref < self._times[-1] - self.config.history_s:
-            self.stats.outcomes["too_old"] += 1
+        prior = self._prior_at(t_ref)
+        if prior is None:
             return FusionOutcome(t_ref, None, False, "older than the history")
-        base = self._entries[i - 1]
-        odom_ref = self._odom_at(t_ref, i)
-        state_ref = ekf.predict(base.state, se2.between(base.odom, odom_ref),
-                                self.config.odom_noise)
+        i, base, odom_ref, state_ref = prior
         chain = self._echo_chain(arrays, t_ref, odom_ref)
         if chain is None:
             self.stats.outcomes["echo_none"] += 1
@@ -807,20 +803,30 @@ class Localizer:
         return eo, Association("matched", "point" if kind == "point" else "wall", k, feat, d2,
                                len(eo), math.nan, len(top), share)
 
+    def _prior_at(self, t_ref: float) -> tuple[int, _Entry, Array, Gaussian] | None:
+        """Where ``t_ref`` falls in the history (insertion index, the entry before it), the
+        odometry pose there and the belief predicted to it; None (counted ``too_old``) when
+        ``t_ref`` is older than the history."""
+        i = bisect.bisect_right(self._times, t_ref)
+        if i == 0 or t_ref < self._times[-1] - self.config.history_s:
+            self.stats.outcomes["too_old"] += 1
+            return None
+        base = self._entries[i - 1]
+        odom_ref = self._odom_at(t_ref, i)
+        state_ref = ekf.predict(base.state, se2.between(base.odom, odom_ref),
+                                self.config.odom_noise)
+        return i, base, odom_ref, state_ref
+
     def add_observation(self, obs: Observation, t_ref: float) -> FusionOutcome:
         """Associate and fuse an observation of the pose at ``t_ref`` (rewinding if needed)."""
         self.stats.observations += 1
         if self._unknown:
             self.stats.outcomes["relocalizing"] += 1
             return FusionOutcome(t_ref, None, False, "relocalizing: no pose yet")
-        i = bisect.bisect_right(self._times, t_ref)
-        if i == 0 or t_ref < self._times[-1] - self.config.history_s:
-            self.stats.outcomes["too_old"] += 1
+        prior = self._prior_at(t_ref)
+        if prior is None:
             return FusionOutcome(t_ref, None, False, "older than the history")
-        base = self._entries[i - 1]
-        odom_ref = self._odom_at(t_ref, i)
-        state_ref = ekf.predict(base.state, se2.between(base.odom, odom_ref),
-                                self.config.odom_noise)
+        i, base, odom_ref, state_ref = prior
         assoc = associate(state_ref, obs, self.fmap, self.config.association)
         self.stats.outcomes[assoc.status] += 1
         if not assoc.matched or assoc.feature is None:
