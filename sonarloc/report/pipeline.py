@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from sonarloc.errors import DeviceTimeoutError, MapError
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, OdomRecord, Record, TofRecord, TruthRecord
-from sonarloc.report.drive import DriveReport, SegmentView
+from sonarloc.report.drive import WARMUP_S, DriveReport, SegmentView
 from sonarloc.report.metrics import track_error
 
 Device = Literal["can", "serial"]
@@ -302,6 +302,8 @@ def run_drive(config: DriveConfig = DriveConfig(),
         est_track[:, 3] = np.unwrap(est_track[:, 3])
     odo = _odometry_in_map(np.array(odom_rows, dtype=float).reshape(-1, 4), tee.init)
     e_est, e_odo = track_error(est_track, truth), track_error(odo, truth)
+    t0 = float(truth[0, 0]) if len(truth) else 0.0
+    e_steady = track_error(est_track, truth, t_from_s=t0 + WARMUP_S)
 
     reports = node.landmarks()
     in_map = [(r.in_map, r.fused) for r in reports if r.in_map is not None]
@@ -310,7 +312,8 @@ def run_drive(config: DriveConfig = DriveConfig(),
         map=map_path.stem, rig=config.rig, device=config.device, seed=config.seed,
         duration_s=float(duration), readings=n_tof, echoes=n_echo, odom_records=len(odom_rows),
         pose_rmse_m=e_est.rmse_m, yaw_rmse_deg=e_est.yaw_rmse_deg, pose_max_m=e_est.max_m,
-        pose_final_m=e_est.final_m, odom_pose_rmse_m=e_odo.rmse_m,
+        pose_final_m=e_est.final_m, steady_pose_rmse_m=e_steady.rmse_m,
+        steady_yaw_rmse_deg=e_steady.yaw_rmse_deg, odom_pose_rmse_m=e_odo.rmse_m,
         odom_yaw_rmse_deg=e_odo.yaw_rmse_deg, landmarks_fitted=st.landmarks,
         landmarks_ok=sum(1 for r in reports if r.landmark.ok),
         landmarks_matched=st.accepted, landmarks_rejected=st.observations - st.accepted,
