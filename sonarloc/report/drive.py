@@ -267,8 +267,8 @@ def drive_figure(
         sub.legend(fontsize=6.5, loc="upper center")
         sub.set_ylim(-outlier_us * 1.6, outlier_us * 2.7)
     fig.suptitle(f"sonarloc drive — rig {report.rig}, device {report.device}, "
-                 f"{f(report.duration_s)} s simulated, {report.landmarks_fitted} landmarks "
-                 f"fitted, {report.landmarks_matched} matched", fontsize=11)
+                 f"{f(report.duration_s)} s simulated, {report.landmarks_fitted} segments, "
+                 f"{report.landmarks_matched} matched to the map and fused", fontsize=11)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=dpi, bbox_inches="tight")
