@@ -7,10 +7,18 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from hypothesis import strategies as st
 
 from sonarloc import se2
 from sonarloc.fit.result import Landmark
-from sonarloc.io.logfile import InitRecord, OdomRecord, RigRecord, SensorMount, TruthRecord
+from sonarloc.io.logfile import (
+    InitRecord,
+    OdomRecord,
+    RigRecord,
+    SensorMount,
+    TofRecord,
+    TruthRecord,
+)
 from sonarloc.localize.ekf import OdomNoise
 from sonarloc.localize.features import FeatureMap
 
@@ -121,3 +129,17 @@ def feed(loc, drive: Drive, deliver=None):
             if i < 10**9:
                 loc.add_landmark(lm)
     return out
+
+
+_t = st.floats(-5, 60, allow_nan=False)
+_xy = st.floats(-20, 20, allow_nan=False)
+_deg = st.floats(-720, 720, allow_nan=False)
+log_records = st.lists(st.one_of(
+    st.builds(OdomRecord, _t, _xy, _xy, _deg),
+    st.builds(TofRecord, _t, st.integers(-1, 3),
+              st.one_of(st.none(), st.floats(1.0, 40000.0)),
+              st.one_of(st.none(), st.floats(-90, 90))),
+    st.builds(InitRecord, _t, _xy, _xy, _deg, st.floats(0.001, 1.0), st.floats(0.01, 30.0)),
+    st.just(RigRecord((SensorMount(0, 0.2, 0.0, 0.0), SensorMount(1, 0.0, 0.2, 90.0)))),
+), max_size=60)
+"""Any sequence of log records: time going backwards, unknown sensors, jumps, re-inits."""

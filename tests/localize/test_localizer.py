@@ -2,7 +2,8 @@ import math
 
 import numpy as np
 import pytest
-from loc_synth import feed, make_drive, room_map
+from hypothesis import given, settings
+from loc_synth import feed, log_records, make_drive, room_map
 
 from sonarloc import se2
 from sonarloc.io.logfile import TruthRecord
@@ -142,33 +143,9 @@ def test_segment_length_chosen_for_the_rig():
         assert made[-1].segmenter.config.max_readings == expect
 
 
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-
-from sonarloc.io.logfile import (  # noqa: E402
-    InitRecord,
-    OdomRecord,
-    RigRecord,
-    SensorMount,
-    TofRecord,
-)
-
-_t = st.floats(-5, 60, allow_nan=False)
-_xy = st.floats(-20, 20, allow_nan=False)
-_deg = st.floats(-720, 720, allow_nan=False)
-_records = st.lists(st.one_of(
-    st.builds(OdomRecord, _t, _xy, _xy, _deg),
-    st.builds(TofRecord, _t, st.integers(-1, 3),
-              st.one_of(st.none(), st.floats(1.0, 40000.0)),
-              st.one_of(st.none(), st.floats(-90, 90))),
-    st.builds(InitRecord, _t, _xy, _xy, _deg, st.floats(0.001, 1.0), st.floats(0.01, 30.0)),
-    st.just(RigRecord((SensorMount(0, 0.2, 0.0, 0.0), SensorMount(1, 0.0, 0.2, 90.0)))),
-), max_size=60)
-
-
 @pytest.mark.parametrize("method", ["specular", "kuc"])
 @settings(max_examples=40, deadline=None)
-@given(records=_records)
+@given(records=log_records)
 def test_any_record_sequence_is_survived(method, records):
     """Time going backwards, unknown sensors, jumps, re-inits: no exception, sane output."""
     lc = Localizer(room_map(), LocalizerConfig(method=method))

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 from hypothesis import given, settings
-from hypothesis import strategies as st
+from loc_synth import log_records
 
 from sonarloc.io.logfile import (
     InitRecord,
@@ -189,21 +189,10 @@ def test_buffers_stay_bounded(ring_log, fmap):
     assert loc.history_len < 800
 
 
-_t = st.floats(-5, 60, allow_nan=False)
-_xy = st.floats(-20, 20, allow_nan=False)
-_deg = st.floats(-720, 720, allow_nan=False)
-_records = st.lists(st.one_of(
-    st.builds(OdomRecord, _t, _xy, _xy, _deg),
-    st.builds(TofRecord, _t, st.integers(-1, 3),
-              st.one_of(st.none(), st.floats(1.0, 40000.0)),
-              st.one_of(st.none(), st.floats(-90, 90))),
-    st.builds(InitRecord, _t, _xy, _xy, _deg, st.floats(0.001, 1.0), st.floats(0.01, 30.0)),
-    st.just(RigRecord((SensorMount(0, 0.2, 0.0, 0.0), SensorMount(1, 0.0, 0.2, 90.0)))),
-), max_size=60)
 
 
 @settings(max_examples=40, deadline=None)
-@given(records=_records)
+@given(records=log_records)
 def test_any_record_sequence_is_survived(fmap, records):
     """Time going backwards, unknown sensors, jumps, re-inits: a row per odom record."""
     buf = io.StringIO()
