@@ -448,13 +448,7 @@ def _score(hyp: Array, points: list[ObservedPoint], walls: list[ObservedWall],
             inside = np.abs(se2.wrap_angle(phi[:, None] - mid[None, :])) < np.abs(half)[None, :]
             bad = (is_corner[None, :] & ~inside) | (is_edge[None, :] & inside)
             bad |= (kinds == "edge")[None, :] & (p.range_m > EDGE_RANGE_M)
-            d2 = np.where(bad, np.inf, d2)
-            best = np.argmin(d2, axis=1)
-            dbest = d2[np.arange(h), best]
-            good = dbest < cap
-            cost += np.where(good, dbest, cap)
-            inl += good
-            pm[:, k] = np.where(good, best, -1)
+            pm[:, k] = _best_within(np.where(bad, np.inf, d2), cap, cost, inl)
     elif points:
         cost += cap * len(points)
     if walls and fmap.n_walls:
@@ -480,15 +474,22 @@ def _score(hyp: Array, points: list[ObservedPoint], walls: list[ObservedWall],
             lo, hi = along.min(axis=1), along.max(axis=1)
             overlap = (hi >= -cfg.wall_margin_m) & (lo <= len2[None, :] + cfg.wall_margin_m)
             d2 = np.where(overlap & (np.abs(da) < math.pi / 2), d2, np.inf)
-            best = np.argmin(d2, axis=1)
-            dbest = d2[np.arange(h), best]
-            good = dbest < cap
-            cost += np.where(good, dbest, cap)
-            inl += good
-            wm[:, k] = np.where(good, best, -1)
+            wm[:, k] = _best_within(d2, cap, cost, inl)
     elif walls:
         cost += cap * len(walls)
     return _Scores(cost, inl, pm, wm)
+
+
+def _best_within(d2: Array, cap: float, cost: Array, inl: Array) -> Array:
+    """Per hypothesis (rows of ``d2``, (H, F) squared distances to the map features),
+    the nearest feature if closer than ``cap``, else -1; adds the (capped) distance to
+    ``cost`` and the match to the inlier count ``inl`` in place."""
+    best = np.argmin(d2, axis=1)
+    dbest = d2[np.arange(d2.shape[0]), best]
+    good = dbest < cap
+    cost += np.where(good, dbest, cap)
+    inl += good
+    return np.where(good, best, -1)
 
 
 def _refine(x: Array, points: list[ObservedPoint], walls: list[ObservedWall],
