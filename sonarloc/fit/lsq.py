@@ -178,19 +178,25 @@ def pack_segments(
     n = len(segments)
     if n == 0:
         return pack_flat(np.zeros(0, dtype=np.int64), *(np.zeros(0),) * 5, n_segments=0)
-    for b, seg in enumerate(segments):
-        if len(seg) != 5:
-            raise ValueError(f"segment {b}: expected 5 arrays of equal length")
-    cols = [[seg[k] for seg in segments] for k in range(5)]
-    sizes = np.array([[a.size if isinstance(a, np.ndarray) else np.size(a) for a in c]
-                      for c in cols], dtype=np.int64)                      # (5, n)
+    if any(len(seg) != 5 for seg in segments):
+        b = next(b for b, seg in enumerate(segments) if len(seg) != 5)
+        raise ValueError(f"segment {b}: expected 5 arrays of equal length")
+    cols = list(zip(*segments, strict=True))                    # 5 tuples of n arrays
+    try:        # fast path: sized arrays (no per-array Python work beyond len)
+        sizes = np.array([np.fromiter(map(len, c), np.int64, n) for c in cols])
+    except TypeError:   # scalars (0-d) among the arrays
+        sizes = np.array([[np.size(a) for a in c] for c in cols], dtype=np.int64)
     lengths = sizes[0]
     if np.any(sizes != lengths):
         b = int(np.flatnonzero((sizes != lengths).any(0))[0])
         raise ValueError(f"segment {b}: expected 5 arrays of equal length")
-    f = [np.concatenate(c, axis=None, dtype=float) for c in cols]
-    return pack_flat(np.repeat(np.arange(n), lengths), f[0], f[1], f[2], f[3], f[4],
-                     n_segments=n)
+    total = int(lengths.sum())
+    flat = np.empty((5, total))
+    for k in range(5):
+        if total:
+            np.concatenate(cols[k], axis=None, out=flat[k])
+    return pack_flat(np.repeat(np.arange(n), lengths), flat[0], flat[1], flat[2], flat[3],
+                     flat[4], n_segments=n)
 
 
 def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array,
@@ -202,45 +208,53 @@ def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_ra
     """
     seg = np.asarray(seg, dtype=np.int64)
     B = int(n_segments if n_segments is not None else (seg.max() + 1 if seg.size else 0))
+    t_s, x_m, y_m, yaw_rad, tof_us = (np.asarray(a, dtype=float)
+                                      for a in (t_s, x_m, y_m, yaw_rad, tof_us))
     det = np.isfinite(tof_us)
-    n = seg.size
-    idx = np.arange(n)
-    start = np.searchsorted(seg, np.arange(B))
+    i_e = np.flatnonzero(det)                     # echoes, in order
+    i_n = np.flatnonzero(~det)                    # no-echo readings, in order
+    s_e, s_n = seg[i_e], seg[i_n]
+    c_e = np.bincount(s_e, minlength=B)
+    c_n = np.bincount(s_n, minlength=B)
+    end_e = np.cumsum(c_e)
     # reference: the last echo of each segment (its last reading if it has none)
-    last_echo = np.full(B, -1, dtype=np.int64)
-    np.maximum.at(last_echo, seg[det], idx[det])
-    end = np.searchsorted(seg, np.arange(B), side="right")
-    ref = np.where(last_echo >= 0, last_echo, np.maximum(end - 1, 0))
-    has = end > start
+    ref = np.zeros(B, dtype=np.int64)
+    has_e = c_e > 0
+    if i_e.size:
+        ref[has_e] = i_e[end_e[has_e] - 1]
+    if seg.size:
+        no_e = np.flatnonzero(~has_e & (c_n > 0))
+        if no_e.size:
+            ref[no_e] = i_n[np.cumsum(c_n)[no_e] - 1]
+    has = has_e | (c_n > 0)
     ref_xy = np.zeros((B, 2))
     ref_yaw = np.zeros(B)
     ref_t = np.zeros(B)
-    if n:
-        rr = np.where(has, ref, 0)
-        ref_xy = np.where(has[:, None], np.stack([x_m[rr], y_m[rr]], axis=1), 0.0)
-        ref_yaw = np.where(has, yaw_rad[rr], 0.0)
-        ref_t = np.where(has, t_s[rr], 0.0)
+    if seg.size:
+        ref_xy[has, 0], ref_xy[has, 1] = x_m[ref[has]], y_m[ref[has]]
+        ref_yaw[has], ref_t[has] = yaw_rad[ref[has]], t_s[ref[has]]
 
-    def pad(mask: NDArray[np.bool_], fill: tuple[float, float, float, float]
-            ) -> tuple[list[Array], NDArray[np.bool_]]:
-        """(x, y, yaw, tof) of the readings in ``mask``, padded per segment, and validity."""
-        s = seg[mask]
-        count = np.bincount(s, minlength=B)
-        first = np.cumsum(count) - count
+    # positions relative to the reference (1-D gathers and scatters: the fastest form)
+    rel = ((x_m - ref_xy[seg, 0], y_m - ref_xy[seg, 1], yaw_rad, tof_us) if seg.size
+           else (x_m, y_m, yaw_rad, tof_us))
+
+    def pad(idx: NDArray[np.int64], s: NDArray[np.int64], count: NDArray[np.int64],
+            end: NDArray[np.int64], k: int) -> tuple[list[Array], NDArray[np.bool_]]:
+        """The first ``k`` of (x, y, yaw, tof) of readings ``idx`` (segments ``s``),
+        padded (tof with NaN, the rest with 0), and validity."""
         width = max(int(count.max(initial=0)), 1)
-        lin = s * width + (np.arange(s.size) - first[s])      # flat index in (B, width)
+        lin = s * width + (np.arange(s.size) - (end - count)[s])   # flat index in (B, width)
         out = []
-        for values, f in zip((x_m[mask] - ref_xy[s, 0], y_m[mask] - ref_xy[s, 1],
-                              yaw_rad[mask], tof_us[mask]), fill, strict=True):
-            a = np.full(B * width, f)
-            a[lin] = values
+        for j in range(k):
+            a = np.full(B * width, np.nan) if j == 3 else np.zeros(B * width)
+            a[lin] = rel[j][idx]
             out.append(a.reshape(B, width))
         ok = np.zeros(B * width, dtype=bool)
         ok[lin] = True
         return out, ok.reshape(B, width)
 
-    (px, py, yw, tof), valid = pad(det, (0.0, 0.0, 0.0, np.nan))
-    (npx, npy, nyw, _), nvalid = pad(~det, (0.0, 0.0, 0.0, np.nan))
+    (px, py, yw, tof), valid = pad(i_e, s_e, c_e, end_e, 4)
+    (npx, npy, nyw), nvalid = pad(i_n, s_n, c_n, np.cumsum(c_n), 3)
     return SegmentBatch(px, py, yw, tof, valid, npx, npy, nyw, nvalid, ref_xy, ref_yaw, ref_t)
 
 
