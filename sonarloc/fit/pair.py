@@ -834,7 +834,7 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
     if lm.status is not FitStatus.OK:
         return False
     chi2 = float(lm.extra.get("chi2", 0.0))  # type: ignore[arg-type]
-    p = float(chdtrc(max(lm.n_readings - 3, 1), chi2))   # = scipy.stats.chi2.sf
+    p = float(chdtrc(max(lm.n_readings - 3, 1), max(chi2, 0.0)))   # scipy.stats.chi2.sf
     return p < CANDIDATE_P or float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z  # type: ignore[arg-type]
 
 
