@@ -74,9 +74,9 @@ class FitConfig:
     chunk_readings : segments are fitted in chunks of about this many padded readings
         (keeps the arrays in cache).
     grid_max_echoes : the grid bracket of a segment with more echoes than this uses
-        every k-th of them (the smallest k that keeps at most this many), each weighted
-        by k; ``None``: all. The bracket needs the curve's shape, not every reading; the
-        refinement always uses all.
+        this many, evenly spread from its first to its last echo and weighted up to the
+        whole count; ``None``: all. The bracket needs the curve's shape, not every
+        reading; the refinement always uses all.
     """
 
     module: ModuleParams = field(default_factory=ModuleParams)
@@ -99,7 +99,7 @@ class FitConfig:
     second_start_dcost: float = 6.0
     chunk_readings: int = 65536
     follow_variances: bool = False
-    grid_max_echoes: int | None = None
+    grid_max_echoes: int | None = 32
 
     def __post_init__(self) -> None:
         for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
@@ -131,11 +131,15 @@ class FitConfig:
 
     @classmethod
     def fast(cls, **changes: Any) -> FitConfig:
-        """The quickest sound settings: a 12 deg grid bracket and one damped Gauss-Newton
-        step that is kept only if it lowers the objective (so it cannot diverge); errors
-        about 1.6x the converged fit's, still well below a per-segment ``curve_fit``'s."""
-        return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True),
-                       **changes)
+        """The quickest sound settings: a 12 deg grid bracket (on at most 16 echoes of a
+        segment) with (To, kappa) profiled again at the bracket's bearing, and one damped
+        Gauss-Newton step that is kept only if it lowers the objective (so it cannot
+        diverge). Errors about 2x the converged fit's in bearing and kappa, 1.6x in range
+        (benchmarks/results/fit.md), still below a per-segment ``curve_fit``'s; the
+        covariance is the Fisher matrix's at the step's start (not converged: it
+        understates the error about 2x)."""
+        return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True,
+                           grid_max_echoes=16), **changes)
 
     def with_speed_of_sound(self, c_mps: float) -> FitConfig:
         """The same settings with another speed of sound [m/s]."""
@@ -549,23 +553,23 @@ def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConf
 
 def _decimate(batch: SegmentBatch, y: Array, use: NDArray, max_echoes: int
               ) -> tuple[SegmentBatch, Array, NDArray, Array]:
-    """Every k-th used echo of segments with more than ``max_echoes`` of them (k per
-    segment, the smallest that keeps at most ``max_echoes``), and each kept echo's weight
-    k (1 elsewhere): the grid bracket's readings. Columns: the kept echoes, in order."""
+    """``max_echoes`` used echoes, evenly spread from the first to the last, of segments
+    with more, each weighted by (used echoes / kept ones) (the rest: all, weight 1): the
+    grid bracket's readings. Columns: the kept echoes, in order."""
     n_use = use.sum(1)
     if int(n_use.max(initial=0)) <= max_echoes:
-        return batch, y, use, np.ones(y.shape)
-    k = np.maximum(-(-n_use // max_echoes), 1)                         # (B,) strides
+        return batch, y, use, use.astype(float)
     width = max(int(n_use.max()), 1)
     # column of the j-th used echo of each segment (used echoes first, in order)
     if use[:, 1:].shape[1] and np.any(use[:, 1:] & ~use[:, :-1]):
         order = np.argsort(~use, axis=1, kind="stable")[:, :width]
     else:       # no gaps: the used echoes are the first columns
         order = np.broadcast_to(np.arange(width), use[:, :width].shape)
-    m = int((-(-n_use // k)).max())
-    j = np.arange(m)[None, :] * k[:, None]                             # (B, m)
-    ok = j < n_use[:, None]
-    cols = np.take_along_axis(order, np.minimum(j, width - 1), axis=1)
+    m = np.minimum(n_use, max_echoes)                                  # (B,) kept
+    j = np.arange(max_echoes)[None, :]
+    ok = j < m[:, None]
+    pick = np.rint(j * ((n_use - 1) / np.maximum(m - 1, 1))[:, None]).astype(np.int64)
+    cols = np.take_along_axis(order, np.clip(pick, 0, width - 1), axis=1)
 
     def g(a: Array) -> Array:
         return np.take_along_axis(a, cols, axis=1)
@@ -573,7 +577,8 @@ def _decimate(batch: SegmentBatch, y: Array, use: NDArray, max_echoes: int
     sub = SegmentBatch(g(batch.px), g(batch.py), g(batch.yaw), g(batch.tof_us), ok,
                        batch.ne_px, batch.ne_py, batch.ne_yaw, batch.ne_valid, batch.ref_xy,
                        batch.ref_yaw, batch.ref_t_s)
-    return sub, np.where(ok, g(y), 0.0), ok, np.where(ok, k[:, None].astype(float), 0.0)
+    wt = np.where(ok, (n_use / np.maximum(m, 1))[:, None], 0.0)
+    return sub, np.where(ok, g(y), 0.0), ok, wt
 
 
 def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Array,
@@ -741,6 +746,9 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
 
 _EARLY_TOLERANCE = 100.0
 
+_LAMBDA0 = 1e-2
+"""Initial Levenberg-Marquardt damping (a fraction of the Fisher matrix's diagonal)."""
+
 _GRID_BLOCK = 1 << 16
 """Largest temporary array of the grid bracket (elements)."""
 
@@ -787,7 +795,7 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
     """
     B = p.shape[0]
     p = p.copy()
-    lam = np.full(B, 1e-1)
+    lam = np.full(B, _LAMBDA0)
     done = np.zeros(B, dtype=bool)
     for rnd in range(rounds):
         # variances from the current delays, fixed for this round
