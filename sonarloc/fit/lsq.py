@@ -746,7 +746,7 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
 
 _EARLY_TOLERANCE = 100.0
 
-_LAMBDA0 = 1e-2
+_LAMBDA0 = 1e-1
 """Initial Levenberg-Marquardt damping (a fraction of the Fisher matrix's diagonal)."""
 
 _GRID_BLOCK = 1 << 16
