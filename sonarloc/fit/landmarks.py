@@ -22,7 +22,7 @@ from scipy.stats import chi2 as chi2_dist
 from sonarloc.fit import model as M
 from sonarloc.fit import odomcov
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_flat
-from sonarloc.fit.pair import resolve_pairs
+from sonarloc.fit.pair import resolve_pair_groups
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig, SegmenterStats
 from sonarloc.fit.select import KAPPA_WALL_US, Selection, select_models
@@ -486,13 +486,9 @@ def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitCon
     """Overlapping reflectors: the two-reflector model where one landmark is strained
     (:func:`sonarloc.fit.pair.resolve_pairs`), then cuts in time for what is still
     ``UNRESOLVED`` (:func:`split_unresolved`: a wall running into a corner)."""
-    groups: list[list[Landmark]] = []
-    todo: list[int] = []
-    for seg, lm in zip(segments, landmarks, strict=True):
-        res = resolve_pairs([seg], [lm], cfg)
-        if len(res) == 1 and res[0].status is FitStatus.UNRESOLVED:
-            todo.append(len(groups))
-        groups.append(res)
+    groups = resolve_pair_groups(segments, landmarks, cfg)   # all candidates together
+    todo = [k for k, res in enumerate(groups)
+            if len(res) == 1 and res[0].status is FitStatus.UNRESOLVED]
     if todo:   # one batched call for all that are still unresolved
         parts = _split_groups([segments[i] for i in todo], [groups[i][0] for i in todo],
                               cfg)

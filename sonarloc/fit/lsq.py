@@ -71,6 +71,10 @@ class FitConfig:
         (-2 log-likelihood) of the best is refined too, and the better result kept.
     chunk_readings : segments are fitted in chunks of about this many padded readings
         (keeps the arrays in cache).
+    grid_max_echoes : the grid bracket of a segment with more echoes than this uses
+        every k-th of them (the smallest k that keeps at most this many), each weighted
+        by k; ``None``: all. The bracket needs the curve's shape, not every reading; the
+        refinement always uses all.
     """
 
     module: ModuleParams = field(default_factory=ModuleParams)
@@ -93,6 +97,7 @@ class FitConfig:
     second_start_dcost: float = 6.0
     chunk_readings: int = 65536
     follow_variances: bool = False
+    grid_max_echoes: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
@@ -105,6 +110,10 @@ class FitConfig:
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"`{name}` must be a positive integer, got {v!r}")
+        if self.grid_max_echoes is not None and not (
+                isinstance(self.grid_max_echoes, int) and self.grid_max_echoes >= 3):
+            raise ValueError("`grid_max_echoes` must be None or an integer >= 3, got "
+                             f"{self.grid_max_echoes!r}")
         if not (0.0 <= self.max_outlier_fraction < 1.0):
             raise ValueError(
                 f"`max_outlier_fraction` must be in [0, 1), got {self.max_outlier_fraction!r}")
@@ -178,19 +187,25 @@ def pack_segments(
     n = len(segments)
     if n == 0:
         return pack_flat(np.zeros(0, dtype=np.int64), *(np.zeros(0),) * 5, n_segments=0)
-    for b, seg in enumerate(segments):
-        if len(seg) != 5:
-            raise ValueError(f"segment {b}: expected 5 arrays of equal length")
-    cols = [[seg[k] for seg in segments] for k in range(5)]
-    sizes = np.array([[a.size if isinstance(a, np.ndarray) else np.size(a) for a in c]
-                      for c in cols], dtype=np.int64)                      # (5, n)
+    if any(len(seg) != 5 for seg in segments):
+        b = next(b for b, seg in enumerate(segments) if len(seg) != 5)
+        raise ValueError(f"segment {b}: expected 5 arrays of equal length")
+    cols = list(zip(*segments, strict=True))                    # 5 tuples of n arrays
+    try:        # fast path: sized arrays (no per-array Python work beyond len)
+        sizes = np.array([np.fromiter(map(len, c), np.int64, n) for c in cols])
+    except TypeError:   # scalars (0-d) among the arrays
+        sizes = np.array([[np.size(a) for a in c] for c in cols], dtype=np.int64)
     lengths = sizes[0]
     if np.any(sizes != lengths):
         b = int(np.flatnonzero((sizes != lengths).any(0))[0])
         raise ValueError(f"segment {b}: expected 5 arrays of equal length")
-    f = [np.concatenate(c, axis=None, dtype=float) for c in cols]
-    return pack_flat(np.repeat(np.arange(n), lengths), f[0], f[1], f[2], f[3], f[4],
-                     n_segments=n)
+    total = int(lengths.sum())
+    flat = np.empty((5, total))
+    for k in range(5):
+        if total:
+            np.concatenate(cols[k], axis=None, out=flat[k])
+    return pack_flat(np.repeat(np.arange(n), lengths), flat[0], flat[1], flat[2], flat[3],
+                     flat[4], n_segments=n)
 
 
 def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array,
@@ -202,45 +217,53 @@ def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_ra
     """
     seg = np.asarray(seg, dtype=np.int64)
     B = int(n_segments if n_segments is not None else (seg.max() + 1 if seg.size else 0))
+    t_s, x_m, y_m, yaw_rad, tof_us = (np.asarray(a, dtype=float)
+                                      for a in (t_s, x_m, y_m, yaw_rad, tof_us))
     det = np.isfinite(tof_us)
-    n = seg.size
-    idx = np.arange(n)
-    start = np.searchsorted(seg, np.arange(B))
+    i_e = np.flatnonzero(det)                     # echoes, in order
+    i_n = np.flatnonzero(~det)                    # no-echo readings, in order
+    s_e, s_n = seg[i_e], seg[i_n]
+    c_e = np.bincount(s_e, minlength=B)
+    c_n = np.bincount(s_n, minlength=B)
+    end_e = np.cumsum(c_e)
     # reference: the last echo of each segment (its last reading if it has none)
-    last_echo = np.full(B, -1, dtype=np.int64)
-    np.maximum.at(last_echo, seg[det], idx[det])
-    end = np.searchsorted(seg, np.arange(B), side="right")
-    ref = np.where(last_echo >= 0, last_echo, np.maximum(end - 1, 0))
-    has = end > start
+    ref = np.zeros(B, dtype=np.int64)
+    has_e = c_e > 0
+    if i_e.size:
+        ref[has_e] = i_e[end_e[has_e] - 1]
+    if seg.size:
+        no_e = np.flatnonzero(~has_e & (c_n > 0))
+        if no_e.size:
+            ref[no_e] = i_n[np.cumsum(c_n)[no_e] - 1]
+    has = has_e | (c_n > 0)
     ref_xy = np.zeros((B, 2))
     ref_yaw = np.zeros(B)
     ref_t = np.zeros(B)
-    if n:
-        rr = np.where(has, ref, 0)
-        ref_xy = np.where(has[:, None], np.stack([x_m[rr], y_m[rr]], axis=1), 0.0)
-        ref_yaw = np.where(has, yaw_rad[rr], 0.0)
-        ref_t = np.where(has, t_s[rr], 0.0)
+    if seg.size:
+        ref_xy[has, 0], ref_xy[has, 1] = x_m[ref[has]], y_m[ref[has]]
+        ref_yaw[has], ref_t[has] = yaw_rad[ref[has]], t_s[ref[has]]
 
-    def pad(mask: NDArray[np.bool_], fill: tuple[float, float, float, float]
-            ) -> tuple[list[Array], NDArray[np.bool_]]:
-        """(x, y, yaw, tof) of the readings in ``mask``, padded per segment, and validity."""
-        s = seg[mask]
-        count = np.bincount(s, minlength=B)
-        first = np.cumsum(count) - count
+    # positions relative to the reference (1-D gathers and scatters: the fastest form)
+    rel = ((x_m - ref_xy[seg, 0], y_m - ref_xy[seg, 1], yaw_rad, tof_us) if seg.size
+           else (x_m, y_m, yaw_rad, tof_us))
+
+    def pad(idx: NDArray[np.int64], s: NDArray[np.int64], count: NDArray[np.int64],
+            end: NDArray[np.int64], k: int) -> tuple[list[Array], NDArray[np.bool_]]:
+        """The first ``k`` of (x, y, yaw, tof) of readings ``idx`` (segments ``s``),
+        padded (tof with NaN, the rest with 0), and validity."""
         width = max(int(count.max(initial=0)), 1)
-        lin = s * width + (np.arange(s.size) - first[s])      # flat index in (B, width)
+        lin = s * width + (np.arange(s.size) - (end - count)[s])   # flat index in (B, width)
         out = []
-        for values, f in zip((x_m[mask] - ref_xy[s, 0], y_m[mask] - ref_xy[s, 1],
-                              yaw_rad[mask], tof_us[mask]), fill, strict=True):
-            a = np.full(B * width, f)
-            a[lin] = values
+        for j in range(k):
+            a = np.full(B * width, np.nan) if j == 3 else np.zeros(B * width)
+            a[lin] = rel[j][idx]
             out.append(a.reshape(B, width))
         ok = np.zeros(B * width, dtype=bool)
         ok[lin] = True
         return out, ok.reshape(B, width)
 
-    (px, py, yw, tof), valid = pad(det, (0.0, 0.0, 0.0, np.nan))
-    (npx, npy, nyw, _), nvalid = pad(~det, (0.0, 0.0, 0.0, np.nan))
+    (px, py, yw, tof), valid = pad(i_e, s_e, c_e, end_e, 4)
+    (npx, npy, nyw), nvalid = pad(i_n, s_n, c_n, np.cumsum(c_n), 3)
     return SegmentBatch(px, py, yw, tof, valid, npx, npy, nyw, nvalid, ref_xy, ref_yaw, ref_t)
 
 
@@ -520,10 +543,114 @@ def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConf
     return M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform" else None)
 
 
+def _decimate(batch: SegmentBatch, y: Array, use: NDArray, max_echoes: int
+              ) -> tuple[SegmentBatch, Array, NDArray, Array]:
+    """Every k-th used echo of segments with more than ``max_echoes`` of them (k per
+    segment, the smallest that keeps at most ``max_echoes``), and each kept echo's weight
+    k (1 elsewhere): the grid bracket's readings. Columns: the kept echoes, in order."""
+    n_use = use.sum(1)
+    if int(n_use.max(initial=0)) <= max_echoes:
+        return batch, y, use, np.ones(y.shape)
+    k = np.maximum(-(-n_use // max_echoes), 1)                         # (B,) strides
+    width = max(int(n_use.max()), 1)
+    # column of the j-th used echo of each segment (used echoes first, in order)
+    order = np.argsort(~use, axis=1, kind="stable")[:, :width]
+    m = int((-(-n_use // k)).max())
+    j = np.arange(m)[None, :] * k[:, None]                             # (B, m)
+    ok = j < n_use[:, None]
+    cols = np.take_along_axis(order, np.minimum(j, width - 1), axis=1)
+
+    def g(a: Array) -> Array:
+        return np.take_along_axis(a, cols, axis=1)
+
+    sub = SegmentBatch(g(batch.px), g(batch.py), g(batch.yaw), g(batch.tof_us), ok,
+                       batch.ne_px, batch.ne_py, batch.ne_yaw, batch.ne_valid, batch.ref_xy,
+                       batch.ref_yaw, batch.ref_t_s)
+    return sub, np.where(ok, g(y), 0.0), ok, np.where(ok, k[:, None].astype(float), 0.0)
+
+
+def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Array,
+                  yc: Array, use: NDArray, wt: Array, moving: bool, cfg: FitConfig,
+                  detection_cost: bool = True) -> tuple[Array, Array, Array]:
+    """Profile over (To, kappa) at bearing nodes ``phis`` (B, G): To - y0 (B, G), kappa
+    (B, G) and the approximate -2 log-likelihood (B, G).
+
+    ``yc`` (B, Nd): readings less y0 (0 where unused); ``wt`` (B, Nd): reading weights
+    (0 where unused; >1 for a decimated segment's kept echoes); ``r0`` (B,): the range of
+    the geometry of a moving sensor. Bearing-independent TOF weights (the on-axis
+    variance), so that the nodes' costs compare and weigh against the detection terms
+    as a likelihood does; the detection terms in a cheap form good to ~10% (a bracket
+    needs only the shape): 0.35 max(z + 1.4, 0)^2 per echo, 0.35 max(1.4 - z, 0)^2 per
+    no-echo reading.
+    """
+    mod = cfg.module
+    tau = M.us_per_m(mod)
+    if moving:
+        geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
+                         batch.py[:, None, :], batch.yaw[:, None, :], moving=True)
+        theta = geo.theta
+    else:
+        theta = _angle_diff(phis[:, :, None], batch.yaw[:, None, :])
+    g, _, lg = M.beam_log_factor(theta, tier, mod, derivative=False)
+    sa = M.sigma_a(mod)
+    scale = np.exp(0.5 * sa * sa)
+    w = wt[:, None, :]
+    gw = g * w                                     # (B, G, Nd); the profile's g is scale g
+    S0 = wt.sum(1)[:, None]
+    S1 = gw.sum(-1) * scale
+    S2 = np.einsum("bgn,bgn->bg", gw, g) * (scale * scale)
+    if moving:   # the range offsets of the readings depend on the node
+        ycg = (yc[:, None, :] - tau * (geo.R - r0[:, None, None])) * (use[:, None, :])
+        Sy = np.einsum("bgn,bgn->bg", ycg, w)
+        Syy = np.einsum("bgn,bgn->bg", ycg * w, ycg)
+        Sgy = np.einsum("bgn,bgn->bg", gw, ycg) * scale
+    else:
+        Sy = np.einsum("bn,bn->b", yc, wt)[:, None]
+        Syy = np.einsum("bn,bn->b", yc * wt, yc)[:, None]
+        Sgy = np.matmul(gw, yc[:, :, None])[..., 0] * scale
+    if cfg.detection:
+        # echoes were detected: the one nearest the axis must be detectable (z < 2)
+        lg_min = np.min(lg, axis=-1, where=use[:, None, :], initial=np.inf)
+        kmax = (mod.detection_limit_us * np.exp(2.0 * sa) * scale
+                * np.exp(-np.where(np.isfinite(lg_min), lg_min, 0.0)))
+    else:
+        kmax = np.full(phis.shape, np.inf)
+    T, Keff, sse = _profile_2x2(S0, S1, S2, Sy, Sgy, Syy, cfg.kappa_min_us * scale, kmax)
+    K = Keff / scale
+    if not detection_cost:
+        return T, K, np.zeros(phis.shape)
+    w0 = 1.0 / float(M.tof_variance_us2(0.0, mod))
+    cost = w0 * sse + _kappa_penalty(K, cfg)[0]
+    if cfg.detection:
+        # z + 1.4 = (ln g + ln kappa - ln L + 1.4 sa) / sa, formed in place (B, G, Nd)
+        lk = np.log(np.maximum(K, 1e-300))
+        zd = lg + (lk - np.log(mod.detection_limit_us) + 1.4 * sa)[..., None]
+        np.maximum(zd, 0.0, out=zd)
+        cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zd * w, zd)
+        if batch.ne_valid.shape[1] and batch.ne_valid.any():
+            if moving:
+                thn = M.geometry(kind, r0[:, None, None], phis[:, :, None],
+                                 batch.ne_px[:, None, :], batch.ne_py[:, None, :],
+                                 batch.ne_yaw[:, None, :], moving=True).theta
+            else:
+                thn = _angle_diff(phis[:, :, None], batch.ne_yaw[:, None, :])
+            lgn = M.beam_log_factor(thn, tier, mod, derivative=False, want_g=False)[2]
+            # (1.4 - z) sa = (ln L + 1.4 sa - ln kappa) - ln g, formed in place
+            zn = np.subtract((np.log(mod.detection_limit_us) + 1.4 * sa - lk)[..., None], lgn)
+            np.maximum(zn, 0.0, out=zn)
+            zn *= batch.ne_valid[:, None, :]
+            cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zn, zn)
+    return T, K, cost
+
+
 def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray,
                 cfg: FitConfig) -> tuple[Array, Array, NDArray[np.bool_], Array]:
     """Global bracket on a bearing grid: the best (r, phi, kappa) node, the best other
-    local minimum and whether it is close enough to be refined too; the arc (lo, hi)."""
+    local minimum and whether it is close enough to be refined too; the arc (lo, hi).
+
+    Each start's bearing is refined by a parabola through its node and the neighbours,
+    and its (To, kappa) profiled again there (with all echoes, the grid may use every
+    k-th of a long segment's: ``cfg.grid_max_echoes``)."""
     mod = cfg.module
     tau = M.us_per_m(mod)
     B = batch.size
@@ -555,68 +682,19 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     phis = centre[:, None] + offs
     r0 = y0 / tau
     moving = _is_moving(batch)
-    if moving:
-        geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
-                         batch.py[:, None, :], batch.yaw[:, None, :], moving=True)
-        theta = geo.theta
-    else:
-        theta = _angle_diff(phis[:, :, None], batch.yaw[:, None, :])
-    g, _, lg = M.beam_log_factor(theta, tier, mod, derivative=False)
-    scale = np.exp(0.5 * M.sigma_a(mod) ** 2)
-    usef = use[:, None, :].astype(float)
-    gu = g * usef                                  # (B, G, Nd); the profile's g is scale gu
-    # bearing-independent weights (the on-axis variance), so that the profile costs of
-    # the nodes compare (weights from the model at each node would discount far-off
-    # readings) and weigh against the detection terms as a likelihood does
-    w0 = 1.0 / float(M.tof_variance_us2(0.0, mod))
     yc = np.where(use, y - y0[:, None], 0.0)                                 # (B, Nd)
-    S0 = use.sum(1)[:, None].astype(float)
-    S1 = gu.sum(-1) * scale
-    S2 = np.einsum("bgn,bgn->bg", gu, gu) * (scale * scale)
-    if moving:   # the range offsets of the readings depend on the node
-        ycg = (yc[:, None, :] - tau * (geo.R - r0[:, None, None])) * usef
-        Sy = ycg.sum(-1)
-        Syy = np.einsum("bgn,bgn->bg", ycg, ycg)
-        Sgy = np.einsum("bgn,bgn->bg", gu, ycg) * scale
+    usef = use.astype(float)
+    if cfg.grid_max_echoes is not None:
+        gb, gy, guse, gw = _decimate(batch, yc, use, cfg.grid_max_echoes)
     else:
-        Sy = yc.sum(-1)[:, None]
-        Syy = np.einsum("bn,bn->b", yc, yc)[:, None]
-        Sgy = np.matmul(gu, yc[:, :, None])[..., 0] * scale
-    if cfg.detection:
-        # echoes were detected: the one nearest the axis must be detectable (z < 2)
-        lg_min = np.min(lg, axis=-1, where=use[:, None, :], initial=np.inf)
-        kmax = (mod.detection_limit_us * np.exp(2.0 * M.sigma_a(mod)) * scale
-                * np.exp(-np.where(np.isfinite(lg_min), lg_min, 0.0)))
-    else:
-        kmax = np.full(phis.shape, np.inf)
-    T, Keff, sse = _profile_2x2(S0, S1, S2, Sy, Sgy, Syy, cfg.kappa_min_us * scale, kmax)
-    cost = w0 * sse
-    K = Keff / scale
-    cost = cost + _kappa_penalty(K, cfg)[0]
-    if cfg.detection:
-        # -log P(echo) of the echoes and -log P(no echo) of the others, in a cheap form
-        # good to ~10% (a bracket needs only the shape): 0.35 max(z + 1.4, 0)^2
-        # z + 1.4 = (ln g + ln kappa - ln L + 1.4 sa) / sa, formed in place (B, G, Nd)
-        sa = M.sigma_a(mod)
-        zd = lg + (np.log(np.maximum(K, 1e-300)) - np.log(mod.detection_limit_us)
-                   + 1.4 * sa)[..., None]
-        np.maximum(zd, 0.0, out=zd)
-        zd *= usef
-        cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zd, zd)
-        if batch.ne_valid.shape[1] and batch.ne_valid.any():
-            if moving:
-                thn = M.geometry(kind, r0[:, None, None], phis[:, :, None],
-                                 batch.ne_px[:, None, :], batch.ne_py[:, None, :],
-                                 batch.ne_yaw[:, None, :], moving=True).theta
-            else:
-                thn = _angle_diff(phis[:, :, None], batch.ne_yaw[:, None, :])
-            lgn = M.beam_log_factor(thn, tier, mod, derivative=False, want_g=False)[2]
-            # (1.4 - z) sa = (ln L + 1.4 sa - ln kappa) - ln g, formed in place
-            zn = np.subtract((np.log(mod.detection_limit_us) + 1.4 * sa
-                              - np.log(np.maximum(K, 1e-300)))[..., None], lgn)
-            np.maximum(zn, 0.0, out=zn)
-            zn *= batch.ne_valid[:, None, :]
-            cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zn, zn)
+        gb, gy, guse, gw = batch, yc, use, usef
+    # nodes in blocks: temporaries of at most ~_GRID_BLOCK elements (large fresh arrays
+    # cost page faults)
+    per = max(_GRID_BLOCK // max(B * (gb.px.shape[1] + gb.ne_px.shape[1]), 1), 1)
+    cost = np.empty((B, n_grid))
+    for a in range(0, n_grid, per):
+        cost[:, a:a + per] = _node_profile(kind, tier, gb, phis[:, a:a + per], r0, gy, guse,
+                                           gw, moving, cfg)[2]
     cost = np.where(np.isfinite(cost) & ~pad, cost, np.inf)
     rows = np.arange(B)
     arc = np.stack([centre + lo, centre + hi], axis=-1)
@@ -629,9 +707,8 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
     c2 = np.where(local_min & far, cost, np.inf)
     k2 = np.argmin(c2, axis=1)
     second = np.isfinite(c2[rows, k2]) & (c2[rows, k2] - cost[rows, k1] < cfg.second_start_dcost)
-    starts = []
+    best = []
     for k in (k1, k2):
-        best_phi = phis[rows, k]
         # parabolic refinement through the node and its neighbours
         kl = np.clip(k - 1, 0, n_grid - 1)
         kr = np.clip(k + 1, 0, n_grid - 1)
@@ -643,14 +720,20 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
         shift = np.clip(shift, -0.5, 0.5)
         dphi = np.where(shift > 0, phis[rows, kr] - phis[rows, k],
                         phis[rows, k] - phis[rows, kl])
-        best_phi = best_phi + shift * dphi
-        to = T[rows, k] + y0
-        starts.append(np.stack([to / tau, best_phi, np.maximum(K[rows, k], cfg.kappa_min_us)],
-                               axis=-1))
+        best.append(phis[rows, k] + shift * dphi)
+    # (To, kappa) at the refined bearings, from all echoes (both starts in one pass)
+    bp = np.stack(best, axis=1)                                              # (B, 2)
+    T, K, _ = _node_profile(kind, tier, batch, bp, r0, yc, use, usef, moving, cfg,
+                            detection_cost=False)
+    starts = [np.stack([(T[:, i] + y0) / tau, bp[:, i], np.maximum(K[:, i], cfg.kappa_min_us)],
+                       axis=-1) for i in (0, 1)]
     return starts[0], starts[1], second, arc
 
 
 _EARLY_TOLERANCE = 100.0
+
+_GRID_BLOCK = 1 << 16
+"""Largest temporary array of the grid bracket (elements)."""
 
 
 _STATE_FIELDS = ("p", "converged", "F", "H", "e", "s2")

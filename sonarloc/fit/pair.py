@@ -44,8 +44,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
-from scipy.stats import chi2 as chi2_dist
+from scipy.special import chdtrc, ndtr
 
 from sonarloc.fit import model as M
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _kappa_penalty, pack_segments
@@ -124,7 +123,13 @@ class PairFit:
 
 
 class _Segment:
-    """One segment's readings relative to its reference pose (row ``b`` of a batch)."""
+    """One segment's readings relative to its reference pose (row ``b`` of a batch).
+
+    :meth:`cost` and :meth:`detail` evaluate several parameter rows at once; with
+    :class:`_Segments` (several segments padded into one set of arrays) each row names
+    its segment (``owner``), so the pair search of a whole scan runs in one call per
+    step instead of one per segment (the cost of a call is mostly per-call overhead).
+    """
 
     def __init__(self, batch: SegmentBatch, b: int, cfg: FitConfig, tier: str) -> None:
         v = batch.valid[b]
@@ -138,17 +143,30 @@ class _Segment:
         mod = cfg.module
         self.cap = cfg.outlier_sigma ** 2 + math.log(
             2.0 * math.pi * float(M.tof_variance_us2(0.0, mod)))
+        # whether the transducer moved (the geometry's fast path for a pan otherwise)
+        self.moving = bool(self.px.any() or self.py.any())
+        self.ne_moving = bool(self.npx.any() or self.npy.any())
 
     @property
     def n(self) -> int:
         return int(self.y.size + self.npx.size)
 
-    def _component(self, q: Array) -> tuple[Array, ...]:
+    def _readings(self, owner: NDArray[np.intp] | None) -> tuple[Array, ...]:
+        """Echo (px, py, yaw, y) and no-echo (px, py, yaw) arrays for the rows."""
+        return self.px, self.py, self.yaw, self.y, self.npx, self.npy, self.nyaw
+
+    def _masks(self, owner: NDArray[np.intp] | None
+               ) -> tuple[NDArray[np.bool_] | None, NDArray[np.bool_] | None]:
+        """Which (echo, no-echo) entries of each row are real (None: all of them)."""
+        return None, None
+
+    def _component(self, q: Array, rd: tuple[Array, ...]) -> tuple[Array, ...]:
         """Per-reading terms of components q (S, 3) local (r, phi, ln kappa):
         echo mean (S, n), variance, log P(echo), log P(no echo); no-echo log P(no echo)."""
         mod = self.cfg.module
+        px, py, yaw, _, npx, npy, nyaw = rd
         r, phi, K = q[:, 0:1], q[:, 1:2], np.exp(np.clip(q[:, 2:3], _LNK_LO, _LNK_HI))
-        geo = M.geometry("point", r, phi, self.px, self.py, self.yaw)
+        geo = M.geometry("point", r, phi, px, py, yaw, moving=self.moving)
         g, _, lg = M.beam_delay_factor(geo.theta, self.tier, mod, derivative=False)
         z = M.detection_z(K, lg, mod)
         et = M.echo_terms(K, g, z, mod, want_info=False, tier=self.tier)
@@ -156,27 +174,33 @@ class _Segment:
                                 et.delay_var if self.tier == "waveform" else None)
         mean = M.us_per_m(mod) * geo.R + et.delay
         lq = M.noecho_terms(z, want_info=False)[0]
-        if self.npx.size:
-            ng = M.geometry("point", r, phi, self.npx, self.npy, self.nyaw)
+        if npx.shape[-1]:
+            ng = M.geometry("point", r, phi, npx, npy, nyaw, moving=self.ne_moving)
             _, _, lgn = M.beam_delay_factor(ng.theta, self.tier, mod, derivative=False)
             lqn = M.noecho_terms(M.detection_z(K, lgn, mod), want_info=False)[0]
         else:
             lqn = np.zeros((q.shape[0], 0))
         return mean, s2, et.log_p, lq, lqn
 
-    def cost(self, comps: list[Array]) -> Array:
+    def cost(self, comps: list[Array], owner: NDArray[np.intp] | None = None) -> Array:
         """Robust -2 log-likelihood (S,) of one or two components, each (S, 3)
-        ``(r [m], phi [rad], ln kappa)``."""
-        return self._eval(comps, False)[0]
+        ``(r [m], phi [rad], ln kappa)``; ``owner`` (S,): the segment of each row
+        (:class:`_Segments` only)."""
+        return self._eval(comps, False, owner)[0]
 
-    def detail(self, comps: list[Array]) -> tuple[Array, Array, Array]:
+    def detail(self, comps: list[Array], owner: NDArray[np.intp] | None = None
+               ) -> tuple[Array, Array, Array]:
         """:meth:`cost`, the first-echo responsibilities (S, m, n) and the standardised
-        residuals (S, n) of the component each echo is assigned to."""
-        return self._eval(comps, True)
+        residuals (S, n) of the component each echo is assigned to (padding entries of
+        :class:`_Segments` rows are meaningless)."""
+        return self._eval(comps, True, owner)
 
-    def _eval(self, comps: list[Array], detail: bool) -> tuple[Array, Array, Array]:
-        terms = [self._component(q) for q in comps]
-        y = self.y[None, :]
+    def _eval(self, comps: list[Array], detail: bool, owner: NDArray[np.intp] | None
+              ) -> tuple[Array, Array, Array]:
+        rd = self._readings(owner)
+        mask, ne_mask = self._masks(owner)
+        terms = [self._component(q, rd) for q in comps]
+        y = rd[3] if rd[3].ndim == 2 else rd[3][None, :]
         lnorm = [-0.5 * (y - m) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
                  for m, s2, _, _, _ in terms]
         if len(comps) == 1:
@@ -191,9 +215,12 @@ class _Segment:
         # a uniform floor exp(-cap / 2) per echo: a spike costs at most about `cap`
         ll = np.logaddexp(np.logaddexp.reduce(np.stack(parts), axis=0), -0.5 * self.cap)
         per = -2.0 * ll
+        if mask is not None:
+            per = np.where(mask, per, 0.0)
         c = per.sum(1)
         for t in terms:
-            c = c - 2.0 * t[4].sum(1)
+            lqn = t[4] if ne_mask is None else np.where(ne_mask, t[4], 0.0)
+            c = c - 2.0 * lqn.sum(1)
         for q in comps:
             c = c + _kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)[0]
         c = np.where(np.isfinite(c), c, 1e12)   # off the cliffs: the optimiser backs off
@@ -205,7 +232,53 @@ class _Segment:
         s_all = np.stack([t[1] for t in terms], axis=1)
         m_sel = np.take_along_axis(m_all, pick[:, None, :], axis=1)[:, 0]
         s_sel = np.take_along_axis(s_all, pick[:, None, :], axis=1)[:, 0]
-        return c, resp, (self.y[None, :] - m_sel) / np.sqrt(s_sel)
+        return c, resp, (y - m_sel) / np.sqrt(s_sel)
+
+
+class _Segments(_Segment):
+    """Several segments (one tier, all moving or all still) padded into (C, n) arrays;
+    every evaluated row says its segment (``owner``). A row's cost is that of its
+    segment alone (padding entries count zero)."""
+
+    def __init__(self, segs: Sequence[_Segment]) -> None:
+        first = segs[0]
+        self.cfg, self.tier, self.cap = first.cfg, first.tier, first.cap
+        self.moving, self.ne_moving = first.moving, first.ne_moving
+        if any((s.tier, s.moving, s.ne_moving, s.cfg) != (self.tier, self.moving,
+                                                          self.ne_moving, self.cfg)
+               for s in segs):
+            raise ValueError("`segs` must share tier, motion and config")
+
+        def pad(arrs: list[Array]) -> tuple[Array, NDArray[np.bool_]]:
+            width = max(a.size for a in arrs)
+            out = np.zeros((len(arrs), width))
+            ok = np.zeros((len(arrs), width), dtype=bool)
+            for k, a in enumerate(arrs):
+                out[k, :a.size] = a
+                ok[k, :a.size] = True
+            return out, ok
+
+        self.px, self.valid = pad([s.px for s in segs])
+        self.py, self.yaw, self.y = (pad([getattr(s, f) for s in segs])[0]
+                                     for f in ("py", "yaw", "y"))
+        self.npx, self.ne_valid = pad([s.npx for s in segs])
+        self.npy, self.nyaw = (pad([getattr(s, f) for s in segs])[0] for f in ("npy", "nyaw"))
+        self.sizes = np.array([s.n for s in segs])
+
+    @property
+    def n(self) -> int:
+        raise AttributeError("_Segments: use `sizes` (readings per segment)")
+
+    def _readings(self, owner: NDArray[np.intp] | None) -> tuple[Array, ...]:
+        if owner is None:
+            raise ValueError("_Segments needs the `owner` of every row")
+        return tuple(a[owner] for a in (self.px, self.py, self.yaw, self.y, self.npx,
+                                        self.npy, self.nyaw))
+
+    def _masks(self, owner: NDArray[np.intp] | None
+               ) -> tuple[NDArray[np.bool_] | None, NDArray[np.bool_] | None]:
+        assert owner is not None
+        return self.valid[owner], self.ne_valid[owner]
 
 
 def _unscale(x: Array) -> list[Array]:
@@ -223,7 +296,8 @@ def _minimise(seg: _Segment, x0: Array, fixed: int | None = None, maxiter: int =
 
 
 def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None = None,
-                    maxiter: int = 60, gtol: float = 1e-2) -> tuple[Array, Array]:
+                    maxiter: int = 60, gtol: float = 1e-2,
+                    owner: NDArray[np.intp] | None = None) -> tuple[Array, Array]:
     """BFGS from several starts in lockstep: every iteration evaluates the trial points
     of all unfinished starts and their central-difference gradient stencils in one
     :meth:`_Segment.cost` call (the cost of a call is mostly per-call overhead, so S
@@ -235,6 +309,9 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
     fixed : per start, an index held at its start value (profiles), or None.
     maxiter : BFGS iterations per start; ``gtol``: stop when the largest free gradient
         component is below this (-2 log-likelihood per scaled unit).
+    owner : (S,) the segment of each start when ``seg`` is a :class:`_Segments` (the
+        starts of many segments then share every call; each start's path is the one it
+        would take alone).
 
     Returns
     -------
@@ -250,7 +327,8 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
     stencil = np.concatenate([np.zeros((1, D)), np.eye(D) * h, -np.eye(D) * h])  # (2D+1, D)
 
     def evaluate(pts: Array, rows: NDArray[np.intp]) -> tuple[Array, Array]:
-        c = np.asarray(seg.cost(_unscale((pts[:, None, :] + stencil).reshape(-1, D))))
+        own = None if owner is None else np.repeat(owner[rows], 2 * D + 1)
+        c = np.asarray(seg.cost(_unscale((pts[:, None, :] + stencil).reshape(-1, D)), own))
         c = c.reshape(pts.shape[0], 2 * D + 1)
         g = (c[:, 1:D + 1] - c[:, D + 1:]) / (2.0 * h)
         return c[:, 0], np.where(free[rows], g, 0.0)
@@ -307,7 +385,7 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
     clipped = np.clip(lk, math.log(seg.cfg.kappa_min_us), math.log(1e3))
     if np.any(clipped != lk):
         x[:, 2::3] = clipped
-        f = np.asarray(seg.cost(_unscale(x)))
+        f = np.asarray(seg.cost(_unscale(x), owner))
     return x, np.asarray(f, dtype=float)
 
 
@@ -337,50 +415,85 @@ def _profile_bearing_sds(seg: _Segment, x: Array, c: float) -> list[float]:
     sqrt(-2 log-likelihood rise) (exact for a Gaussian likelihood). All profile points
     of both components are refitted together (:func:`_minimise_batch`).
     """
-    starts, fixed, comp = [], [], []
-    for k in range(2):
-        for step in PROFILE_STEPS:
-            x0 = x.copy()
-            x0[3 * k + 2] += step
-            starts.append(x0)
-            fixed.append(3 * k + 2)
-            comp.append(k)
-    xp, cp = _minimise_batch(seg, np.array(starts), fixed)
-    sd = [0.0, 0.0]
-    for j, k in enumerate(comp):
-        dphi = math.radians(float(xp[j, 3 * k + 1] - x[3 * k + 1]))
-        rise = max(float(cp[j]) - c, 1e-3)
-        sd[k] = max(sd[k], abs(dphi) / math.sqrt(rise))
-    return sd
+    return _profile_bearing_sds_batch(seg, x[None, :], np.array([c]), None)[0]
+
+
+def _profile_bearing_sds_batch(seg: _Segment, xs: Array, cs: Array,
+                               owner: NDArray[np.intp] | None) -> list[list[float]]:
+    """:func:`_profile_bearing_sds` of several optima xs (P, 6) with costs cs (P,) (of
+    segments ``owner`` (P,) of a :class:`_Segments`), all profile points in one search."""
+    starts, fixed, comp, row = [], [], [], []
+    for p, x in enumerate(xs):
+        for k in range(2):
+            for step in PROFILE_STEPS:
+                x0 = x.copy()
+                x0[3 * k + 2] += step
+                starts.append(x0)
+                fixed.append(3 * k + 2)
+                comp.append(k)
+                row.append(p)
+    own = None if owner is None else owner[np.array(row)]
+    xp, cp = _minimise_batch(seg, np.array(starts), fixed, owner=own)
+    sds = [[0.0, 0.0] for _ in range(len(xs))]
+    for j, (k, p) in enumerate(zip(comp, row, strict=True)):
+        dphi = math.radians(float(xp[j, 3 * k + 1] - xs[p, 3 * k + 1]))
+        rise = max(float(cp[j]) - float(cs[p]), 1e-3)
+        sds[p][k] = max(sds[p][k], abs(dphi) / math.sqrt(rise))
+    return sds
 
 
 def _hessian(seg: _Segment, x: Array, h: float = 1e-2) -> Array:
     """Central-difference Hessian of the cost in the scaled variables (one batch call)."""
-    d = x.size
+    return _hessian_batch(seg, x[None, :], None, h)[0]
+
+
+def _hessian_batch(seg: _Segment, xs: Array, owner: NDArray[np.intp] | None,
+                   h: float = 1e-2) -> Array:
+    """:func:`_hessian` at several points xs (P, d) (of segments ``owner`` (P,) of a
+    :class:`_Segments`) in one cost call; (P, d, d)."""
+    P_, d = xs.shape
     E = np.eye(d) * h
-    pts = [x]
+    offs = [np.zeros(d)]
     for i in range(d):
-        pts += [x + E[i], x - E[i]]
-    for i in range(d):
-        for j in range(i + 1, d):
-            pts += [x + E[i] + E[j], x + E[i] - E[j], x - E[i] + E[j], x - E[i] - E[j]]
-    c = np.asarray(seg.cost(_unscale(np.array(pts))))
-    H = np.zeros((d, d))
-    f0 = c[0]
-    for i in range(d):
-        H[i, i] = (c[1 + 2 * i] - 2.0 * f0 + c[2 + 2 * i]) / (h * h)
-    k = 1 + 2 * d
+        offs += [E[i], -E[i]]
     for i in range(d):
         for j in range(i + 1, d):
-            pp, pm, mp, mm = c[k:k + 4]
-            H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4.0 * h * h)
-            k += 4
-    return H
+            offs += [E[i] + E[j], E[i] - E[j], -E[i] + E[j], -E[i] - E[j]]
+    O = np.array(offs)                                   # (m, d)
+    pts = (xs[:, None, :] + O[None, :, :]).reshape(-1, d)
+    own = None if owner is None else np.repeat(owner, O.shape[0])
+    c_all = np.asarray(seg.cost(_unscale(pts), own)).reshape(P_, O.shape[0])
+    out = np.zeros((P_, d, d))
+    for p in range(P_):
+        c = c_all[p]
+        H = out[p]
+        f0 = c[0]
+        for i in range(d):
+            H[i, i] = (c[1 + 2 * i] - 2.0 * f0 + c[2 + 2 * i]) / (h * h)
+        k = 1 + 2 * d
+        for i in range(d):
+            for j in range(i + 1, d):
+                pp, pm, mp, mm = c[k:k + 4]
+                H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4.0 * h * h)
+                k += 4
+    return out
+
+
+_Grid = tuple[Array, NDArray[np.intp], NDArray[np.intp]]
 
 
 def _starts(seg: _Segment, single: Array, n_starts: int) -> list[Array]:
     """Best bearing pairs of a grid, each with (To, kappa) of both components solved
     linearly (echoes assigned to the component nearer their beam axis)."""
+    grid = _start_grid(seg, single)
+    if grid is None:
+        return []
+    return _pick_starts(np.asarray(seg.cost(_unscale(grid[0]))), grid, n_starts)
+
+
+def _start_grid(seg: _Segment, single: Array) -> _Grid | None:
+    """The :data:`N_CANDIDATES` best nodes of :func:`_starts`'s grid by the linear solves:
+    scaled points (k, 6) and their node indices (a, b); None if none is bracketed."""
     mod = seg.cfg.module
     tau = M.us_per_m(mod)
     r0 = float(single[0])
@@ -413,13 +526,19 @@ def _starts(seg: _Segment, single: Array, n_starts: int) -> list[Array]:
     order = np.argsort(cost)[:N_CANDIDATES]
     order = order[np.isfinite(cost[order])]
     if order.size == 0:
-        return []
+        return None
     a, b = ja[order], jb[order]
     xs = np.stack([sols[order, 0] / tau / _SCALE[0], nodes[a] / _SCALE[1],
                    np.log(np.maximum(sols[order, 1], seg.cfg.kappa_min_us)),
                    sols[order, 2] / tau / _SCALE[0], nodes[b] / _SCALE[1],
                    np.log(np.maximum(sols[order, 3], seg.cfg.kappa_min_us))], axis=1)
-    full = np.asarray(seg.cost(_unscale(xs)))   # the full likelihood ranks the candidates
+    return xs, a, b
+
+
+def _pick_starts(full: Array, grid: _Grid, n_starts: int) -> list[Array]:
+    """The ``n_starts`` best grid points by the full likelihood ``full`` (k,), no two
+    on neighbouring nodes."""
+    xs, a, b = grid
     best: list[Array] = []
     taken: list[tuple[int, int]] = []
     for k in np.argsort(full).tolist():
@@ -455,42 +574,107 @@ def fit_pair(batch: SegmentBatch, b: int, single_local: Array, tier: str,
     seg = _Segment(batch, b, cfg, tier)
     if seg.y.size < 2 * cfg.min_echoes or not np.all(np.isfinite(single_local)):
         return None
-    s0 = np.array([single_local[0] / _SCALE[0], single_local[1] / _SCALE[1],
-                   math.log(max(float(single_local[2]), cfg.kappa_min_us))])
-    x1, c1 = _minimise(seg, s0)
-    c1 = min(c1, float(np.asarray(seg.cost(_unscale(s0[None, :])))[0]))
-    starts = _starts(seg, np.asarray(single_local, float), n_starts)
+    return _fit_pairs([seg], [np.asarray(single_local, float)], n_starts)[0]
+
+
+def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
+               n_starts: int = N_STARTS) -> list[PairFit]:
+    """:func:`fit_pair` for several segments of one tier (all moving or all still),
+    every search step of all of them in one cost call (:class:`_Segments`)."""
+    C = len(segs)
+    cfg = segs[0].cfg
+    ev: _Segment = segs[0] if C == 1 else _Segments(segs)
+
+    def own(rows: Sequence[int] | NDArray[np.intp]) -> NDArray[np.intp] | None:
+        return None if C == 1 else np.asarray(rows, dtype=np.intp)
+
+    every = np.arange(C)
+    s0 = np.array([[s[0] / _SCALE[0], s[1] / _SCALE[1],
+                    math.log(max(float(s[2]), cfg.kappa_min_us))] for s in singles])
+    x1, c1 = _minimise_batch(ev, s0, owner=own(every))
+    c1 = np.minimum(c1, np.asarray(ev.cost(_unscale(s0), own(every))))
+    # grid starts of every segment, ranked by the full likelihood in one call
+    grids = [_start_grid(seg, single) for seg, single in zip(segs, singles, strict=True)]
+    have = [c for c in range(C) if grids[c] is not None]
+    starts: list[list[Array]] = [[] for _ in range(C)]
+    if have:
+        gx = np.concatenate([grids[c][0] for c in have])  # type: ignore[index]
+        go = np.concatenate([np.full(len(grids[c][0]), c) for c in have])  # type: ignore[index]
+        full = np.asarray(ev.cost(_unscale(gx), own(go)))
+        for c in have:
+            grid = grids[c]
+            assert grid is not None
+            starts[c] = _pick_starts(full[go == c], grid, n_starts)
     # and the single landmark split in two 1 deg either side: the pair can only gain
     d1 = np.array([0.0, 1.0 / _SCALE[1] * math.radians(1.0), 0.0])
-    starts.append(np.concatenate([x1 - d1, x1 + d1]))
-    price = 3.0 * math.log(max(seg.n, 2))
-    bar = max(price, MIN_GAIN)
+    for c in range(C):
+        starts[c].append(np.concatenate([x1[c] - d1, x1[c] + d1]))
+    price = np.array([3.0 * math.log(max(seg.n, 2)) for seg in segs])
+    bar = np.maximum(price, MIN_GAIN)
     # all starts in lockstep; a few iterations first: a pair that then still gains far
     # less than the bar will not reach it (screen; docs/FITTING.md)
-    xs, cs = _minimise_batch(seg, np.array(starts), maxiter=SCREEN_ITER)
-    screened = c1 - float(cs.min()) < bar - SCREEN_MARGIN
-    if not screened:
-        xs, cs = _minimise_batch(seg, xs, maxiter=60 - SCREEN_ITER)
-    optima = []
-    for x, c in zip(xs, cs.tolist(), strict=True):
+    X = np.array([x for st in starts for x in st])
+    O = np.repeat(every, [len(st) for st in starts])
+    xs, cs = _minimise_batch(ev, X, maxiter=SCREEN_ITER, owner=own(O))
+    best_cs = np.full(C, np.inf)
+    np.minimum.at(best_cs, O, cs)
+    screened = c1 - best_cs < bar - SCREEN_MARGIN
+    go_on = np.flatnonzero(~screened[O])
+    if go_on.size:
+        xs[go_on], cs[go_on] = _minimise_batch(ev, xs[go_on], maxiter=60 - SCREEN_ITER,
+                                               owner=own(O[go_on]))
+    optima: list[list[tuple[float, Array]]] = [[] for _ in range(C)]
+    for x, c, o in zip(xs, cs.tolist(), O.tolist(), strict=True):
         if x[1] > x[4]:                       # components ordered by bearing
             x = np.concatenate([x[3:], x[:3]])
-        optima.append((c, x))
-    optima.sort(key=lambda o: o[0])
-    best_c, best_x = optima[0]
+        optima[o].append((c, x))
+    for opt in optima:
+        opt.sort(key=lambda o: o[0])
+    best_x = np.array([opt[0][1] for opt in optima])
+    c_arr, resp, resid = ev.detail(_unscale(best_x), own(every))
     comps = _unscale(best_x)
-    c_arr, resp, resid = seg.detail(comps)
-    c_pair = float(c_arr[0])
-    without = [float(np.asarray(seg.cost([comps[1 - k]]))[0]) - c_pair for k in range(2)]
-    n_first = resp[0].sum(1)
-    gain = c1 - c_pair
+    # without either component (the other kept as fitted)
+    c_one = np.asarray(ev.cost([np.concatenate([comps[1], comps[0]])],
+                               own(np.concatenate([every, every]))))
+    gain = c1 - c_arr
     # the covariance (Hessian and kappa profiles: most of the cost) only where the
     # evidence can carry the pair
+    promising = np.flatnonzero(gain > bar)
+    H = np.full((C, 6, 6), np.nan)
+    profile_sd: list[list[float] | None] = [None] * C
+    if promising.size:
+        H[promising] = _hessian_batch(ev, best_x[promising], own(promising))
+        sds = _profile_bearing_sds_batch(
+            ev, best_x[promising], np.array([optima[c][0][0] for c in promising.tolist()]),
+            own(promising))
+        for c, sd in zip(promising.tolist(), sds, strict=True):
+            profile_sd[c] = sd
+    out = []
+    for c, seg in enumerate(segs):
+        n_c = seg.y.size
+        without = [float(c_one[c] - c_arr[c]), float(c_one[C + c] - c_arr[c])]
+        out.append(_decide(seg, float(c1[c]), optima[c], float(c_arr[c]),
+                           resp[c, :, :n_c], resid[c, :n_c], without, H[c],
+                           profile_sd[c], float(price[c]), float(bar[c]), bool(screened[c])))
+    return out
+
+
+def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair: float,
+            resp: Array, resid: Array, without: list[float], H: Array,
+            profile_sd: list[float] | None, price: float, bar: float, screened: bool
+            ) -> PairFit:
+    """The pair's covariance, ambiguity, support tests and decision for one segment
+    (``resp`` (2, n), ``resid`` (n,) of the best optimum; ``H`` its Hessian, NaN unless
+    promising)."""
+    cfg = seg.cfg
+    best_c, best_x = optima[0]
+    comps = _unscale(best_x)
+    n_first = resp.sum(1)
+    gain = c1 - c_pair
     promising = gain > bar
-    H = _hessian(seg, best_x) if promising else np.full((6, 6), np.nan)
     cov_s = _inverse(0.5 * H) if promising else H
-    pick = np.argmax(resp[0], axis=0)
-    chi2 = np.array([float((resid[0][pick == k] ** 2).sum()) for k in range(2)])
+    pick = np.argmax(resp, axis=0)
+    chi2 = np.array([float((resid[pick == k] ** 2).sum()) for k in range(2)])
     dof = max(seg.y.size - 6, 1)
     cov_s = cov_s * max(float(chi2.sum()) / dof, 1.0)
     T = np.diag(np.tile(_SCALE, 2))
@@ -505,7 +689,7 @@ def fit_pair(batch: SegmentBatch, b: int, single_local: Array, tier: str,
         cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
     ambiguous: dict[int, str] = {}
     if promising:
-        profile_sd = _profile_bearing_sds(seg, best_x, best_c)
+        assert profile_sd is not None
         for k in range(2):
             cov_out[k, 1, 1] = max(cov_out[k, 1, 1], profile_sd[k] ** 2)
     # other optima that fit as well with other bearings: the bearings are ambiguous;
@@ -622,7 +806,7 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
     if lm.status is not FitStatus.OK:
         return False
     chi2 = float(lm.extra.get("chi2", 0.0))  # type: ignore[arg-type]
-    p = float(chi2_dist.sf(chi2, max(lm.n_readings - 3, 1)))
+    p = float(chdtrc(max(lm.n_readings - 3, 1), chi2))   # = scipy.stats.chi2.sf
     return p < CANDIDATE_P or float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z  # type: ignore[arg-type]
 
 
@@ -691,32 +875,74 @@ def resolve_pairs(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     gives two point landmarks (``extra["pair_of"]`` = the segment id, ``pair_gain``,
     ``pair_basis``); a rejected one leaves the single landmark, with the test's
     numbers in ``extra["pair_basis"]`` (and appended to the reason when it was not
-    ``OK``: the two could not be told apart).
+    ``OK``: the two could not be told apart). All candidates are searched together
+    (:func:`resolve_pair_groups`).
+    """
+    return [lm for g in resolve_pair_groups(segments, landmarks, config) for lm in g]
+
+
+PAIR_BUCKET_WIDTH = 1.25
+"""Candidates searched in one batch have echo counts within this factor (padding to
+the longest costs evaluations that count for nothing)."""
+
+
+def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
+                        config: FitConfig | None = None) -> list[list[Landmark]]:
+    """:func:`resolve_pairs`, the result of each segment in its own list (two landmarks
+    where the pair is accepted, else the single one).
+
+    The candidates of one tier and kind of motion are searched in lockstep (every
+    quasi-Newton step of all of them in one cost call, :class:`_Segments`), in buckets
+    of similar size; each candidate's search is the one it would have alone (up to
+    floating-point rounding of sums over padded arrays).
     """
     cfg = config or FitConfig()
-    out: list[Landmark] = []
-    for seg, lm in zip(segments, landmarks, strict=True):
-        if not is_candidate(lm, cfg):
-            out.append(lm)
-            continue
-        r = seg.readings
+    out: list[list[Landmark]] = [[lm] for lm in landmarks]
+    if len(segments) != len(landmarks):
+        raise ValueError(f"`segments` ({len(segments)}) and `landmarks` ({len(landmarks)}) "
+                         "must have equal lengths")
+    cand = [i for i, lm in enumerate(landmarks) if is_candidate(lm, cfg)
+            and lm.tier != "conventional"]
+    if not cand:
+        return out
+    parts = []
+    for i in cand:
+        r = segments[i].readings
         good = (np.isfinite(r.t_s) & np.isfinite(r.x_m) & np.isfinite(r.y_m)
                 & np.isfinite(r.yaw_rad) & (np.isnan(r.tof_us)
                                             | (np.isfinite(r.tof_us) & (r.tof_us > 0))))
-        batch = pack_segments([(r.t_s[good], r.x_m[good], r.y_m[good],
-                                M.wrap_angle(r.yaw_rad[good]), r.tof_us[good])])
+        parts.append((r.t_s[good], r.x_m[good], r.y_m[good], M.wrap_angle(r.yaw_rad[good]),
+                      r.tof_us[good]))
+    batch = pack_segments(parts)
+    groups: dict[tuple[str, bool, bool], list[tuple[int, _Segment, Array]]] = {}
+    for j, i in enumerate(cand):
+        lm = landmarks[i]
+        seg = _Segment(batch, j, cfg, lm.tier)
         local = np.array([lm.range_m, lm.bearing_rad, lm.kappa_us])
-        pf = fit_pair(batch, 0, local, lm.tier, cfg)
-        if pf is None:
-            out.append(lm)
+        if seg.y.size < 2 * cfg.min_echoes or not np.all(np.isfinite(local)):
             continue
+        groups.setdefault((lm.tier, seg.moving, seg.ne_moving), []).append((i, seg, local))
+    fits: dict[int, PairFit] = {}
+    for members in groups.values():
+        members.sort(key=lambda m: m[1].y.size)
+        start = 0
+        while start < len(members):
+            stop = start + 1
+            lim = PAIR_BUCKET_WIDTH * members[start][1].y.size
+            while stop < len(members) and members[stop][1].y.size <= lim:
+                stop += 1
+            chunk = members[start:stop]
+            for (i, _, _), pf in zip(chunk, _fit_pairs([m[1] for m in chunk],
+                                                       [m[2] for m in chunk]), strict=True):
+                fits[i] = pf
+            start = stop
+    for i, pf in fits.items():
+        lm = landmarks[i]
         if pf.accepted:
-            out += pair_landmarks(pf, lm, cfg)
+            out[i] = pair_landmarks(pf, lm, cfg)
             continue
         lm.extra["pair_basis"] = pf.basis
         lm.extra["pair_gain"] = pf.gain
         if lm.status is not FitStatus.OK:
-            out.append(replace(lm, reason=f"{lm.reason}; {pf.basis}"))
-        else:
-            out.append(lm)
+            out[i] = [replace(lm, reason=f"{lm.reason}; {pf.basis}")]
     return out

@@ -70,6 +70,12 @@ class SegmenterConfig:
     max_readings : a segment is closed (and fitted) when it holds this many readings.
     censor_window : no-echo readings kept on each side of a segment.
     max_open : most segments open at once (the oldest is closed beyond).
+    sweep_away_deg : a reading of one of a segment's transducers whose axis points more
+        than this from the segment's last echo axis closes it (``"swept"``): a panning
+        transducer has swept past the landmark, and its next pass is a new segment.
+        The landmark lies within ``beam_half_width_deg`` of that axis, so twice that
+        is safe. None (default): never; fixed transducers keep pointing where they
+        did, and a landmark leaving one of them may enter its neighbour's beam.
     """
 
     gate_us: float = 40.0
@@ -82,6 +88,7 @@ class SegmenterConfig:
     max_readings: int = 400
     censor_window: int = 8
     max_open: int = 64
+    sweep_away_deg: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("gate_us", "beam_half_width_deg", "miss_half_width_deg", "max_gap_s",
@@ -96,6 +103,10 @@ class SegmenterConfig:
         if not (isinstance(self.censor_window, int) and self.censor_window >= 0):
             raise ValueError(f"`censor_window` must be a non-negative integer, "
                              f"got {self.censor_window!r}")
+        if self.sweep_away_deg is not None and not (
+                math.isfinite(self.sweep_away_deg) and self.sweep_away_deg > 0):
+            raise ValueError(f"`sweep_away_deg` must be positive or None, "
+                             f"got {self.sweep_away_deg!r}")
         if self.max_readings < self.min_echoes:
             raise ValueError(f"`max_readings` ({self.max_readings}) must be at least "
                              f"`min_echoes` ({self.min_echoes})")
@@ -108,8 +119,9 @@ class Segment:
     ``readings`` holds its echoes and the no-echo readings that bound it (NaN TOF);
     ``occluded`` says which ends of the arc a nearer echo hid.
     ``closed_by``: ``"misses"`` (left the beam or hidden), ``"gap"`` (time gap),
-    ``"full"`` (``max_readings``), ``"crowded"`` (``max_open``) or ``"flush"`` (end of
-    stream). ``seg_id`` counts segments from 0 in the order they were opened.
+    ``"full"`` (``max_readings``), ``"crowded"`` (``max_open``), ``"swept"`` (a panning
+    beam has moved on, ``sweep_away_deg``) or ``"flush"`` (end of stream). ``seg_id``
+    counts segments from 0 in the order they were opened.
     """
 
     readings: ScanReadings
@@ -194,6 +206,8 @@ class Segmenter:
         self._tan_miss_wide = math.tan(wide) if wide < math.radians(89.0) else math.inf
         self._miss_angle = math.radians(cfg.miss_angle_deg)
         self._arc = [self._beam * k / 3.0 for k in range(-3, 4)]
+        self._away = math.inf if cfg.sweep_away_deg is None else \
+            math.radians(cfg.sweep_away_deg)
 
     @property
     def open_segments(self) -> int:
@@ -228,9 +242,13 @@ class Segmenter:
         self._last_t = t
         yaw = _wrap(yaw)
         closed: list[Segment] = []
-        # time gaps close segments first
+        # time gaps close segments first, then a panning beam that has moved on
         for s in [s for s in self._open if t - s.last[0] > self.config.max_gap_s]:
             closed += self._close(s, "gap")
+        if self._away < math.inf:
+            for s in [s for s in self._open if sensor in s.sensors
+                      and self._off_axis(s, x, y, yaw) > self._away]:
+                closed += self._close(s, "swept")
         echo = not math.isnan(tof)
         row = (t, x, y, yaw, tof, sensor)
         if echo:

@@ -287,6 +287,26 @@ class BatchFuser:
         ok = np.isfinite(kap) & (kap > 0)
         self._kappa = np.where(ok, kap, 1.0)  # Localizer._kappa_fallback without a fit
         kinds = tuple(fmap.point_kind) + tuple(fmap.wall_kind)
+        # feature groups: the same point (within 1 mm) or the same line (1 mm, 1 mrad) is
+        # not a rival of itself (Localizer._rivals)
+        n_f = len(kinds)
+        group = np.arange(n_f)
+        for i in range(n_f):
+            for j in range(i):
+                if self._is_point[i] != self._is_point[j]:
+                    continue
+                if self._is_point[i]:
+                    same = math.hypot(*(self._par[i] - self._par[j])) <= 1e-3
+                else:
+                    d_alpha = (self._par[i, 1] - self._par[j, 1] + math.pi) % (2 * math.pi) \
+                        - math.pi
+                    same = abs(self._par[i, 0] - self._par[j, 0]) <= 1e-3 and \
+                        abs(d_alpha) <= 1e-3
+                if same:
+                    group[i] = group[j]
+                    break
+        _, self._group = np.unique(group, return_inverse=True)
+        self._n_groups = int(self._group.max(initial=-1)) + 1
         grow = [ReflectorKind.parse(k).is_cylinder for k in kinds]
         self._grow_kinds = sorted({k for k, g in zip(kinds, grow, strict=True) if g})
         self._grow_code = np.array([self._grow_kinds.index(k) if g else -1
@@ -354,21 +374,26 @@ class BatchFuser:
         if not has.any():
             return out
         # --- candidates: features that can echo towards the last transducer position,
-        # their ranges near the readings' (median; the delay adds at most ~2 mm)
+        # their ranges near the readings' (median; the delay adds at most ~2 mm); rivals:
+        # those near any one reading (they may explain it as well: echoes.ambiguous)
         tpose = se2.compose(xh[:, None, :], rel)                       # (S, N, 3) in map
         last_xy = tpose[:, -1, :2]
-        cand = np.concatenate([self.fmap.points_visible_from(last_xy, self.max_range_m),
+        base = np.concatenate([self.fmap.points_visible_from(last_xy, self.max_range_m),
                                self.fmap.walls_facing(last_xy, self.wall_margin_m,
                                                       self.max_range_m)], axis=1)
+        base &= has[:, None]
         tol = 0.05 + 4.0 * np.sqrt(np.maximum(ph[:, 0, 0] + ph[:, 1, 1], 0.0))
         rng_all = self._ranges(tpose)                                  # (S, F, N)
         rng_all = np.where(valid[:, None, :], rng_all, np.nan)
         zmed = _median_valid(np.where(valid, z, np.nan), n_s)[:, None]
         near = np.abs(_median_valid(rng_all, n_s[:, None]) - zmed) <= tol[:, None]
-        cand &= near & has[:, None]
-        ps, fs = np.nonzero(cand)                 # pairs, by segment then feature index
+        with np.errstate(invalid="ignore"):
+            near_one = np.any(np.abs(rng_all - z[:, None, :]) <= tol[:, None, None], axis=2)
+        ps, fs = np.nonzero(base & (near | near_one))  # pairs, by segment then feature
         if ps.size == 0:
             return out
+        is_cand = near[ps, fs]
+        is_rival = near_one[ps, fs]
         # --- each pair's readings through the forward model at the predicted belief
         tp = tpose[ps]                                                 # (C, N, 3)
         px, py, psi = tp[..., 0], tp[..., 1], tp[..., 2]
@@ -425,11 +450,18 @@ class BatchFuser:
         s_ii = hph[:, idx, idx] + r[:, idx, idx]
         with np.errstate(invalid="ignore", divide="ignore"):
             ok = valid[ps] & np.isfinite(nu) & np.isfinite(s_ii) & (s_ii > 0)
-            keep = ok & (np.where(ok, nu**2 / np.where(ok, s_ii, 1.0), np.inf)
-                         <= self.screen_gate)
+            passed = ok & (np.where(ok, nu**2 / np.where(ok, s_ii, 1.0), np.inf)
+                           <= self.screen_gate)
+        # a candidate's reading that a rival (another point, another line) also passes
+        # is not kept: per segment, reading and feature group, how many rivals pass it
+        gid = self._group[fs]
+        count = np.zeros((S, self._n_groups, N), dtype=int)
+        np.add.at(count, (ps[is_rival], gid[is_rival]), passed[is_rival].astype(int))
+        others = count.sum(axis=1)[ps] - count[ps, gid]
+        keep = passed & (others == 0) & is_cand[:, None]
         n_keep = keep.sum(axis=1)
         need = np.maximum(1, np.ceil(self.min_fraction * n_s[ps] - 1e-9)).astype(int)
-        live = (n_keep >= need) & (n_keep >= 1)
+        live = is_cand & (n_keep >= need) & (n_keep >= 1)
         if not live.any():
             return out
         # --- stacked squared Mahalanobis distance of each candidate's kept readings
@@ -496,6 +528,9 @@ class BatchFuser:
         q_nu = np.einsum("cni,cn->ci", q, sol[..., 3])
         resid2 = np.maximum(np.einsum("cn,cn->c", sol[..., 3], sol[..., 3])
                             - np.einsum("ci,ci->c", q_nu, q_nu), 0.0)
+        riv_of: dict[int, list[int]] = {}
+        for qi in np.flatnonzero(is_rival).tolist():
+            riv_of.setdefault(int(ps[qi]), []).append(qi)
         for j, (c, sh, nt) in enumerate(zip(wp.tolist(), win_share.tolist(), win_top.tolist(),
                                             strict=True)):
             if not good[j]:
@@ -512,10 +547,16 @@ class BatchFuser:
             p.d2 = float(d2[c])
             p.share = sh
             p.reduced = Compressed(xh[k].copy(), q_nu[j], rq[j], float(resid2[j]), p.n_kept)
-            sel = ok[c]
-            p.screen_rows = list(zip(hx[c][sel].tolist(), nu[c][sel].tolist(),
-                                     r[c, idx, idx][sel].tolist(), keep[c][sel].tolist(),
-                                     strict=True))
+            # what decided the kept readings: the candidate's own screening of its usable
+            # readings, and each rival's screening of those the candidate passed
+            rows_c = [c] + [q for q in riv_of.get(k, []) if gid[q] != gid[c]]
+            screen: list[tuple[list[float], float, float, bool]] = []
+            for q in rows_c:
+                sel = ok[c] if q == c else passed[c]
+                screen += zip(hx[q][sel].tolist(), nu[q][sel].tolist(),
+                              r[q, idx, idx][sel].tolist(), passed[q][sel].tolist(),
+                              strict=True)
+            p.screen_rows = screen
         return out
 
     def _ranges(self, tpose: Array) -> Array:

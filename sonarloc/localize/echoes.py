@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -608,3 +609,34 @@ def screen(state: Gaussian, obs: EchoObservation, probability: float = 0.999
     ok = np.isfinite(nu) & np.isfinite(s) & (s > 0)
     d2 = np.where(ok, nu**2 / np.where(ok, s, 1.0), np.inf)
     return np.asarray(ok & (d2 <= ekf.chi2_gate(1, probability)))
+
+
+def ambiguous(state: Gaussian, obs: EchoObservation, rivals: Sequence[EchoObservation],
+              probability: float = 0.999) -> NDArray[np.bool_]:
+    """(n,) readings of ``obs`` that another map feature explains as well.
+
+    The module reports the *first* threshold crossing, so where two reflectors lie at
+    nearly the same range (a wall's normal-incidence point next to its corner, seen by
+    a beam sweeping along the wall) a segment's readings come from either, and the
+    segmenter keeps them in one segment. A reading that also passes the per-reading
+    screen (:func:`screen`, same ``probability``) of a rival feature (same readings,
+    transducer poses and chain, that feature's geometry and strength; a rival beyond
+    its detection arc never passes) cannot tell the two apart: fused as a reading of
+    ``obs.feature`` it pulls the pose by the range difference, millimetres that the
+    forward model's sub-millimetre SDs turn into a strong, wrong update.
+
+    Parameters
+    ----------
+    state : the belief the readings are screened against (mean (3,), cov (3, 3)).
+    obs : the readings as measurements of the associated feature.
+    rivals : the same readings as measurements of each other candidate feature.
+    probability : chi-square(1) gate of the screen.
+    """
+    out = np.zeros(len(obs), dtype=bool)
+    for rival in rivals:
+        if len(rival) != len(obs):
+            raise ValueError(f"rival observation has {len(rival)} readings, `obs` has "
+                             f"{len(obs)}")
+        rival.linearize(state.mean)
+        out |= screen(state, rival, probability)
+    return out

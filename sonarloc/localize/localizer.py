@@ -121,6 +121,12 @@ class LocalizerConfig:
         regular updates. None (default): 8 for fixed transducers, 400 (the segmenter's
         own limit) when the readings come with a pan angle: a panning transducer sweeps
         past its landmarks, and cutting a pass short leaves a partial U.
+    segment_sweep_away_deg : a panning transducer's segment is closed once its axis has
+        swept this far past the segment's last echo (the segmenter's ``sweep_away_deg``),
+        so the next pass over the same landmark, a sweep later, is a segment of its own
+        (fused when it is seen, with the odometry of one pass inside it). None (default):
+        twice the segmenter's beam half-width (50 deg) when the readings come with a pan
+        angle, never for fixed transducers; ``math.inf``: never.
     segment_min_echoes : segments with fewer echoes are dropped as spikes by the
         segmenter. None (default): 1 with ``kuc_fusion="echoes"`` (a lone echo of a
         feature is still a forward-model measurement), the segmenter's 3 otherwise.
@@ -153,6 +159,7 @@ class LocalizerConfig:
     echo_screen_probability: float = 0.999
     segment_max_readings: int | None = None
     segment_min_echoes: int | None = None
+    segment_sweep_away_deg: float | None = None
     conventional_range_sd_m: float = 0.01
     conventional_bearing_sd_deg: float = 10.0
     max_range_m: float = 6.0
@@ -293,7 +300,10 @@ class SegmentFitSource:
 
     ``max_readings``: segment length limit; None lets the :class:`Localizer` choose at
     the first reading (8 for fixed transducers, 400 for a panning one), or 400 when used
-    on its own. ``min_echoes``: shorter segments are dropped by the segmenter as spikes;
+    on its own. ``sweep_away_deg``: the segmenter's setting of that name (None: never
+    close a segment because the beam turned away; see
+    :meth:`Localizer.segment_sweep_away_deg`). ``min_echoes``: shorter segments are
+    dropped by the segmenter as spikes;
     None lets the Localizer choose (1 with reading-level fusion, whose forward model
     can use a lone echo, else the segmenter's default).
 
@@ -304,13 +314,15 @@ class SegmentFitSource:
     def __init__(self, speed_of_sound_mps: float = 343.0, batch: int = 4,
                  max_wait_s: float = 0.25, max_readings: int | None = None,
                  on_fit: Callable[[Any, Landmark], None] | None = None,
-                 min_echoes: int | None = None) -> None:
+                 min_echoes: int | None = None, sweep_away_deg: float | None = None
+                 ) -> None:
         from sonarloc.fit.lsq import FitConfig
         from sonarloc.physics.tof import ModuleParams
 
         self.fit_config = FitConfig(module=ModuleParams(c_mps=speed_of_sound_mps))
         self.max_readings = max_readings
         self.min_echoes = min_echoes
+        self.sweep_away_deg = sweep_away_deg
         self._segmenter: Any = None
         self.batch = batch
         self.max_wait_s = max_wait_s
@@ -328,6 +340,8 @@ class SegmentFitSource:
                 cfg = replace(cfg, max_readings=self.max_readings)
             if self.min_echoes is not None:
                 cfg = replace(cfg, min_echoes=self.min_echoes)
+            if self.sweep_away_deg is not None and math.isfinite(self.sweep_away_deg):
+                cfg = replace(cfg, sweep_away_deg=self.sweep_away_deg)
             self._segmenter = Segmenter(cfg, self.fit_config.module)
         return self._segmenter
 
@@ -701,6 +715,19 @@ class Localizer:
             return c.segment_min_echoes
         return 1 if c.kuc_fusion == "echoes" else None
 
+    def segment_sweep_away_deg(self, panning: bool) -> float | None:
+        """The segmenter's ``sweep_away_deg`` for this Localizer's landmark source:
+        ``config.segment_sweep_away_deg``, else twice the segmenter's beam half-width for
+        a panning transducer and None (never) for fixed ones."""
+        c = self.config.segment_sweep_away_deg
+        if c is not None:
+            return c if math.isfinite(c) else None
+        if not panning:
+            return None
+        from sonarloc.fit.segment import SegmenterConfig
+
+        return 2.0 * SegmenterConfig().beam_half_width_deg
+
     def _add_echoes(self, lm: Landmark, obs: Observation | None) -> FusionOutcome:
         """Associate a segment (by its fit, else by its readings), then fuse its readings
         through the forward model (:mod:`sonarloc.localize.echoes`)."""
@@ -767,8 +794,26 @@ class Localizer:
                   kind: str | None, index: int, fitted_kappa_us: float, state: Gaussian
                   ) -> EchoObservation | None:
         """The chain's readings of map feature (kind, index), screened one by one against
-        ``state``; None when none is left. ``fitted_kappa_us`` (NaN: none) stands in for
-        a map feature without a strength."""
+        ``state``, without those another map feature explains as well
+        (:func:`~sonarloc.localize.echoes.ambiguous`); None when none is left.
+        ``fitted_kappa_us`` (NaN: none) stands in for a map feature without a strength."""
+        eo = self._feature_echo(chain, kind, index, fitted_kappa_us)
+        eo.linearize(state.mean)
+        keep = echoes.screen(state, eo, self.config.echo_screen_probability)
+        if not keep.any():
+            return None
+        eo = eo.subset(keep)
+        rivals = [r.subset(keep) for r in self._rivals(chain, kind, index, fitted_kappa_us,
+                                                       state)]
+        if rivals:
+            eo = eo.subset(~echoes.ambiguous(state, eo, rivals,
+                                             self.config.echo_screen_probability))
+        return eo if len(eo) else None
+
+    def _feature_echo(self, chain: tuple[Array, Array, Array, Array, Array],
+                      kind: str | None, index: int, fitted_kappa_us: float
+                      ) -> EchoObservation:
+        """The chain's readings as measurements of map feature (kind, index)."""
         t, z, rel, p_fac, v_fac = chain
         if kind == "point":
             feat = self.fmap.point(index)
@@ -780,11 +825,40 @@ class Localizer:
             kap = _kappa_fallback(fitted_kappa_us)
         kind_name = self.fmap.point_kind[index] if kind == "point" else \
             self.fmap.wall_kind[index]
-        eo = EchoObservation(z, rel, p_fac, v_fac, kap, feat, float(t[-1]), self._c_mps,
-                             kind_name)
-        eo.linearize(state.mean)
-        eo = eo.subset(echoes.screen(state, eo, self.config.echo_screen_probability))
-        return eo if len(eo) else None
+        return EchoObservation(z, rel, p_fac, v_fac, kap, feat, float(t[-1]), self._c_mps,
+                               kind_name)
+
+    def _rivals(self, chain: tuple[Array, Array, Array, Array, Array], kind: str | None,
+                index: int, fitted_kappa_us: float, state: Gaussian
+                ) -> list[EchoObservation]:
+        """The chain's readings as measurements of every *other* map feature that can echo
+        towards the segment's last transducer position from about the readings' range
+        (geometry only; the same line or point under another index is not a rival)."""
+        _, z, rel, _, _ = chain
+        cfg = self.config.association
+        sensor_xy = se2.transform_points(state.mean, rel[-1, :2])
+        pts = np.flatnonzero(self.fmap.points_visible_from(sensor_xy, cfg.max_range_m))
+        walls = np.flatnonzero(self.fmap.walls_facing(sensor_xy, cfg.wall_margin_m,
+                                                      cfg.max_range_m))
+        if kind == "point":
+            own = self.fmap.point_xy[index]
+            pts = pts[np.hypot(*(self.fmap.point_xy[pts] - own).T) > 1e-3]
+        else:
+            rho, alpha = self.fmap.wall_line[index]
+            lines = self.fmap.wall_line[walls]
+            same = (np.abs(lines[:, 0] - rho) <= 1e-3) & \
+                (np.abs(se2.wrap_angle(lines[:, 1] - alpha)) <= 1e-3)
+            walls = walls[~same]
+        if pts.size + walls.size == 0:
+            return []
+        tol = 0.05 + 4 * math.sqrt(max(state.cov[0, 0] + state.cov[1, 1], 0.0))
+        rng_p, rng_w = echoes.feature_ranges(state.mean, rel, self.fmap.point_xy[pts],
+                                             self.fmap.point_radius_m[pts],
+                                             self.fmap.wall_line[walls])
+        near_p = np.any(np.abs(rng_p - z) <= tol, axis=1)
+        near_w = np.any(np.abs(rng_w - z) <= tol, axis=1)
+        return [self._feature_echo(chain, k, int(i), fitted_kappa_us)
+                for k, idx in (("point", pts[near_p]), ("wall", walls[near_w])) for i in idx]
 
     def _associate_echoes(self, chain: tuple[Array, Array, Array, Array, Array],
                           fitted_kappa_us: float, state: Gaussian
@@ -1043,9 +1117,14 @@ class Localizer:
                 if isinstance(self._source, SegmentFitSource) and \
                         self._source.min_echoes is None:
                     self._source.min_echoes = self.segment_min_echoes
+                if isinstance(self._source, SegmentFitSource) and \
+                        self._source.sweep_away_deg is None:
+                    self._source.sweep_away_deg = \
+                        self.segment_sweep_away_deg(r.pan_deg is not None)
             else:
-                self._source = SegmentFitSource(self._c_mps, max_readings=n,
-                                                min_echoes=self.segment_min_echoes)
+                self._source = SegmentFitSource(
+                    self._c_mps, max_readings=n, min_echoes=self.segment_min_echoes,
+                    sweep_away_deg=self.segment_sweep_away_deg(r.pan_deg is not None))
         bx, by, bth = (float(v) for v in base)
         mx, my, mth = (float(v) for v in mount)
         c, s = math.cos(bth), math.sin(bth)

@@ -224,8 +224,9 @@ class OfflinePipeline:
             n = loc.config.segment_max_readings
             if n is None:
                 n = 400 if ready[0].pan_deg is not None else 8
-            self._source = SegmentFitSource(loc._c_mps, max_readings=n,
-                                            min_echoes=loc.segment_min_echoes)
+            self._source = SegmentFitSource(
+                loc._c_mps, max_readings=n, min_echoes=loc.segment_min_echoes,
+                sweep_away_deg=loc.segment_sweep_away_deg(ready[0].pan_deg is not None))
         t = np.array([r.t_s for r in ready])
         # odometry pose at each reading: linear between records, yaw the short way round
         base = interpolate_track(np.array(self._track_t), np.array(self._track), t)

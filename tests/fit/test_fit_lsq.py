@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sonarloc.fit import model as M
 from sonarloc.fit.lsq import FitConfig, fit_batch, pack_segments
@@ -259,3 +261,43 @@ def test_batch_and_fast_presets(rng):
     assert np.sqrt(np.mean(err_b ** 2)) < 0.8
     assert np.all(np.abs(f.local[:, 0] - 1.5) < 3e-3)
     assert FitConfig.fast(iterations=3).iterations == 3
+
+
+@given(st.lists(st.lists(st.tuples(
+    st.floats(-5, 5), st.floats(-5, 5), st.floats(-4, 4),
+    st.one_of(st.floats(100, 20000), st.sampled_from([np.nan, np.inf, -np.inf]))),
+    max_size=7), max_size=6))
+@settings(max_examples=60, deadline=None)
+def test_pack_segments_matches_a_plain_per_segment_layout(rows):
+    # reference: one segment at a time, echoes and no-echo readings in order, positions
+    # relative to the last echo (last reading without echoes), padding 0 / NaN
+    segs = [(np.arange(len(seg), dtype=float) + 10 * b,)
+            + tuple(np.array([r[k] for r in seg], dtype=float).reshape(-1) for k in range(4))
+            for b, seg in enumerate(rows)]
+    batch = pack_segments(segs)
+    B = len(segs)
+    assert batch.size == B
+    for b, (t, x, y, yaw, tof) in enumerate(segs):
+        det = np.isfinite(tof)
+        ref = int(np.flatnonzero(det)[-1]) if det.any() else len(t) - 1
+        if len(t):
+            assert batch.ref_xy[b].tolist() == [x[ref], y[ref]]
+            assert batch.ref_yaw[b] == yaw[ref] and batch.ref_t_s[b] == t[ref]
+        else:
+            assert batch.ref_xy[b].tolist() == [0.0, 0.0]
+        for mask, (px, py, yw), valid in (
+                (det, (batch.px, batch.py, batch.yaw), batch.valid),
+                (~det, (batch.ne_px, batch.ne_py, batch.ne_yaw), batch.ne_valid)):
+            k = int(mask.sum())
+            assert valid[b, :k].all() and not valid[b, k:].any()
+            if len(t):
+                np.testing.assert_array_equal(px[b, :k], x[mask] - x[ref])
+                np.testing.assert_array_equal(py[b, :k], y[mask] - y[ref])
+            np.testing.assert_array_equal(yw[b, :k], yaw[mask])
+            assert not px[b, k:].any() and not py[b, k:].any() and not yw[b, k:].any()
+        np.testing.assert_array_equal(batch.tof_us[b, :int(det.sum())], tof[det])
+        assert np.isnan(batch.tof_us[b, int(det.sum()):]).all()
+    if B:
+        with pytest.raises(ValueError, match="segment 0"):
+            pack_segments([(np.zeros(2), np.zeros(3), np.zeros(3), np.zeros(3),
+                            np.zeros(3))] + segs)

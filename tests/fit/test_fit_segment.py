@@ -158,3 +158,54 @@ def test_any_stream_is_segmented_without_errors(rows):
     for lm in fit_segments(closed):
         if lm.ok:
             assert np.all(np.isfinite(lm.params)) and np.all(np.isfinite(lm.cov))
+
+
+def _sawtooth(rng: np.random.Generator, sweeps: int, step_deg: float) -> ScanReadings:
+    """A pan sweeping -60..60 deg and jumping back, over a pole 1.5 m ahead, ``sweeps``
+    times, 30 ms a ping."""
+    parts = [pan_scan([Reflector.polar(1.5, 0.0, 0.67)], rng, -60, 60, step_deg)
+             for _ in range(sweeps)]
+    period = parts[0].t_s[-1] + 0.03
+    cat = [np.concatenate([getattr(p, f) + (k * period if f == "t_s" else 0)
+                           for k, p in enumerate(parts)])
+           for f in ("t_s", "x_m", "y_m", "yaw_rad", "tof_us")]
+    return ScanReadings(*cat, np.zeros(len(cat[0]), dtype=np.int64))
+
+
+def test_a_fast_pan_keeps_each_pass_in_its_own_segment(rng):
+    """3 deg a ping leaves fewer than ``miss_limit`` readings within the miss half-width
+    after the last echo, so misses alone never close the pass and the next sweep's
+    echoes join it, a sweep later; ``sweep_away_deg`` closes it once the beam has
+    turned twice the beam half-width away, one segment per pass."""
+    scan = _sawtooth(rng, 3, 3.0)
+    merged, _ = _segments(scan)
+    assert len(merged) == 1
+    assert merged[0].readings.t_s[-1] - merged[0].readings.t_s[0] > 2.0
+    cfg = SegmenterConfig(sweep_away_deg=50.0)
+    segs, seg = _segments(scan, cfg)
+    assert len(segs) == 3
+    assert [s.closed_by for s in segs] == ["swept", "swept", "flush"]
+    period = (len(scan) // 3) * 0.03
+    for k, s in enumerate(segs):
+        t = s.readings.t_s[np.isfinite(s.readings.tof_us)]
+        assert k * period <= t[0] and t[-1] < (k + 1) * period     # one pass each
+    assert sum(s.n_echo for s in segs) == merged[0].n_echo
+    assert seg.open_segments == 0
+
+
+def test_sweep_away_spares_fixed_transducers(rng):
+    """A transducer that keeps pointing at its landmark never triggers the rule: the
+    same segments with and without it."""
+    t = 0.1 * np.arange(60)
+    yaw = np.zeros_like(t)
+    scan = simulate_readings(t, 0.3 * t, np.zeros_like(t), yaw,
+                             [Reflector.point(3.0, 0.05, 0.67)], rng, tier="gauss")
+    plain, _ = _segments(scan, SegmenterConfig(max_readings=8))
+    swept, _ = _segments(scan, SegmenterConfig(max_readings=8, sweep_away_deg=50.0))
+    assert [len(s.readings) for s in plain] == [len(s.readings) for s in swept]
+    assert all(s.closed_by != "swept" for s in swept)
+
+
+def test_sweep_away_must_be_positive():
+    with pytest.raises(ValueError, match="sweep_away_deg"):
+        SegmenterConfig(sweep_away_deg=0.0)

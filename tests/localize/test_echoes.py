@@ -213,3 +213,51 @@ def test_delay_table_matches_the_direct_model() -> None:
     m2, s2, _, _ = echoes.delay_model(-theta, kappa)
     np.testing.assert_array_equal(m2[fin], mean[fin])
     np.testing.assert_array_equal(s2[fin], -slope[fin])
+
+
+def _pan_rel(pans_deg: np.ndarray) -> np.ndarray:
+    """A transducer 10 cm ahead of base_link, standing still, panned to these angles."""
+    return np.stack([np.full(len(pans_deg), 0.1), np.zeros(len(pans_deg)),
+                     np.radians(pans_deg)], axis=-1)
+
+
+def _corner_obs(rel: np.ndarray, z: np.ndarray | None = None) -> EchoObservation:
+    obs = _obs(Feature("point", np.array([0.0, 4.2]), 0.0), rel, 0.15, z)
+    obs.kind = "corner"
+    return obs
+
+
+WALL_X0 = Feature("wall", np.array([0.0, math.pi]))   # the wall x = 0, up to the corner
+
+
+def test_ambiguous_flags_readings_of_a_wall_next_to_its_corner() -> None:
+    """The failure seen on panning drives: a beam sweeping along the wall x = 0 near its
+    corner (0, 4.2) hears the wall's normal-incidence point, 4 mm nearer than the
+    corner. Read as the corner, those readings pass the per-reading screen (a few SDs)
+    and would pull the pose by millimetres; the wall explains them too, so they are
+    ambiguous. The corner's own readings, where the wall's point is 17 cm nearer (or
+    beyond its arc), are not."""
+    rng = np.random.default_rng(3)
+    cov = np.diag([0.002**2, 0.002**2, math.radians(0.3) ** 2])
+    pose = np.array([4.1, 4.02, math.pi])
+    rel = _pan_rel(np.arange(-9.0, 9.1, 1.5))
+    wall = _obs(WALL_X0, rel, 0.15).linearize(pose)
+    h, _, r = wall.measure(pose)
+    z = h + rng.normal(0.0, np.sqrt(np.diag(r)))
+    state = Gaussian(pose, cov)
+    as_corner = _corner_obs(rel, z).linearize(pose)
+    assert echoes.screen(state, as_corner).sum() >= 6     # the screen alone lets them in
+    amb = echoes.ambiguous(state, as_corner, [_obs(WALL_X0, rel, 0.15, z)])
+    assert amb[echoes.screen(state, as_corner)].all()
+    # the corner seen from farther along the wall: its readings are its own
+    pose2 = np.array([4.1, 3.0, math.pi])
+    rel2 = _pan_rel(np.arange(-22.0, -9.9, 1.5))
+    corner = _corner_obs(rel2).linearize(pose2)
+    h2, _, r2 = corner.measure(pose2)
+    z2 = h2 + rng.normal(0.0, np.sqrt(np.diag(r2)))
+    state2 = Gaussian(pose2, cov)
+    as_corner2 = _corner_obs(rel2, z2).linearize(pose2)
+    assert echoes.screen(state2, as_corner2).all()
+    assert not echoes.ambiguous(state2, as_corner2, [_obs(WALL_X0, rel2, 0.15, z2)]).any()
+    with pytest.raises(ValueError, match="rival"):
+        echoes.ambiguous(state2, as_corner2, [_obs(WALL_X0, rel2[:3], 0.15, z2[:3])])

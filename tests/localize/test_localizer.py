@@ -132,8 +132,13 @@ def test_segment_length_chosen_for_the_rig():
         made.append(SegmentFitSource(c))
         return made[-1]
 
-    for pan, expect in ((None, 8), (10.0, 400)):
-        lc = Localizer(room_map(), LocalizerConfig(), landmark_source=factory)
+    for pan, expect, away, config in ((None, 8, None, LocalizerConfig()),
+                                      (10.0, 400, 50.0, LocalizerConfig()),
+                                      (10.0, 400, 30.0,
+                                       LocalizerConfig(segment_sweep_away_deg=30.0)),
+                                      (10.0, 400, None,
+                                       LocalizerConfig(segment_sweep_away_deg=math.inf))):
+        lc = Localizer(room_map(), config, landmark_source=factory)
         lc.handle(make_drive(n=3).records[0])
         lc.set_prior(0.0, 2.0, 1.0, 0.0, 0.05, 0.05)
         lc.on_odom(0.0, 0.0, 0.0, 0.0)
@@ -141,6 +146,27 @@ def test_segment_length_chosen_for_the_rig():
         lc.on_odom(0.05, 0.01, 0.0, 0.0)
         assert made[-1].max_readings == expect
         assert made[-1].segmenter.config.max_readings == expect
+        # a panning transducer's pass closes once the beam has swept past it
+        assert made[-1].segmenter.config.sweep_away_deg == away
+        assert lc.segment_sweep_away_deg(pan is not None) == away
+
+
+def test_offline_pipeline_segments_a_pan_like_the_live_localizer():
+    """The batch replay's segmenter gets the same pan settings as the live one."""
+    from sonarloc.io.logfile import OdomRecord, TofRecord
+    from sonarloc.localize.offline import OfflinePipeline
+
+    lc = Localizer(room_map(), LocalizerConfig())
+    lc.handle(make_drive(n=3).records[0])
+    lc.set_prior(0.0, 2.0, 1.0, 0.0, 0.05, 0.05)
+    pipe = OfflinePipeline(lc)
+    pipe.odom(OdomRecord(0.0, 0.0, 0.0, 0.0))
+    pipe.tof(TofRecord(0.01, 0, 5000.0, 10.0))
+    pipe.odom(OdomRecord(0.05, 0.01, 0.0, 0.0))
+    pipe._round(final=False)
+    assert pipe._source is not None
+    cfg = pipe._source.segmenter.config
+    assert (cfg.max_readings, cfg.sweep_away_deg) == (400, 50.0)
 
 
 @pytest.mark.parametrize("method", ["specular", "kuc"])
