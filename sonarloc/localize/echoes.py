@@ -314,15 +314,11 @@ def relative_sensor_chain(base_ref: ArrayLike, base_at: ArrayLike, sensor_at: Ar
     c, s = np.cos(b_next[..., 2]), np.sin(b_next[..., 2])
     wx, wy = -b[..., 1], b[..., 0]                  # W_i
 
-    def suffix(v: Array) -> Array:                  # sum over k >= i along the readings
-        return np.flip(np.cumsum(np.flip(v, -1), -1), -1)
-
-    a_xx = suffix(c * c * qx + s * s * qy)
-    a_xy = suffix(c * s * (qx - qy))
-    a_yy = suffix(s * s * qx + c * c * qy)
-    s0 = suffix(qt)
-    s1x, s1y = suffix(qt * wx), suffix(qt * wy)
-    s2xx, s2xy, s2yy = suffix(qt * wx * wx), suffix(qt * wx * wy), suffix(qt * wy * wy)
+    # suffix sums (over k >= i along the readings) of the nine chain quantities at once
+    terms = np.stack([c * c * qx + s * s * qy, c * s * (qx - qy), s * s * qx + c * c * qy,
+                      qt, qt * wx, qt * wy, qt * wx * wx, qt * wx * wy, qt * wy * wy])
+    (a_xx, a_xy, a_yy, s0, s1x, s1y, s2xx, s2xy, s2yy) = \
+        np.cumsum(terms[..., ::-1], axis=-1)[..., ::-1]
     sigma = np.empty(base.shape + (3,))
     sigma[..., 0, 0] = a_xx + s0 * wx * wx - 2.0 * wx * s1x + s2xx
     sigma[..., 0, 1] = sigma[..., 1, 0] = a_xy + s0 * wx * wy - wx * s1y - s1x * wy + s2xy
