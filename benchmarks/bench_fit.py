@@ -49,11 +49,11 @@ if str(ROOT) not in sys.path:
 from scipy.optimize import OptimizeWarning, curve_fit  # noqa: E402
 
 from sonarloc.fit.crlb import crlb  # noqa: E402
-from sonarloc.fit.landmarks import _resolve, conventional, fit_segments  # noqa: E402
+from sonarloc.fit.landmarks import conventional, fit_segments  # noqa: E402
 from sonarloc.fit.lsq import FitConfig, fit_batch, pack_segments  # noqa: E402
 from sonarloc.fit.segment import Segment, Segmenter  # noqa: E402
 from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings  # noqa: E402
-from sonarloc.io.scancsv import ScanReadings, read_scan_csv, write_scan_csv  # noqa: E402
+from sonarloc.io.scancsv import ScanReadings, write_scan_csv  # noqa: E402
 from sonarloc.physics.tof import ModuleParams  # noqa: E402
 
 MOD = ModuleParams()
@@ -334,44 +334,167 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 
 # ---------------------------------------------------------------- 4. large CSV
 
-def large_csv(n_readings: int, repeats: int, rng: np.random.Generator
-              ) -> dict[str, float]:
+def large_csv_scan(n_readings: int, rng: np.random.Generator) -> ScanReadings:
+    """Continuous rotation at 1 deg per ping, 100 pings/s, over 8 reflectors."""
     yaw = np.deg2rad(np.arange(n_readings) * 1.0)
     refl = [Reflector.polar(r, b, k) for r, b, k in (
         (1.5, 0, 0.67), (2.0, 50, 2.68), (2.5, 100, 0.67), (1.2, 150, 0.15),
         (3.0, -160, 0.67), (1.8, -100, 2.68), (2.2, -50, 0.67), (2.8, -20, 2.68))]
-    scan = simulate_readings(np.arange(n_readings) * 0.01, 0.0, 0.0, yaw, refl, rng)
+    return simulate_readings(np.arange(n_readings) * 0.01, 0.0, 0.0, yaw, refl, rng)
+
+
+BASELINE_REV = "0c63b76"
+"""main before the `sonarloc fit` speed-up of 2026-11-21 (pair search per candidate,
+scipy.stats at import): section 4's "before" column, run from a `git archive` of it."""
+
+_STAGES = r"""
+import json, sys, time
+import numpy as np
+from sonarloc.fit.landmarks import _resolve, fit_segments
+from sonarloc.fit.lsq import FitConfig
+from sonarloc.fit.segment import Segmenter
+from sonarloc.io.scancsv import read_scan_csv
+
+path, repeats = sys.argv[1], int(sys.argv[2])
+times = {"parse": [], "segment": [], "fit": [], "resolve": []}
+for _ in range(repeats):
+    t0 = time.process_time()
+    scan = read_scan_csv(path)
+    t1 = time.process_time()
+    segs = list(Segmenter().feed(scan))
+    t2 = time.process_time()
+    lms = fit_segments(segs)
+    t3 = time.process_time()
+    out = _resolve(segs, lms, FitConfig())
+    t4 = time.process_time()
+    for k, v in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+        times[k].append(v)
+res = {k: float(np.median(v)) for k, v in times.items()}
+res.update(segments=len(segs), ok=sum(lm.ok for lm in lms), landmarks=len(out))
+print(json.dumps(res))
+"""
+
+
+def _run_root(root: Path, args: list[str]) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYTHONPATH=str(root))
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env,
+                          check=True, cwd=tempfile.gettempdir())
+
+
+def _landmark_diff(a: dict[str, object], b: dict[str, object]) -> tuple[int, int]:
+    """Landmarks of two `fit --json` outputs differing in (kind, range, bearing, kappa,
+    status, covariance, n_readings, position, tier), and in their reason only."""
+    la, lb = a["landmarks"], b["landmarks"]
+    assert isinstance(la, list) and isinstance(lb, list)
+    if len(la) != len(lb):
+        return max(len(la), len(lb)), 0
+    keys = ("kind", "range_m", "bearing_deg", "kappa_us", "status", "cov", "n_readings",
+            "x_m", "y_m", "rho_m", "alpha_deg", "tier")
+    fields = sum(any(x.get(k) != y.get(k) for k in keys) for x, y in zip(la, lb, strict=True))
+    reasons = sum(x.get("reason") != y.get("reason") and all(
+        x.get(k) == y.get(k) for k in keys) for x, y in zip(la, lb, strict=True))
+    return fields, reasons
+
+
+def large_csv(n_readings: int, repeats: int, rng: np.random.Generator
+              ) -> dict[str, float]:
+    """Section 4: the stages of `sonarloc fit` on a large scan CSV, now and (same run,
+    alternating) at :data:`BASELINE_REV`; each stage in its own process."""
+    import json
+    scan = large_csv_scan(n_readings, rng)
+    out: dict[str, float] = {"readings": n_readings}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "big.csv"
         write_scan_csv(path, scan)
-        t_parse, parsed = cpu_median(lambda: read_scan_csv(path), repeats)
-        assert isinstance(parsed, ScanReadings)
-        t_seg, segs = cpu_median(lambda: list(Segmenter().feed(parsed)), repeats)
-        assert isinstance(segs, list)
-        t_fit, lms = cpu_median(lambda: fit_segments(segs), repeats)
-        assert isinstance(lms, list)
-        # overlapping reflectors (pair model) and cuts, as fit_scan does; once (slow)
-        fresh = fit_segments(segs)
-        t0 = time.process_time()
-        _resolve(segs, fresh, FitConfig())
-        t_resolve = time.process_time() - t0
-        walls = []
-        env = dict(os.environ, PYTHONPATH=str(ROOT))
-        for _ in range(1):
-            t0 = time.perf_counter()
-            proc = subprocess.run([sys.executable, "-m", "sonarloc", "fit", str(path), "--json"],
-                                  capture_output=True, text=True, env=env, check=False)
-            walls.append(time.perf_counter() - t0)
-            if proc.returncode != 0:
-                raise RuntimeError(proc.stderr)
-        t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-c", "import sonarloc.commands.fit"], env=env,
-                       check=True)
-        t_import = time.perf_counter() - t0
-    return dict(readings=n_readings, segments=len(segs), ok=sum(lm.ok for lm in lms),
-                parse=t_parse, segment=t_seg, fit=t_fit, resolve=t_resolve,
-                cli_wall=float(np.median(walls)),
-                import_wall=t_import)
+        roots = {"now": ROOT}
+        base = Path(tmp) / "base"
+        base.mkdir()
+        try:
+            arch = subprocess.run(["git", "-C", str(ROOT), "archive", BASELINE_REV, "sonarloc"],
+                                  capture_output=True, check=True)
+            subprocess.run(["tar", "-x", "-C", str(base)], input=arch.stdout, check=True)
+            roots["before"] = base
+        except (OSError, subprocess.CalledProcessError):
+            print("  (no baseline: git archive failed)", file=sys.stderr)
+        walls: dict[str, list[float]] = {k: [] for k in roots}
+        starts: dict[str, list[float]] = {k: [] for k in roots}
+        outputs: dict[str, dict[str, object]] = {}
+        for _ in range(repeats):           # alternating, so both see the same load
+            for name, root in roots.items():
+                t0 = time.perf_counter()
+                proc = _run_root(root, ["-m", "sonarloc", "fit", str(path), "--json"])
+                walls[name].append(time.perf_counter() - t0)
+                outputs[name] = json.loads(proc.stdout)
+                t0 = time.perf_counter()
+                _run_root(root, ["-c", "import sonarloc.commands.fit"])
+                starts[name].append(time.perf_counter() - t0)
+        for name, root in roots.items():
+            st = json.loads(_run_root(root, ["-c", _STAGES, str(path), str(repeats)]).stdout)
+            for k, v in st.items():
+                out[f"{name}_{k}"] = float(v)
+            out[f"{name}_cli_wall"] = float(np.median(walls[name]))
+            out[f"{name}_import_wall"] = float(np.median(starts[name]))
+        if "before" in outputs:
+            out["diff_fields"], out["diff_reasons"] = _landmark_diff(outputs["before"],
+                                                                     outputs["now"])
+        out["n_landmarks"] = len(outputs["now"]["landmarks"])  # type: ignore[arg-type]
+    side = out["now_segment"] + out["now_fit"] + out["now_resolve"]
+    print(f"  large CSV: fitting side {side:.2f} s, parse {out['now_parse']:.2f} s",
+          file=sys.stderr)
+    return out
+
+
+def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
+    """Section 4 of the report."""
+    has_before = "before_parse" in csv
+    rows = [("parse (`read_scan_csv`)", "parse"),
+            ("segment (`Segmenter`, reading by reading)", "segment"),
+            ("fit + model selection (`fit_segments`)", "fit"),
+            ("overlapping-reflector pair fits and cuts (`_resolve`, as `fit_scan`)",
+             "resolve")]
+    lines = [
+        "",
+        f"## 4. `sonarloc fit` on a large scan CSV ({int(csv['readings'])} readings, "
+        f"continuous rotation at 1 deg per ping over 8 reflectors: "
+        f"{int(csv['now_segments'])} segments, {int(csv['now_ok'])} fitted ok, "
+        f"{int(csv['n_landmarks'])} landmarks)",
+        "",
+        "CPU seconds of each stage (medians of "
+        f"{'1' if q else '3'} in a fresh process per code version), *now* and *before* "
+        f"(main at {BASELINE_REV}, earlier on 2026-11-21, run from a `git archive` of it "
+        "in the same run, alternating with *now*); wall clock of the whole command "
+        "(`python -m sonarloc fit SCAN.csv --json`) and of its start-up (`import "
+        "sonarloc.commands.fit`).",
+        "",
+        "| stage | before (s) | now (s) | speed-up | share now |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    total = sum(csv[f"now_{k}"] for _, k in rows)
+    for label, k in rows:
+        now = csv[f"now_{k}"]
+        b = csv.get(f"before_{k}", math.nan)
+        lines.append(f"| {label} | {b:.2f} | {now:.2f} | "
+                     f"{b / now if has_before else math.nan:.1f}x | {100 * now / total:.0f} % |")
+    side_now = sum(csv[f"now_{k}"] for k in ("segment", "fit", "resolve"))
+    side_b = sum(csv.get(f"before_{k}", math.nan) for k in ("segment", "fit", "resolve"))
+    b_parse = csv.get("before_parse", math.nan)
+    b_wall = csv.get("before_cli_wall", math.nan)
+    lines += [
+        f"| **fitting side** (segment + fit + pairs) / parse | {side_b / b_parse:.2f} | "
+        f"**{side_now / csv['now_parse']:.2f}** | | |",
+        f"| whole command, wall clock | {b_wall:.2f} | {csv['now_cli_wall']:.2f} | "
+        f"{b_wall / csv['now_cli_wall']:.1f}x | |",
+        f"| of which start-up (imports), wall clock | "
+        f"{csv.get('before_import_wall', math.nan):.2f} | {csv['now_import_wall']:.2f} | | |",
+        "",
+    ]
+    if has_before:
+        lines.append(
+            f"Landmarks of the command, before against now: {int(csv['diff_fields'])} of "
+            f"{int(csv['n_landmarks'])} differ in kind, range, bearing, kappa, status, "
+            f"covariance, n_readings or tier; {int(csv['diff_reasons'])} only in their "
+            "reason text.")
+    return lines
 
 
 # ---------------------------------------------------------------- report
@@ -412,10 +535,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer trials and repeats (smoke run)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "fit.md"))
+    ap.add_argument("--only-large-csv", action="store_true",
+                    help="rerun section 4 only and replace it in the existing results file")
     args = ap.parse_args(argv)
     q = args.quick
     n_trials, n_meth, n_thr, n_csv, repeats = ((40, 60, 1024, 20_000, 1) if q
                                               else (400, 400, 8192, 200_000, 3))
+    if args.only_large_csv:
+        return _only_large_csv(Path(args.out), n_csv, repeats, q)
     rng = np.random.default_rng(2003)
     t_start = time.perf_counter()
     print("accuracy ...", file=sys.stderr)
@@ -425,7 +552,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print("throughput ...", file=sys.stderr)
     thr = throughput(n_thr, repeats, rng)
     print("large CSV ...", file=sys.stderr)
-    csv = large_csv(n_csv, repeats, rng)
+    csv = large_csv(n_csv, repeats, np.random.default_rng(2003))
 
     curve = next(r for r in meth if "curve_fit" in str(r["name"]))
     lines = [
@@ -497,24 +624,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                      f"{float(r['noecho']):.1f} | **{float(r['segs_s']):.0f}** | "
                      f"**{float(r['segs_s_batch']):.0f}** | {float(r['segs_s_fast']):.0f} | "
                      f"{float(r['segs_s_waveform']):.0f} |")
-    total = csv["parse"] + csv["segment"] + csv["fit"] + csv["resolve"]
+    lines += large_csv_lines(csv, q)
     lines += [
-        "",
-        f"## 4. `sonarloc fit` on a large scan CSV ({int(csv['readings'])} readings, "
-        f"continuous rotation at 1 deg per ping over 8 reflectors: {int(csv['segments'])} "
-        f"segments, {int(csv['ok'])} fitted ok)",
-        "",
-        "| stage | CPU s | share |",
-        "|---|---:|---:|",
-        f"| parse (`read_scan_csv`) | {csv['parse']:.2f} | {100 * csv['parse'] / total:.0f} % |",
-        f"| segment (`Segmenter`, pure Python, reading by reading) | {csv['segment']:.2f} | "
-        f"{100 * csv['segment'] / total:.0f} % |",
-        f"| fit + model selection (`fit_segments`) | {csv['fit']:.2f} | "
-        f"{100 * csv['fit'] / total:.0f} % |",
-        f"| overlapping-reflector pair fits and cuts (`_resolve`, as `fit_scan`; one run) | "
-        f"{csv['resolve']:.2f} | {100 * csv['resolve'] / total:.0f} % |",
-        f"| whole command, wall clock (`python -m sonarloc fit --json`, incl. "
-        f"{csv['import_wall']:.2f} s start-up) | {csv['cli_wall']:.2f} | |",
         "",
         f"Machine: {platform.machine()}, {platform.processor() or 'cpu'}, "
         f"Python {platform.python_version()}, numpy {np.__version__}; "
@@ -528,6 +639,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     out.write_text("\n".join(lines) + "\n", encoding="utf-8")
     plot(acc, meth, out.with_suffix(".png"))
     print("\n".join(lines))
+    return 0
+
+
+def _only_large_csv(out: Path, n_csv: int, repeats: int, q: bool) -> int:
+    """Rerun section 4 and put it in place of the one in ``out`` (a note says so)."""
+    t0 = time.perf_counter()
+    csv = large_csv(n_csv, repeats, np.random.default_rng(2003))
+    sec = large_csv_lines(csv, q)[1:] + [
+        "",
+        f"Section 4 rerun on its own ({datetime.date.today().isoformat()}, "
+        f"{'--quick' if q else 'full'}, {time.perf_counter() - t0:.0f} s; sections 1-3 and "
+        "the machine line below are from the last full run). Other jobs were running on "
+        "the 2 shared cores: the before/now ratios (same run, alternating) are the "
+        "numbers to read.",
+    ]
+    text = out.read_text(encoding="utf-8")
+    a = text.index("## 4. ")
+    b = text.index("\nMachine: ", a)
+    out.write_text(text[:a] + "\n".join(sec) + "\n" + text[b:], encoding="utf-8")
+    print("\n".join(sec))
     return 0
 
 

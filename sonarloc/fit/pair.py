@@ -162,7 +162,7 @@ class _Segment:
 
     def _component(self, q: Array, rd: tuple[Array, ...]) -> tuple[Array, ...]:
         """Per-reading terms of components q (S, 3) local (r, phi, ln kappa):
-        echo mean (S, n), variance, log P(echo), log P(no echo); no-echo log P(no echo)."""
+        echo mean (S, n), variance, log P(echo); no-echo log P(no echo) (S, n_ne)."""
         mod = self.cfg.module
         px, py, yaw, _, npx, npy, nyaw = rd
         r, phi, K = q[:, 0:1], q[:, 1:2], np.exp(np.clip(q[:, 2:3], _LNK_LO, _LNK_HI))
@@ -173,14 +173,13 @@ class _Segment:
         s2 = M.tof_variance_us2(et.delay, mod,
                                 et.delay_var if self.tier == "waveform" else None)
         mean = M.us_per_m(mod) * geo.R + et.delay
-        lq = M.noecho_terms(z, want_info=False)[0]
         if npx.shape[-1]:
             ng = M.geometry("point", r, phi, npx, npy, nyaw, moving=self.ne_moving)
             _, _, lgn = M.beam_delay_factor(ng.theta, self.tier, mod, derivative=False)
             lqn = M.noecho_terms(M.detection_z(K, lgn, mod), want_info=False)[0]
         else:
             lqn = np.zeros((q.shape[0], 0))
-        return mean, s2, et.log_p, lq, lqn
+        return mean, s2, et.log_p, lqn
 
     def cost(self, comps: list[Array], owner: NDArray[np.intp] | None = None) -> Array:
         """Robust -2 log-likelihood (S,) of one or two components, each (S, 3)
@@ -195,18 +194,49 @@ class _Segment:
         :class:`_Segments` rows are meaningless)."""
         return self._eval(comps, True, owner)
 
+    def cost_stencil(self, x: Array, stencil: Array, owner: NDArray[np.intp] | None = None
+                     ) -> Array:
+        """:meth:`cost` (S, m) at every scaled point x (S, D) plus every stencil row
+        (m, D) (finite-difference gradients): each component's terms are computed once
+        per distinct point (a stencil row moving only the other component reuses them),
+        the same numbers as :meth:`cost` of all S m points at about half the work."""
+        S, D = x.shape
+        m = stencil.shape[0]
+        pts = (x[:, None, :] + stencil).reshape(-1, D)
+        comps = _unscale(pts)
+        rep_own = None if owner is None else np.repeat(owner, m)
+        if D == 3:
+            return self._eval(comps, False, rep_own)[0].reshape(S, m)
+        terms = []
+        for k in range(D // 3):
+            U, inv = np.unique(stencil[:, 3 * k:3 * k + 3], axis=0, return_inverse=True)
+            inv = inv.reshape(-1)
+            u = U.shape[0]
+            q = ((x[:, None, 3 * k:3 * k + 3] + U) * _SCALE).reshape(-1, 3)
+            own_u = None if owner is None else np.repeat(owner, u)
+            t = self._component(q, self._readings(own_u))
+            terms.append(tuple(np.broadcast_to(a, (S * u, a.shape[-1])).reshape(S, u, a.shape[-1])
+                               [:, inv].reshape(S * m, a.shape[-1]) for a in t))
+        y = self.y if rep_own is None else self.y[rep_own]
+        return self._combine(terms, comps, y, *self._masks(rep_own), False)[0].reshape(S, m)
+
     def _eval(self, comps: list[Array], detail: bool, owner: NDArray[np.intp] | None
               ) -> tuple[Array, Array, Array]:
         rd = self._readings(owner)
-        mask, ne_mask = self._masks(owner)
         terms = [self._component(q, rd) for q in comps]
-        y = rd[3] if rd[3].ndim == 2 else rd[3][None, :]
+        return self._combine(terms, comps, rd[3], *self._masks(owner), detail)
+
+    def _combine(self, terms: list[tuple[Array, ...]], comps: list[Array], y: Array,
+                 mask: NDArray[np.bool_] | None, ne_mask: NDArray[np.bool_] | None,
+                 detail: bool) -> tuple[Array, Array, Array]:
+        """The likelihood from the components' per-reading terms (:meth:`_component`)."""
+        y = y if y.ndim == 2 else y[None, :]
         lnorm = [-0.5 * (y - m) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
-                 for m, s2, _, _, _ in terms]
+                 for m, s2, _, _ in terms]
         if len(comps) == 1:
             parts = [terms[0][2] + lnorm[0]]
         else:
-            (ma, sa2, lpa, _, _), (mb, sb2, lpb, _, _) = terms
+            (ma, sa2, lpa, _), (mb, sb2, lpb, _) = terms
             # w = P(A's crossing before B's) when both are detected
             w = ndtr((mb - ma) / np.sqrt(sa2 + sb2))
             pa, pb = np.exp(lpa), np.exp(lpb)
@@ -219,7 +249,7 @@ class _Segment:
             per = np.where(mask, per, 0.0)
         c = per.sum(1)
         for t in terms:
-            lqn = t[4] if ne_mask is None else np.where(ne_mask, t[4], 0.0)
+            lqn = t[3] if ne_mask is None else np.where(ne_mask, t[3], 0.0)
             c = c - 2.0 * lqn.sum(1)
         for q in comps:
             c = c + _kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)[0]
@@ -327,9 +357,7 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
     stencil = np.concatenate([np.zeros((1, D)), np.eye(D) * h, -np.eye(D) * h])  # (2D+1, D)
 
     def evaluate(pts: Array, rows: NDArray[np.intp]) -> tuple[Array, Array]:
-        own = None if owner is None else np.repeat(owner[rows], 2 * D + 1)
-        c = np.asarray(seg.cost(_unscale((pts[:, None, :] + stencil).reshape(-1, D)), own))
-        c = c.reshape(pts.shape[0], 2 * D + 1)
+        c = seg.cost_stencil(pts, stencil, None if owner is None else owner[rows])
         g = (c[:, 1:D + 1] - c[:, D + 1:]) / (2.0 * h)
         return c[:, 0], np.where(free[rows], g, 0.0)
 
@@ -806,7 +834,7 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
     if lm.status is not FitStatus.OK:
         return False
     chi2 = float(lm.extra.get("chi2", 0.0))  # type: ignore[arg-type]
-    p = float(chdtrc(max(lm.n_readings - 3, 1), chi2))   # = scipy.stats.chi2.sf
+    p = float(chdtrc(max(lm.n_readings - 3, 1), max(chi2, 0.0)))   # scipy.stats.chi2.sf
     return p < CANDIDATE_P or float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z  # type: ignore[arg-type]
 
 

@@ -165,7 +165,8 @@ class _Open:
     misses: int = 0
     trailing: int = 0       # no-echo readings attached after the last echo
     sensors: set[int] = field(default_factory=set)
-    arc: list[tuple[float, float]] = field(default_factory=list)  # of ``last`` (cached)
+    mid: tuple[float, float] = (math.nan, math.nan)   # landmark on the last echo's axis
+    arc: list[tuple[float, float]] | None = None      # of ``last`` (cached when needed)
     occluded_lead: bool = False     # the reading before the first echo: a nearer echo
     occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
 
@@ -228,10 +229,14 @@ class Segmenter:
         ``tof_us`` NaN means no echo; inf, zero or negative TOFs and non-finite poses are
         counted as bad and ignored, as are readings older than the previous one.
         """
+        return self._push(float(t_s), float(x_m), float(y_m), float(yaw_rad), float(tof_us),
+                          int(sensor))
+
+    def _push(self, t: float, x: float, y: float, yaw: float, tof: float, sensor: int
+              ) -> list[Segment]:
+        """:meth:`push` of Python floats and an int."""
         st = self.stats
         st.readings += 1
-        t, x, y, yaw, tof = float(t_s), float(x_m), float(y_m), float(yaw_rad), float(tof_us)
-        sensor = int(sensor)
         if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)
                 and math.isfinite(yaw)) or math.isinf(tof) or tof <= 0.0:
             st.bad += 1
@@ -266,7 +271,7 @@ class Segmenter:
                     continue
                 # cheap test first: a landmark well off the axis is neither missed nor
                 # censored (the exact angle is only needed near the miss half-width)
-                dx, dy = s.arc[3][0] - x, s.arc[3][1] - y
+                dx, dy = s.mid[0] - x, s.mid[1] - y
                 along = dx * cy + dy * sy
                 if wide < math.inf and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
@@ -289,7 +294,8 @@ class Segmenter:
                 best.rows.append(row)
                 best.n_echo += 1
                 best.last = (t, x, y, yaw, R, sensor)
-                best.arc = self._arc_points(best)
+                best.mid = self._mid_point(best)
+                best.arc = None
                 best.misses = 0
                 best.trailing = 0
                 best.occluded_trail = False
@@ -303,7 +309,7 @@ class Segmenter:
             wide = self._tan_miss_wide
             cy, sy = math.cos(yaw), math.sin(yaw)
             for s in list(self._open):
-                dx, dy = s.arc[3][0] - x, s.arc[3][1] - y
+                dx, dy = s.mid[0] - x, s.mid[1] - y
                 along = dx * cy + dy * sy
                 if wide < math.inf and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
@@ -330,8 +336,11 @@ class Segmenter:
         """Push every reading of ``scan`` in order, then flush; yields closed segments."""
         cols = (scan.t_s.tolist(), scan.x_m.tolist(), scan.y_m.tolist(),
                 scan.yaw_rad.tolist(), scan.tof_us.tolist(), scan.sensor.tolist())
+        push = self._push
         for t, x, y, yaw, tof, sensor in zip(*cols, strict=True):
-            yield from self.push(t, x, y, yaw, tof, sensor)
+            closed = push(t, x, y, yaw, tof, sensor)
+            if closed:
+                yield from closed
         yield from self.flush()
 
     # -- internals -------------------------------------------------------------------
@@ -346,6 +355,12 @@ class Segmenter:
     def _arc_points(self, s: _Open) -> list[tuple[float, float]]:
         _, lx, ly, lyaw, lR, _ = s.last
         return [(lx + lR * math.cos(lyaw + a), ly + lR * math.sin(lyaw + a)) for a in self._arc]
+
+    @staticmethod
+    def _mid_point(s: _Open) -> tuple[float, float]:
+        """The middle of :meth:`_arc_points` (the landmark on the last echo's beam axis)."""
+        _, lx, ly, lyaw, lR, _ = s.last
+        return lx + lR * math.cos(lyaw + 0.0), ly + lR * math.sin(lyaw + 0.0)
 
     def _match(self, s: _Open, x: float, y: float, yaw: float, R: float) -> float:
         """Normalised range mismatch of an echo with segment ``s`` (inf: no match)."""
@@ -363,6 +378,8 @@ class Segmenter:
             return math.inf
         best = math.inf
         beam = self._beam
+        if s.arc is None:
+            s.arc = self._arc_points(s)
         for px, py in s.arc:
             dx, dy = px - x, py - y
             a = math.atan2(dy, dx) - yaw
@@ -375,7 +392,7 @@ class Segmenter:
 
     def _off_axis(self, s: _Open, x: float, y: float, yaw: float) -> float:
         """Off-axis angle [rad] of ``s``'s last seen landmark for a reading at (x, y, yaw)."""
-        px, py = s.arc[3]   # the arc's middle point: the beam axis of the last echo
+        px, py = s.mid   # the arc's middle point: the beam axis of the last echo
         a = math.atan2(py - y, px - x) - yaw
         return abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
 
@@ -410,7 +427,7 @@ class Segmenter:
             s.occluded_lead = (t - r[0] <= self.config.max_gap_s
                                and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
                                and r_range < R - self._gate_m)
-        s.arc = self._arc_points(s)
+        s.mid = self._mid_point(s)
         self._next_id += 1
         self._open.append(s)
         return closed

@@ -45,7 +45,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import optimize
 
 from sonarloc.physics.tof import ModuleParams
 
@@ -134,6 +133,8 @@ def cylinder_rule_constants(params: ModuleParams = ModuleParams()) -> tuple[floa
     def mismatch(c: float) -> float:
         f = _roll_off(np.array([k * POLE_RADIUS_M, k * ROD_RADIUS_M]), c)
         return geo(ROD_RADIUS_M) / geo(POLE_RADIUS_M) * float(f[0] / f[1]) - want
+
+    from scipy import optimize  # here, not at import (start-up of the commands)
 
     c = float(optimize.brentq(mismatch, 1e-6, 1e3, xtol=1e-12))
     f_pole = float(_roll_off(np.array(k * POLE_RADIUS_M), c))

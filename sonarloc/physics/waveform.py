@@ -46,7 +46,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import optimize, signal
 
 from sonarloc.physics.tof import ModuleParams
 
@@ -100,6 +99,8 @@ def _processed_unit_echo(
     integrator_tau_us: float, carrier_hz: float, burst_cycles: int, q: float, b: float,
 ) -> tuple[float, NDArray[np.float64]]:
     """Processed signal of a unit echo for a given leak; returns (dt_us, w)."""
+    from scipy import signal  # here: importing scipy.signal takes ~0.5 s (scipy.stats)
+
     omega = 2.0 * np.pi * carrier_hz
     dt_us = 1e6 / (carrier_hz * SAMPLES_PER_PERIOD)
     burst_us = burst_cycles * 1e6 / carrier_hz
@@ -134,6 +135,8 @@ def _template(carrier_hz: float, burst_cycles: int, q: float, b: float,
             f"`detection_limit_us` {peak_us!r} cannot be reached by a {burst_cycles}-cycle "
             "burst; use a longer burst or a smaller limit"
         )
+    from scipy import optimize
+
     tau = float(optimize.brentq(excess, 1e-3, hi, xtol=1e-9, rtol=1e-12))
     dt_us, w = _processed_unit_echo(tau, carrier_hz, burst_cycles, q, b)
     w *= peak_us / w.max()  # remove the root finder's last 1e-9 of mismatch
