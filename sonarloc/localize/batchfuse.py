@@ -55,6 +55,16 @@ FAST_DYAW_RAD = 0.02
 FAST_STEP_M = 0.02
 FAST_STEP_RAD = 0.02
 
+#: Largest change of a reading's off-axis angle [rad] (0.1 deg) over which
+#: :meth:`BatchFuser.decide` extrapolates the delay model along its slope (the
+#: curvature term stays below a few hundredths of a microsecond out to 15 deg off axis;
+#: the per-segment path re-evaluates it beyond 0.03 deg, ``echoes.RELINEARIZE_RAD``).
+RELINEARIZE_DELAY_RAD = 2e-3
+
+#: A rival feature claims a reading only where it is detected with at least this
+#: probability (``echoes.ambiguous``'s ``min_detect``, as the Localizer calls it).
+RIVAL_MIN_DETECT = 0.5
+
 Outcome = Literal["matched", "unmatched", "none"]
 
 
@@ -249,6 +259,35 @@ def interpolate_track(track_t: Array, track: Array, t: Array) -> Array:
                      (ta[:, 2] + f * dth + math.pi) % (2.0 * math.pi) - math.pi], axis=-1)
 
 
+@dataclass
+class Linearized:
+    """Segments made ready by :meth:`BatchFuser.linearize` for :meth:`BatchFuser.decide`.
+
+    Per segment (S): reference times and odometry poses, readings kept and the first
+    column in the padded (S, N) layout, its usable entries; ``batch`` (t, z, rel, p_fac,
+    v_fac) padded; ``xh``, ``ph`` the beliefs linearised at. ``pairs``: (segment,
+    feature) candidates in segment order with the gap between their median range and
+    the readings' and the smallest gap of one reading, the delay model linearised at
+    ``xh`` (off-axis angle, mean [us] and slope [us/rad], (C, N) each), measurement
+    covariances (C, N, N), usable readings (C, N), the strengths the delay model was
+    evaluated with, the readings' own variances [m²] and detection probabilities
+    (C, N); None when no segment has a candidate. :meth:`BatchFuser.decide`
+    re-evaluates the delay model in place where a belief turns a reading's off-axis
+    angle by more than :data:`RELINEARIZE_DELAY_RAD`.
+    """
+
+    t_ref: Array
+    odom_ref: Array
+    n_s: NDArray[np.intp]
+    col0: NDArray[np.intp]
+    valid: NDArray[np.bool_]
+    batch: tuple[Array, Array, Array, Array, Array]
+    xh: Array
+    ph: Array
+    pairs: tuple[NDArray[np.intp], NDArray[np.intp], Array, Array, Array, Array, Array,
+                 Array, NDArray[np.bool_], Array, Array, Array] | None = None
+
+
 class BatchFuser:
     """Vectorised linearisation and association of segments (see the module docstring).
 
@@ -327,12 +366,23 @@ class BatchFuser:
     def prepare(self, segs: list[SegmentEchoes], track_t: Array, track: Array,
                 t_min: float, last_odom: Array, last_state: Gaussian) -> list[Prepared]:
         """Linearise and associate ``segs`` at the beliefs predicted from ``last_state``
-        (the latest belief, at odometry pose ``last_odom``) by the odometry
-        ``track`` (times ``track_t``; it must cover the readings and reference times).
-        Readings before ``t_min`` (the history's start) are left out."""
-        out: list[Prepared] = []
+        (the latest belief, at odometry pose ``last_odom``) by the odometry ``track``
+        (:meth:`linearize`, then :meth:`decide` at those beliefs)."""
+        lin = self.linearize(segs, track_t, track, t_min, last_odom, last_state)
+        if lin is None:
+            return []
+        return self.decide(lin, 0, len(segs), lin.xh, lin.ph)
+
+    def linearize(self, segs: list[SegmentEchoes], track_t: Array, track: Array,
+                  t_min: float, last_odom: Array, last_state: Gaussian) -> Linearized | None:
+        """The state-independent part of :meth:`prepare`, for many segments: readings
+        padded, transducer chains, candidate features, every candidate's readings
+        through the forward model at the beliefs predicted from ``last_state`` by the
+        odometry ``track`` (times ``track_t``; it must cover the readings and reference
+        times). Readings before ``t_min`` (the history's start) are left out. None
+        without segments."""
         if not segs:
-            return out
+            return None
         S = len(segs)
         t_ref = np.array([s.t_ref for s in segs])
         lens = np.array([s.data.shape[1] for s in segs])
@@ -366,16 +416,13 @@ class BatchFuser:
                                     np.broadcast_to(last_state.cov, (S, 3, 3)).copy()),
                            se2.between(last_odom, odom_ref), self.noise)
         xh, ph = pred.mean, pred.cov
-        batch = (t_r, z, rel, p_fac, v_fac)
-        for k, (tk, nk, ck) in enumerate(zip(t_ref.tolist(), n_s.tolist(), col0.tolist(),
-                                             strict=True)):
-            out.append(Prepared(tk, "unmatched", odom_ref[k], xh[k], batch, k, ck) if nk
-                       else Prepared(tk, "none", odom_ref[k], xh[k]))
+        lin = Linearized(t_ref, odom_ref, n_s, col0, valid, (t_r, z, rel, p_fac, v_fac), xh, ph)
         if not has.any():
-            return out
+            return lin
         # --- candidates: features that can echo towards the last transducer position,
         # their ranges near the readings' (median; the delay adds at most ~2 mm); rivals:
-        # those near any one reading (they may explain it as well: echoes.ambiguous)
+        # those near any one reading (they may explain it as well: echoes.ambiguous).
+        # Selected with this covariance (:meth:`decide` applies its own tolerance).
         tpose = se2.compose(xh[:, None, :], rel)                       # (S, N, 3) in map
         last_xy = tpose[:, -1, :2]
         base = np.concatenate([self.fmap.points_visible_from(last_xy, self.max_range_m),
@@ -386,16 +433,44 @@ class BatchFuser:
         rng_all = self._ranges(tpose)                                  # (S, F, N)
         rng_all = np.where(valid[:, None, :], rng_all, np.nan)
         zmed = _median_valid(np.where(valid, z, np.nan), n_s)[:, None]
-        near = np.abs(_median_valid(rng_all, n_s[:, None]) - zmed) <= tol[:, None]
+        med_gap = np.abs(_median_valid(rng_all, n_s[:, None]) - zmed)
         with np.errstate(invalid="ignore"):
-            near_one = np.any(np.abs(rng_all - z[:, None, :]) <= tol[:, None, None], axis=2)
-        ps, fs = np.nonzero(base & (near | near_one))  # pairs, by segment then feature
+            one_gap = np.nanmin(np.where(valid[:, None, :], np.abs(rng_all - z[:, None, :]),
+                                         np.inf), axis=2)
+        ps, fs = np.nonzero(base & ((med_gap <= tol[:, None]) | (one_gap <= tol[:, None])))
         if ps.size == 0:
-            return out
-        is_cand = near[ps, fs]
-        is_rival = near_one[ps, fs]
+            return lin
         # --- each pair's readings through the forward model at the predicted belief
-        tp = tpose[ps]                                                 # (C, N, 3)
+        rng, theta, _, _ = self._geometry(tpose[ps], fs)
+        kap = np.broadcast_to(self._kappa[fs][:, None], rng.shape).copy()
+        code = self._grow_code[fs]                 # cylinders grow with range, by kind
+        for kc in np.unique(code[code >= 0]).tolist():
+            m = code == kc
+            kap[m] = kappa_at_range_us(kap[m], self._grow_kinds[kc], np.maximum(rng[m], 1e-3),
+                                       self._radius[fs[m]][:, None])
+        vp = valid[ps]                      # padding: not evaluated (zero delay)
+        mean, slope, sd, p_det = (np.zeros(rng.shape) for _ in range(4))
+        mean[vp], slope[vp], sd[vp], p_det[vp] = self.table.lookup(theta[vp], kap[vp])
+        _, _, g = self._measure(xh[ps], rel[ps], fs, theta, mean, slope, z[ps])
+        sd_m = self._us_to_m * echoes.reading_sd_us(sd, self.c_mps)
+        gp = np.einsum("cni,cnij->cnj", g, p_fac[ps])
+        gv = np.einsum("cnij,cnj->cni", v_fac[ps], g)
+        mm = gp @ np.swapaxes(gv, -1, -2)           # g_i P_i V_j g_j, valid for i <= j
+        r = np.triu(mm) + np.swapaxes(np.triu(mm, 1), -1, -2)
+        r = 0.5 * (r + np.swapaxes(r, -1, -2))
+        idx = np.arange(N)
+        r[:, idx, idx] += sd_m**2
+        with np.errstate(invalid="ignore"):
+            ok = vp & np.isfinite(mean) & np.isfinite(slope) & np.isfinite(r[:, idx, idx])
+        lin.pairs = (ps, fs, med_gap[ps, fs], one_gap[ps, fs], theta,
+                     np.where(ok, mean, 0.0), np.where(ok, slope, 0.0), r, ok, kap,
+                     np.where(ok, sd_m**2, 0.0), np.where(ok, p_det, 0.0))
+        return lin
+
+    def _geometry(self, tp: Array, fs: NDArray[np.intp]) -> tuple[Array, Array, Array, Array]:
+        """Range, off-axis angle and their derivatives wrt the transducer pose (C, N, 3)
+        of transducers ``tp`` (C, N, 3) in map seeing features ``fs`` (C,) (points or
+        walls; :func:`~sonarloc.localize.echoes.geometry`)."""
         px, py, psi = tp[..., 0], tp[..., 1], tp[..., 2]
         is_pt = self._is_point[fs][:, None]
         par = self._par[fs]
@@ -409,58 +484,116 @@ class BatchFuser:
         rng = np.where(is_pt, dist - self._radius[fs][:, None], np.abs(signed))
         direction = np.where(is_pt, np.arctan2(dy, dx), cy + np.where(signed < 0, math.pi, 0.0))
         theta = (direction - psi + math.pi) % (2.0 * math.pi) - math.pi
-        dr0 = np.where(is_pt, -dx / dist, -sign * ca)
-        dr1 = np.where(is_pt, -dy / dist, -sign * sa)
-        dth0 = np.where(is_pt, dy / dist2, 0.0)
-        dth1 = np.where(is_pt, -dx / dist2, 0.0)
-        kap = np.broadcast_to(self._kappa[fs][:, None], rng.shape).copy()
-        code = self._grow_code[fs]                 # cylinders grow with range, by kind
-        for kc in np.unique(code[code >= 0]).tolist():
-            m = code == kc
-            kap[m] = kappa_at_range_us(kap[m], self._grow_kinds[kc], np.maximum(rng[m], 1e-3),
-                                       self._radius[fs[m]][:, None])
-        vp = valid[ps]                      # padding: not evaluated (zero delay)
-        mean, slope, sd = (np.zeros(rng.shape) for _ in range(3))
-        mean[vp], slope[vp], sd[vp] = self.table.moments(theta[vp], kap[vp])
+        zero = np.zeros_like(rng)
+        dr = np.stack([np.where(is_pt, -dx / dist, -sign * ca),
+                       np.where(is_pt, -dy / dist, -sign * sa), zero], axis=-1)
+        dth = np.stack([np.where(is_pt, dy / dist2, 0.0), np.where(is_pt, -dx / dist2, 0.0),
+                        zero - 1.0], axis=-1)
+        return rng, theta, dr, dth
+
+    @staticmethod
+    def _transducers(x: Array, rel: Array) -> Array:
+        """Transducer poses in map (C, N, 3): beliefs ``x`` (C, 3) ⊕ ``rel`` (C, N, 3)."""
+        c0, s0 = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
+        return np.stack([x[:, None, 0] + c0 * rel[..., 0] - s0 * rel[..., 1],
+                         x[:, None, 1] + s0 * rel[..., 0] + c0 * rel[..., 1],
+                         x[:, None, 2] + rel[..., 2]], axis=-1)
+
+    def _measure(self, x: Array, rel: Array, fs: NDArray[np.intp], theta_lin: Array,
+                 mean: Array, slope: Array, z: Array,
+                 geom: tuple[Array, Array, Array, Array] | None = None
+                 ) -> tuple[Array, Array, Array]:
+        """Innovations (C, N), Jacobians wrt the pose (C, N, 3) and wrt the transducer
+        poses in ``base_link`` (C, N, 3) of the readings ``z`` (C, N) of features ``fs``
+        seen from beliefs ``x`` (C, 3), transducers ``rel`` (C, N, 3), the delay model
+        linearised at ``theta_lin`` (mean, slope) and extrapolated along its slope
+        (:meth:`~sonarloc.localize.echoes.EchoObservation.measure`)."""
+        c0, s0 = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
+        rng, theta, dr, dth = geom if geom is not None else \
+            self._geometry(self._transducers(x, rel), fs)
         us_to_m = self._us_to_m
-        h = rng + us_to_m * mean + self._bias_m
-        ks = us_to_m * slope
-        dh = np.stack([dr0 + ks * dth0, dr1 + ks * dth1, -ks], axis=-1)  # wrt transducer pose
+        dtheta = (theta - theta_lin + math.pi) % (2.0 * math.pi) - math.pi
+        nu = z - (rng + us_to_m * (mean + slope * dtheta) + self._bias_m)
+        dh = dr + (us_to_m * slope)[..., None] * dth        # wrt the transducer pose in map
         # transducer pose T = x ⊕ rel: dT/dx and dT/drel
-        rl = rel[ps]
-        c0, s0 = np.cos(xh[ps, 2])[:, None], np.sin(xh[ps, 2])[:, None]
         hx = np.stack([dh[..., 0], dh[..., 1],
-                       dh[..., 0] * (-s0 * rl[..., 0] - c0 * rl[..., 1])
-                       + dh[..., 1] * (c0 * rl[..., 0] - s0 * rl[..., 1]) + dh[..., 2]],
+                       dh[..., 0] * (-s0 * rel[..., 0] - c0 * rel[..., 1])
+                       + dh[..., 1] * (c0 * rel[..., 0] - s0 * rel[..., 1]) + dh[..., 2]],
                       axis=-1)
         g = np.stack([dh[..., 0] * c0 + dh[..., 1] * s0, -dh[..., 0] * s0 + dh[..., 1] * c0,
                       dh[..., 2]], axis=-1)
-        sd_m = us_to_m * echoes.reading_sd_us(sd, self.c_mps)
-        gp = np.einsum("cni,cnij->cnj", g, p_fac[ps])
-        gv = np.einsum("cnij,cnj->cni", v_fac[ps], g)
-        mm = gp @ np.swapaxes(gv, -1, -2)           # g_i P_i V_j g_j, valid for i <= j
-        r = np.triu(mm) + np.swapaxes(np.triu(mm, 1), -1, -2)
-        r = 0.5 * (r + np.swapaxes(r, -1, -2))
+        return nu, hx, g
+
+    def decide(self, lin: Linearized, a: int, b: int, x: Array, p: Array) -> list[Prepared]:
+        """Screen, gate and associate segments ``a..b-1`` of ``lin`` at beliefs with means
+        ``x`` (b-a, 3) and covariances ``p`` (b-a, 3, 3) (geometry at ``x``, the delay
+        model as linearised); the winners' reduced updates."""
+        out: list[Prepared] = []
+        t_r, z, rel, p_fac, v_fac = lin.batch
+        for k in range(a, b):
+            tk, nk, ck = float(lin.t_ref[k]), int(lin.n_s[k]), int(lin.col0[k])
+            out.append(Prepared(tk, "unmatched", lin.odom_ref[k], x[k - a], lin.batch, k, ck)
+                       if nk else Prepared(tk, "none", lin.odom_ref[k], x[k - a]))
+        if lin.pairs is None:
+            return out
+        ps_all = lin.pairs[0]
+        lo, hi = np.searchsorted(ps_all, [a, b])
+        if hi <= lo:
+            return out
+        ps = ps_all[lo:hi] - a
+        _, fs_a, med_a, one_a, th_a, mean_a, slope_a, r_a, ok_a, kap_a, sd2_a, pd_a = \
+            lin.pairs
+        fs, med_gap, one_gap, r, ok = fs_a[lo:hi], med_a[lo:hi], one_a[lo:hi], r_a[lo:hi], \
+            ok_a[lo:hi]
+        th_lin, mean, slope = th_a[lo:hi], mean_a[lo:hi], slope_a[lo:hi]
+        N = r.shape[1]
         idx = np.arange(N)
-        r[:, idx, idx] += sd_m**2
-        # --- screening, one reading at a time, at the predicted belief
-        nu = z[ps] - h
-        pc = ph[ps]
-        hph = np.einsum("cni,cij,cmj->cnm", hx, pc, hx)
+        tol = 0.05 + 4.0 * np.sqrt(np.maximum(p[:, 0, 0] + p[:, 1, 1], 0.0))
+        is_cand = med_gap <= tol[ps]
+        is_rival = one_gap <= tol[ps]
+        # the readings through the forward model at these beliefs (the delay model as
+        # linearised)
+        geom = self._geometry(self._transducers(x[ps], rel[ps + a]), fs)
+        with np.errstate(invalid="ignore"):
+            redo = ok & (np.abs((geom[1] - th_lin + math.pi) % (2.0 * math.pi) - math.pi)
+                         > RELINEARIZE_DELAY_RAD)
+        if redo.any():
+            # the delay model again where the angle moved too far to extrapolate it (in
+            # place: later decisions start from here); the readings' own variances too
+            th = geom[1][redo]
+            m2, s2, sd2, pd2 = self.table.lookup(th, kap_a[lo:hi][redo])
+            sdm2 = (self._us_to_m * echoes.reading_sd_us(sd2, self.c_mps)) ** 2
+            fine = np.isfinite(m2) & np.isfinite(s2) & np.isfinite(sdm2)
+            rows_c, cols_c = np.nonzero(redo)
+            rows_c, cols_c = rows_c + lo, cols_c
+            th_a[rows_c, cols_c] = th
+            mean_a[rows_c, cols_c] = np.where(fine, m2, 0.0)
+            slope_a[rows_c, cols_c] = np.where(fine, s2, 0.0)
+            r_a[rows_c, cols_c, cols_c] += np.where(fine, sdm2, 0.0) - sd2_a[rows_c, cols_c]
+            sd2_a[rows_c, cols_c] = np.where(fine, sdm2, 0.0)
+            pd_a[rows_c, cols_c] = np.where(fine, pd2, 0.0)
+            ok_a[rows_c, cols_c] &= fine
+            r, ok = r_a[lo:hi], ok_a[lo:hi]
+            th_lin, mean, slope = th_a[lo:hi], mean_a[lo:hi], slope_a[lo:hi]
+        nu, hx, _ = self._measure(x[ps], rel[ps + a], fs, th_lin, mean, slope, z[ps + a], geom)
+        nu = np.where(ok, nu, 0.0)
+        # --- screening, one reading at a time
+        hph = np.einsum("cni,cij,cmj->cnm", hx, p[ps], hx)
         s_ii = hph[:, idx, idx] + r[:, idx, idx]
         with np.errstate(invalid="ignore", divide="ignore"):
-            ok = valid[ps] & np.isfinite(nu) & np.isfinite(s_ii) & (s_ii > 0)
-            passed = ok & (np.where(ok, nu**2 / np.where(ok, s_ii, 1.0), np.inf)
-                           <= self.screen_gate)
-        # a candidate's reading that a rival (another point, another line) also passes
-        # is not kept: per segment, reading and feature group, how many rivals pass it
+            usable = ok & np.isfinite(s_ii) & (s_ii > 0)
+            passed = usable & (nu**2 <= self.screen_gate * np.where(usable, s_ii, 1.0))
+        # a candidate's reading is not kept where a rival (another point, another line
+        # of the same segment) also passes it, is detected there and predicts the
+        # earlier crossing (echoes.ambiguous: the first crossing wins)
         gid = self._group[fs]
-        count = np.zeros((S, self._n_groups, N), dtype=int)
-        np.add.at(count, (ps[is_rival], gid[is_rival]), passed[is_rival].astype(int))
-        others = count.sum(axis=1)[ps] - count[ps, gid]
-        keep = passed & (others == 0) & is_cand[:, None]
+        h = z[ps + a] - nu                                   # predicted ranges
+        claim = passed & is_rival[:, None] & (pd_a[lo:hi] >= RIVAL_MIN_DETECT)
+        pair_of = (ps[:, None] == ps[None, :]) & (gid[:, None] != gid[None, :])  # (c, q)
+        rival_wins = pair_of[:, :, None] & claim[None, :, :] & (h[None, :, :] < h[:, None, :])
+        keep = passed & ~rival_wins.any(axis=1) & is_cand[:, None]
         n_keep = keep.sum(axis=1)
-        need = np.maximum(1, np.ceil(self.min_fraction * n_s[ps] - 1e-9)).astype(int)
+        need = np.maximum(1, np.ceil(self.min_fraction * lin.n_s[ps + a] - 1e-9)).astype(int)
         live = is_cand & (n_keep >= need) & (n_keep >= 1)
         if not live.any():
             return out
@@ -503,11 +636,8 @@ class BatchFuser:
         sure = share >= self.min_match_probability
         if not sure.any():
             return out
-        win_pair = g[best[sure]]
-        win_share = share[sure]
-        win_top = n_top[sure]
+        wp = g[best[sure]]
         # --- the winners' reduced updates: whitened by R = L Lᵀ and QR-factored
-        wp = win_pair
         kw = keep[wp]
         bw = kw[:, :, None] & kw[:, None, :]
         rw = np.where(bw, r[wp], np.broadcast_to(np.eye(N), bw.shape))
@@ -524,39 +654,39 @@ class BatchFuser:
                 except np.linalg.LinAlgError:
                     good[j] = False
         sol = np.linalg.solve(chol, np.concatenate([hw, nw[..., None]], axis=-1))
-        q, rq = np.linalg.qr(sol[..., :3], mode="reduced")
-        q_nu = np.einsum("cni,cn->ci", q, sol[..., 3])
+        qm, rq = np.linalg.qr(sol[..., :3], mode="reduced")
+        q_nu = np.einsum("cni,cn->ci", qm, sol[..., 3])
         resid2 = np.maximum(np.einsum("cn,cn->c", sol[..., 3], sol[..., 3])
                             - np.einsum("ci,ci->c", q_nu, q_nu), 0.0)
-        riv_of: dict[int, list[int]] = {}
-        for qi in np.flatnonzero(is_rival).tolist():
-            riv_of.setdefault(int(ps[qi]), []).append(qi)
-        for j, (c, sh, nt) in enumerate(zip(wp.tolist(), win_share.tolist(), win_top.tolist(),
-                                            strict=True)):
+        for j, (c, sh, nt) in enumerate(zip(wp.tolist(), share[sure].tolist(),
+                                            n_top[sure].tolist(), strict=True)):
             if not good[j]:
                 continue       # the per-segment path decides
             f = int(fs[c])
             k = int(ps[c])
-            p = out[k]
-            p.n_candidates = nt
-            p.outcome = "matched"
-            p.kind = "point" if self._is_point[f] else "wall"
-            p.index = f if self._is_point[f] else f - self.fmap.n_points
-            p.feature = self._features[f]
-            p.n_kept = int(n_keep[c])
-            p.d2 = float(d2[c])
-            p.share = sh
-            p.reduced = Compressed(xh[k].copy(), q_nu[j], rq[j], float(resid2[j]), p.n_kept)
+            pr = out[k]
+            pr.n_candidates = nt
+            pr.outcome = "matched"
+            pr.kind = "point" if self._is_point[f] else "wall"
+            pr.index = f if self._is_point[f] else f - self.fmap.n_points
+            pr.feature = self._features[f]
+            pr.n_kept = int(n_keep[c])
+            pr.d2 = float(d2[c])
+            pr.share = sh
+            pr.reduced = Compressed(x[k].copy(), q_nu[j], rq[j], float(resid2[j]), pr.n_kept)
             # what decided the kept readings: the candidate's own screening of its usable
-            # readings, and each rival's screening of those the candidate passed
-            rows_c = [c] + [q for q in riv_of.get(k, []) if gid[q] != gid[c]]
+            # readings, and each detected, nearer rival's screening of those it passed
             screen: list[tuple[list[float], float, float, bool]] = []
-            for q in rows_c:
-                sel = ok[c] if q == c else passed[c]
+            sel = usable[c]
+            screen += zip(hx[c][sel].tolist(), nu[c][sel].tolist(),
+                          r[c, idx, idx][sel].tolist(), passed[c][sel].tolist(), strict=True)
+            for q in np.flatnonzero(pair_of[c] & is_rival).tolist():
+                sel = passed[c] & usable[q] & (pd_a[lo + q] >= RIVAL_MIN_DETECT) & \
+                    (h[q] < h[c])
                 screen += zip(hx[q][sel].tolist(), nu[q][sel].tolist(),
                               r[q, idx, idx][sel].tolist(), passed[q][sel].tolist(),
                               strict=True)
-            p.screen_rows = screen
+            pr.screen_rows = screen
         return out
 
     def _ranges(self, tpose: Array) -> Array:

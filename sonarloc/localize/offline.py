@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import OdomRecord, TofRecord
 from sonarloc.localize import echoes, ekf
@@ -36,6 +37,7 @@ from sonarloc.localize.batchfuse import (
     FAST_STEP_M,
     FAST_STEP_RAD,
     BatchFuser,
+    Linearized,
     Prepared,
     SegmentEchoes,
     interpolate_track,
@@ -71,15 +73,19 @@ class OfflinePipeline:
         method with ``kuc_fusion="echoes"`` (whose fits only serve association). False:
         every segment fitted and given to :meth:`Localizer.add_landmark` on time (the
         rows then equal a live Localizer's given the same landmarks on time).
-    chunk_segments, chunk_s : (fast) segments linearised together at most, and the
-        longest span of their reference times [s] (the beliefs they are linearised at
-        are predicted that far ahead without the updates in between).
+    linearize_segments : (fast) segments linearised together at most (transducer
+        chains, candidates, forward model: at the beliefs the odometry predicts from the
+        latest one).
+    chunk_segments, chunk_s : (fast) segments screened, gated and associated together
+        at most, and the longest span of their reference times [s] (the beliefs they are
+        decided at are predicted that far ahead without the updates in between).
     """
 
     def __init__(self, localizer: Localizer, on_estimate: EstimateCallback | None = None,
                  batch_segments: int = 1024, max_wait_s: float = 120.0,
                  round_odom: int = 50, fast: bool | None = None,
-                 chunk_segments: int = 32, chunk_s: float = 0.5) -> None:
+                 linearize_segments: int = 128, chunk_segments: int = 32,
+                 chunk_s: float = 0.5) -> None:
         if localizer.config.method not in ("kuc", "odometry"):
             raise ValueError(f"the offline pipeline runs methods 'kuc' and 'odometry', got "
                              f"{localizer.config.method!r}")
@@ -99,6 +105,10 @@ class OfflinePipeline:
         self.fast = echo_level if fast is None else bool(fast)
         if not (math.isfinite(chunk_s) and chunk_s > 0):
             raise ValueError(f"`chunk_s` must be positive, got {chunk_s!r}")
+        if not (isinstance(linearize_segments, int) and linearize_segments >= 1):
+            raise ValueError(f"`linearize_segments` must be a positive integer, got "
+                             f"{linearize_segments!r}")
+        self.linearize_segments = linearize_segments
         self.chunk_segments = chunk_segments
         self.chunk_s = chunk_s
         self._chunk = chunk_segments
@@ -329,30 +339,49 @@ class OfflinePipeline:
                                      c.echo_screen_probability, c.echo_gate_probability,
                                      a.max_range_m, a.wall_margin_m, a.min_match_probability,
                                      ECHO_MIN_FRACTION)
+        noise = loc.config.odom_noise
+        lin: Linearized | None = None
+        base = 0                              # index in ``now`` of lin's first segment
         while k < len(now):
+            if lin is None or k - base >= len(lin.t_ref):
+                pos = self._enter_upto(odom, pos, now[k].t_ref)
+                if not loc._entries:
+                    loc.stats.observations += len(now) - k
+                    loc.stats.skipped["landmark_before_init"] += len(now) - k
+                    break
+                assert self._fuser is not None
+                last = loc._entries[-1]
+                base = k
+                lin = self._fuser.linearize(now[k:k + self.linearize_segments],
+                                            np.array(self._track_t), np.array(self._track),
+                                            loc._times[0], last.odom, last.state)
+                assert lin is not None
+            # decide a few segments at a time at the beliefs the latest one predicts
             t_end = now[k].t_ref + self.chunk_s
             j = k + 1
-            while j < len(now) and j - k < self._chunk and now[j].t_ref < t_end:
+            stop = base + len(lin.t_ref)
+            while j < stop and j - k < self._chunk and now[j].t_ref < t_end:
                 j += 1
-            chunk = now[k:j]
-            k = j
-            pos = self._enter_upto(odom, pos, chunk[0].t_ref)
-            if not loc._entries:
-                loc.stats.observations += len(chunk)
-                loc.stats.skipped["landmark_before_init"] += len(chunk)
-                continue
-            assert self._fuser is not None
+            pos = self._enter_upto(odom, pos, now[k].t_ref)
             last = loc._entries[-1]
-            prepared = self._fuser.prepare(chunk, np.array(self._track_t),
-                                           np.array(self._track), loc._times[0], last.odom,
-                                           last.state)
+            pred = ekf.predict(
+                ekf.Gaussian(np.broadcast_to(last.state.mean, (j - k, 3)).copy(),
+                             np.broadcast_to(last.state.cov, (j - k, 3, 3)).copy()),
+                se2.between(last.odom, lin.odom_ref[k - base:j - base]), noise)
+            assert self._fuser is not None
+            prepared = self._fuser.decide(lin, k - base, j - base, pred.mean, pred.cov)
+            k = j
             slow = 0
             for p in prepared:
                 pos = self._enter_upto(odom, pos, p.t_ref)
                 slow += not self._fuse_prepared(p)
-            # after updates the reduced forms could not take, re-linearise sooner
-            self._chunk = max(1, self._chunk // 4) if slow else \
-                min(self.chunk_segments, 2 * self._chunk)
+            if slow:
+                # updates the reduced forms could not take: the belief moved far from the
+                # linearisation; re-linearise the rest, and decide fewer at a time for now
+                lin = None
+                self._chunk = max(1, self._chunk // 4)
+            else:
+                self._chunk = min(self.chunk_segments, 2 * self._chunk)
         end = len(odom) if not math.isfinite(horizon) else \
             next((j for j in range(pos, len(odom)) if not odom[j][0] < horizon), len(odom))
         if end > pos:

@@ -178,7 +178,7 @@ def test_one_segment_at_a_time_is_the_localizers_own_path(ring_log, fmap):
     """Prepared at the exact belief (chunks of one segment), the association, the
     readings kept and the reduced update are those of Localizer._associate_echoes and
     echoes.compress."""
-    pipe, loc, _ = _run(ring_log, fmap, Checking, chunk_segments=1)
+    pipe, loc, _ = _run(ring_log, fmap, Checking, linearize_segments=1, chunk_segments=1)
     assert pipe.checked > 100
     assert pipe.disagree == []
     assert loc.stats.accepted > 0.9 * loc.stats.observations
@@ -188,7 +188,7 @@ def test_many_at_a_time_stays_close_to_one_at_a_time(ring_log, fmap):
     """Linearised 32 segments at a time at the beliefs the odometry predicts: rows
     within a fraction of a millimetre of one-at-a-time, nearly the same fusions."""
     truth = {r.t_s: r for r in iter_log(io.StringIO(ring_log)) if isinstance(r, TruthRecord)}
-    _, loc1, one = _run(ring_log, fmap, chunk_segments=1)
+    _, loc1, one = _run(ring_log, fmap, linearize_segments=1, chunk_segments=1)
     _, loc32, many = _run(ring_log, fmap, chunk_segments=32)
     assert [t for t, _ in one] == [t for t, _ in many]
     steady = [(a, b) for (t, a), (_, b) in zip(one, many, strict=True) if t > 5.0]
