@@ -947,9 +947,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                      f"{by['conventional'].steady_yaw_deg / by['kuc'].steady_yaw_deg:.2f} |")
     lines += ["", "## Replay speed: batch against live (same logs, same run)", "",
               "*kuc* is `sonarloc localize` (batch replay: readings segmented in a lean "
-              "loop, closed segments not fitted but associated by their readings, "
-              "linearised 0.5 s of segments at a time at the beliefs the odometry predicts, "
-              "the reduced updates applied in time order at the reference readings, odometry "
+              "loop, closed segments not fitted but associated by their readings: up to "
+              "128 linearised at a time, 0.5 s of them decided at a time, at the beliefs the "
+              "odometry predicts, the reduced updates applied in time order at the reference "
+              "readings, odometry "
               "between updates predicted in closed form); *kuc live* feeds the same "
               "Localizer record by record (`--online`, fits of 4 segments fused when they "
               "complete, associated by the fit where it can). Both fuse the same segments' "
