@@ -162,9 +162,7 @@ class OfflinePipeline:
             if not ready:
                 return
         if self._source is None:
-            n = loc.config.segment_max_readings
-            if n is None:
-                n = 400 if ready[0].pan_deg is not None else 8
+            n = loc.segment_max_readings(ready[0].pan_deg is not None)
             self._source = SegmentFitSource(
                 loc._c_mps, max_readings=n, min_echoes=loc.segment_min_echoes,
                 sweep_away_deg=loc.segment_sweep_away_deg(ready[0].pan_deg is not None))

@@ -132,11 +132,15 @@ def test_segment_length_chosen_for_the_rig():
         made.append(SegmentFitSource(c))
         return made[-1]
 
+    # reading-level fusion takes a pan's pass in chunks of 8 too; fusing fits needs
+    # whole passes (a partial U fits poorly)
     for pan, expect, away, config in ((None, 8, None, LocalizerConfig()),
-                                      (10.0, 400, 50.0, LocalizerConfig()),
-                                      (10.0, 400, 30.0,
+                                      (10.0, 8, 50.0, LocalizerConfig()),
+                                      (10.0, 400, 50.0, LocalizerConfig(kuc_fusion="fit")),
+                                      (None, 8, None, LocalizerConfig(kuc_fusion="fit")),
+                                      (10.0, 8, 30.0,
                                        LocalizerConfig(segment_sweep_away_deg=30.0)),
-                                      (10.0, 400, None,
+                                      (10.0, 8, None,
                                        LocalizerConfig(segment_sweep_away_deg=math.inf))):
         lc = Localizer(room_map(), config, landmark_source=factory)
         lc.handle(make_drive(n=3).records[0])
@@ -149,6 +153,7 @@ def test_segment_length_chosen_for_the_rig():
         # a panning transducer's pass closes once the beam has swept past it
         assert made[-1].segmenter.config.sweep_away_deg == away
         assert lc.segment_sweep_away_deg(pan is not None) == away
+        assert lc.segment_max_readings(pan is not None) == expect
 
 
 def test_offline_pipeline_segments_a_pan_like_the_live_localizer():
@@ -166,7 +171,7 @@ def test_offline_pipeline_segments_a_pan_like_the_live_localizer():
     pipe._round(final=False)
     assert pipe._source is not None
     cfg = pipe._source.segmenter.config
-    assert (cfg.max_readings, cfg.sweep_away_deg) == (400, 50.0)
+    assert (cfg.max_readings, cfg.sweep_away_deg) == (8, 50.0)
 
 
 @pytest.mark.parametrize("method", ["specular", "kuc"])
