@@ -39,6 +39,7 @@ import warnings  # noqa: E402
 from collections.abc import Callable, Sequence  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -222,9 +223,14 @@ def curve_fit_segment(seg: Segment) -> tuple[float, float, float] | None:
     return to_us * C / 2e6, math.degrees(p[1]), float(p[2])
 
 
+SMALL_CALL = 400
+"""Segments per call of the batch methods' small-batch timing (fixed per-call costs)."""
+
+
 def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, float | str]]:
     segs, truth = method_segments(n, rng)
     arrays = [s.arrays() for s in segs]
+    small = arrays[:SMALL_CALL]
 
     def run_conventional() -> list[tuple[float, float, float] | None]:
         out: list[tuple[float, float, float] | None] = []
@@ -240,9 +246,10 @@ def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, fl
         f = fit_batch(pack_segments(arrays), "point", "gauss")
         return [(float(p[0]), math.degrees(float(p[1])), float(p[2])) for p in f.local]
 
-    def run_cfg(cfg: FitConfig | None) -> Callable[[], list[tuple[float, float, float] | None]]:
+    def run_cfg(cfg: FitConfig | None, segments: Sequence[Any] = arrays
+                ) -> Callable[[], list[tuple[float, float, float] | None]]:
         def run() -> list[tuple[float, float, float] | None]:
-            f = fit_batch(pack_segments(arrays), "point", "gauss", cfg)
+            f = fit_batch(pack_segments(segments), "point", "gauss", cfg)
             return [(float(p[0]), math.degrees(float(p[1])), float(p[2])) for p in f.local]
         return run
 
@@ -253,17 +260,24 @@ def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, fl
     rows: list[dict[str, float | str]] = []
     runners = [("conventional (beam axis at min TOF)", run_conventional),
                ("scipy curve_fit per segment (eq. 3)", run_curve_fit),
-               ("sonarloc fit_batch, `FitConfig.fast()` (12 deg grid, one guarded step)",
-                run_cfg(FitConfig.fast())),
+               ("sonarloc fit_batch, `FitConfig.fast()` (12 deg grid on <= 16 echoes, one "
+                "guarded step)", run_cfg(FitConfig.fast())),
                ("sonarloc fit_batch, `FitConfig.batch()` (6 deg grid, one reweighted round)",
                 run_cfg(FitConfig.batch())),
                ("sonarloc fit_batch (default)", run_cfg(None)),
                ("sonarloc fit_segments (default, with model selection)", run_full)]
+    small_cfg = {runners[2][0]: FitConfig.fast(), runners[3][0]: FitConfig.batch(),
+                 runners[4][0]: None}
     results = []
+    t_small: dict[str, float] = {}
     for name, fn in runners:
         fn()   # warm-up (tables, imports)
         t, res = cpu_median(fn, repeats)
         results.append((name, t, res if isinstance(res, list) else []))
+        if name in small_cfg and len(small) < n:
+            # the same fitter called on SMALL_CALL segments at a time
+            t_small[name] = cpu_median(run_cfg(small_cfg[name], small), 3 * repeats)[0] / len(
+                small)
     # the segments curve_fit handled (no failure, no divergence): errors compared there too
     cf_ok = np.array([_within(est, tr) for est, tr in zip(results[1][2], truth, strict=True)])
     for name, t, out in results:
@@ -284,6 +298,7 @@ def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, fl
                 ek.append(est[2] - kap)
         rows.append(dict(
             name=name, us_per_seg=1e6 * t / n,
+            us_per_seg_small=1e6 * t_small[name] if name in t_small else math.nan,
             rmse_b=float(np.sqrt(np.mean(np.square(eb)))) if eb else math.nan,
             rmse_b_cf=float(np.sqrt(np.mean(np.square(eb_cf)))) if eb_cf else math.nan,
             rmse_r_mm=1e3 * float(np.sqrt(np.mean(np.square(er)))) if er else math.nan,
@@ -291,6 +306,13 @@ def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, fl
             fail=(fails + diverged) / n, diverged=diverged / n))
         print(f"  {name}: {1e6 * t / n:.0f} us/segment", file=sys.stderr)
     return rows
+
+
+def _small_cell(r: dict[str, float | str], curve: dict[str, float | str]) -> str:
+    t = float(r["us_per_seg_small"])
+    if math.isnan(t):
+        return ""
+    return f"{t:.0f} ({float(curve['us_per_seg']) / t:.1f}x)"
 
 
 def _within(est: tuple[float, float, float] | None, truth: tuple[float, float, float]
@@ -616,7 +638,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     q = args.quick
     n_trials, n_meth, n_thr, n_csv, repeats = ((40, 60, 1024, 20_000, 1) if q
-                                              else (400, 400, 8192, 200_000, 3))
+                                              else (400, 2000, 8192, 200_000, 3))
     if args.only_large_csv:
         return _only_large_csv(Path(args.out), n_csv, repeats, q)
     rng = np.random.default_rng(2003)
@@ -667,12 +689,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         "*fail* counts no result, an exception, or an answer off by more than 10 deg or "
         "5 cm (a divergence); errors are over the rest, and (*on curve_fit's*) over the "
         "segments curve_fit itself handled, for a like-for-like comparison. Times include "
-        "packing the segments into a batch.",
+        f"packing the segments into a batch; the batch methods fit all {n_meth} segments in "
+        f"one call, and (last column) the first {SMALL_CALL} per call (fixed per-call "
+        "costs weigh more).",
         "",
         "| method | CPU us / segment | speed vs curve_fit | bearing RMSE (deg) | "
         "bearing RMSE on curve_fit's (deg) | range RMSE (mm) | kappa RMSE (us) | fail | "
-        "of which diverged |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        f"of which diverged | CPU us / segment, {SMALL_CALL} per call (speed vs curve_fit) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in meth:
         k = float(r["rmse_k"])
@@ -682,7 +706,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{float(r['rmse_b']):.3f} | {float(r['rmse_b_cf']):.3f} | "
             f"{float(r['rmse_r_mm']):.3f} | "
             f"{'n/a' if math.isnan(k) else f'{k:.3f}'} | {100 * float(r['fail']):.1f} % | "
-            f"{100 * float(r['diverged']):.1f} % |")
+            f"{100 * float(r['diverged']):.1f} % | {_small_cell(r, curve)} |")
     lines += [
         "",
         f"## 3. Batch throughput (`fit_batch`, {n_thr} segments, one core)",

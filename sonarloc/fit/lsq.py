@@ -46,7 +46,9 @@ class FitConfig:
     grid_step_deg : largest spacing of the global bearing grid.
     margin_deg : how far beyond the arc covered by echoes a minimum may lie.
     rounds, iterations : reweighting rounds and (at most) damped Fisher-scoring steps
-        per round.
+        per round. When the last round's steps run out, the covariance is that of the
+        Fisher matrix at the last step's start (the objective is evaluated at its end,
+        the derivatives are not).
     follow_variances : the TOF variances follow every accepted step (iteratively
         reweighted: a step is judged with the variances at its start, the next one
         taken with those at its end); otherwise they are held fixed within a round.
@@ -72,9 +74,9 @@ class FitConfig:
     chunk_readings : segments are fitted in chunks of about this many padded readings
         (keeps the arrays in cache).
     grid_max_echoes : the grid bracket of a segment with more echoes than this uses
-        every k-th of them (the smallest k that keeps at most this many), each weighted
-        by k; ``None``: all. The bracket needs the curve's shape, not every reading; the
-        refinement always uses all.
+        this many, evenly spread from its first to its last echo and weighted up to the
+        whole count; ``None``: all. The bracket needs the curve's shape, not every
+        reading; the refinement always uses all.
     """
 
     module: ModuleParams = field(default_factory=ModuleParams)
@@ -97,7 +99,7 @@ class FitConfig:
     second_start_dcost: float = 6.0
     chunk_readings: int = 65536
     follow_variances: bool = False
-    grid_max_echoes: int | None = None
+    grid_max_echoes: int | None = 32
 
     def __post_init__(self) -> None:
         for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
@@ -129,11 +131,15 @@ class FitConfig:
 
     @classmethod
     def fast(cls, **changes: Any) -> FitConfig:
-        """The quickest sound settings: a 12 deg grid bracket and one damped Gauss-Newton
-        step that is kept only if it lowers the objective (so it cannot diverge); errors
-        about 1.6x the converged fit's, still well below a per-segment ``curve_fit``'s."""
-        return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True),
-                       **changes)
+        """The quickest sound settings: a 12 deg grid bracket (on at most 16 echoes of a
+        segment) with (To, kappa) profiled again at the bracket's bearing, and one damped
+        Gauss-Newton step that is kept only if it lowers the objective (so it cannot
+        diverge). Errors about 2x the converged fit's in bearing and kappa, 1.6x in range
+        (benchmarks/results/fit.md), still below a per-segment ``curve_fit``'s; the
+        covariance is the Fisher matrix's at the step's start (not converged: it
+        understates the error about 2x)."""
+        return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True,
+                           grid_max_echoes=16), **changes)
 
     def with_speed_of_sound(self, c_mps: float) -> FitConfig:
         """The same settings with another speed of sound [m/s]."""
@@ -381,15 +387,16 @@ def _evaluate_core(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array
     et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
     if s2 is None:
         s2 = M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform" else None)
-    w = use / np.sqrt(s2)                                    # 1/s, 0 where unused
+    usef = use if use.dtype == np.float64 else use.astype(float)     # 1/0 (no mixed ops)
+    w = usef / np.sqrt(s2)                                   # 1/s, 0 where unused
     res = y - tau * R - et.delay
     e = res * w
     F = np.einsum("bn,bn->b", e, e)
     F_other = F
     if s2_other is not None:
-        F_other = np.einsum("bn,bn->b", res * res, use / s2_other)
+        F_other = np.einsum("bn,bn->b", res * res, usef / s2_other)
     if det:
-        dF = 2.0 * np.einsum("bn,bn->b", et.log_p, use.astype(float))
+        dF = 2.0 * np.einsum("bn,bn->b", et.log_p, usef)
         F -= dF
         F_other = F_other - dF if s2_other is not None else F
     B = p.shape[0]
@@ -411,7 +418,7 @@ def _evaluate_core(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array
             dz = dlng / sa                                   # d z / d theta
             zc: list[Array | None] = ([dz * geo.dtheta_dr, dz * geo.dtheta_dphi, inv_ksa]
                                       if moving else [None, dz, inv_ksa])
-            _gram(H, grad, zc, et.curv * use, et.dlogp_dz * use)
+            _gram(H, grad, zc, et.curv * usef, et.dlogp_dz * usef)
     prior = _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
     F = F + prior
     F_other = F_other + prior if s2_other is not None else F
@@ -427,14 +434,15 @@ def _evaluate_core(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array
         _, dlgn, lgn = M.beam_log_factor(thn, tier, mod, derivative=want_derivs, want_g=False)
         zn = M.detection_z(K, lgn, mod)
         lpn, dlpn, _, curvn = M.noecho_terms(zn, want_info=False)
-        dFn = 2.0 * np.einsum("bn,bn->b", lpn, nv.astype(float))
+        nvf = nv.astype(float)
+        dFn = 2.0 * np.einsum("bn,bn->b", lpn, nvf)
         F = F - dFn
         F_other = F_other - dFn if s2_other is not None else F
         if want_derivs:
             dzn = dlgn / sa
             zcn: list[Array | None] = ([dzn * ng.dtheta_dr, dzn * ng.dtheta_dphi, inv_ksa]
                                        if moving else [None, dzn, inv_ksa])
-            _gram(H, grad, zcn, curvn * nv, dlpn * nv)
+            _gram(H, grad, zcn, curvn * nvf, dlpn * nvf)
     return F_other, F, grad, H, e, s2
 
 
@@ -545,20 +553,23 @@ def _variances(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitConf
 
 def _decimate(batch: SegmentBatch, y: Array, use: NDArray, max_echoes: int
               ) -> tuple[SegmentBatch, Array, NDArray, Array]:
-    """Every k-th used echo of segments with more than ``max_echoes`` of them (k per
-    segment, the smallest that keeps at most ``max_echoes``), and each kept echo's weight
-    k (1 elsewhere): the grid bracket's readings. Columns: the kept echoes, in order."""
+    """``max_echoes`` used echoes, evenly spread from the first to the last, of segments
+    with more, each weighted by (used echoes / kept ones) (the rest: all, weight 1): the
+    grid bracket's readings. Columns: the kept echoes, in order."""
     n_use = use.sum(1)
     if int(n_use.max(initial=0)) <= max_echoes:
-        return batch, y, use, np.ones(y.shape)
-    k = np.maximum(-(-n_use // max_echoes), 1)                         # (B,) strides
+        return batch, y, use, use.astype(float)
     width = max(int(n_use.max()), 1)
     # column of the j-th used echo of each segment (used echoes first, in order)
-    order = np.argsort(~use, axis=1, kind="stable")[:, :width]
-    m = int((-(-n_use // k)).max())
-    j = np.arange(m)[None, :] * k[:, None]                             # (B, m)
-    ok = j < n_use[:, None]
-    cols = np.take_along_axis(order, np.minimum(j, width - 1), axis=1)
+    if use[:, 1:].shape[1] and np.any(use[:, 1:] & ~use[:, :-1]):
+        order = np.argsort(~use, axis=1, kind="stable")[:, :width]
+    else:       # no gaps: the used echoes are the first columns
+        order = np.broadcast_to(np.arange(width), use[:, :width].shape)
+    m = np.minimum(n_use, max_echoes)                                  # (B,) kept
+    j = np.arange(max_echoes)[None, :]
+    ok = j < m[:, None]
+    pick = np.rint(j * ((n_use - 1) / np.maximum(m - 1, 1))[:, None]).astype(np.int64)
+    cols = np.take_along_axis(order, np.clip(pick, 0, width - 1), axis=1)
 
     def g(a: Array) -> Array:
         return np.take_along_axis(a, cols, axis=1)
@@ -566,7 +577,8 @@ def _decimate(batch: SegmentBatch, y: Array, use: NDArray, max_echoes: int
     sub = SegmentBatch(g(batch.px), g(batch.py), g(batch.yaw), g(batch.tof_us), ok,
                        batch.ne_px, batch.ne_py, batch.ne_yaw, batch.ne_valid, batch.ref_xy,
                        batch.ref_yaw, batch.ref_t_s)
-    return sub, np.where(ok, g(y), 0.0), ok, np.where(ok, k[:, None].astype(float), 0.0)
+    wt = np.where(ok, (n_use / np.maximum(m, 1))[:, None], 0.0)
+    return sub, np.where(ok, g(y), 0.0), ok, wt
 
 
 def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Array,
@@ -610,7 +622,9 @@ def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Ar
         Sgy = np.matmul(gw, yc[:, :, None])[..., 0] * scale
     if cfg.detection:
         # echoes were detected: the one nearest the axis must be detectable (z < 2)
-        lg_min = np.min(lg, axis=-1, where=use[:, None, :], initial=np.inf)
+        # (a large number added to the unused: a plain min is 3x faster than a masked one)
+        lg_min = np.min(lg + np.where(use, 0.0, 1e300)[:, None, :], axis=-1)
+        lg_min = np.where(lg_min < 1e299, lg_min, np.inf)
         kmax = (mod.detection_limit_us * np.exp(2.0 * sa) * scale
                 * np.exp(-np.where(np.isfinite(lg_min), lg_min, 0.0)))
     else:
@@ -732,6 +746,9 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
 
 _EARLY_TOLERANCE = 100.0
 
+_LAMBDA0 = 1e-1
+"""Initial Levenberg-Marquardt damping (a fraction of the Fisher matrix's diagonal)."""
+
 _GRID_BLOCK = 1 << 16
 """Largest temporary array of the grid bracket (elements)."""
 
@@ -778,7 +795,7 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
     """
     B = p.shape[0]
     p = p.copy()
-    lam = np.full(B, 1e-1)
+    lam = np.full(B, _LAMBDA0)
     done = np.zeros(B, dtype=bool)
     for rnd in range(rounds):
         # variances from the current delays, fixed for this round
@@ -788,7 +805,10 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
         done = np.zeros(B, dtype=bool)
         act = np.arange(B)
         sub, ys, us, s2s = batch, y, use, s2
-        for _ in range(cfg.iterations):
+        for it in range(cfg.iterations):
+            # the last step of all: its point's objective, not its derivatives (nothing
+            # steps from there; the covariance keeps the Fisher matrix of the step's start)
+            last = rnd == rounds - 1 and it == cfg.iterations - 1
             # steps in (r, phi, log kappa): the delays scale with kappa and the detection
             # margin with log kappa, so this is where the objective is nearly quadratic
             kap = p[act, 2]
@@ -824,13 +844,15 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
                 # the step is judged with the current variances; the state at the new
                 # point carries its own (iteratively reweighted), from the same pass
                 Fa, Fq, gq, Hq, eq, s2q = _evaluate_core(kind, tier, q, sub, ys, us, None,
-                                                         cfg, s2_other=s2s)
+                                                         cfg, not last, s2_other=s2s)
             else:
-                Fq, gq, Hq, eq = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg)
+                Fq, gq, Hq, eq = _evaluate(kind, tier, q, sub, ys, us, s2s, cfg, not last)
                 Fa, s2q = Fq, s2s
             ok = np.isfinite(Fa) & (Fa <= F[act]) & ~done[act]
             ia = act[ok]
-            p[ia], F[ia], grad[ia], H[ia], E[ia] = q[ok], Fq[ok], gq[ok], Hq[ok], eq[ok]
+            p[ia], F[ia], E[ia] = q[ok], Fq[ok], eq[ok]
+            if not last:
+                grad[ia], H[ia] = gq[ok], Hq[ok]
             if cfg.follow_variances:
                 s2[ia] = s2q[ok]
                 s2s = s2s.copy() if s2s is s2 else s2s
@@ -978,15 +1000,27 @@ def _plan_chunks(n_d: NDArray[np.int64], n_n: NDArray[np.int64], chunk_readings:
     cum = np.r_[0, ends].astype(float)                                  # segments before
     best = np.zeros(G + 1)
     prev = np.zeros(G + 1, dtype=np.int64)
-    for j in range(1, G + 1):
-        # runs of groups i..j-1 (i = 0..j-1)
-        mn = np.maximum.accumulate(w_n[:j][::-1])[::-1]
-        count = cum[j] - cum[:j]
-        padded = count * (w_d[j - 1] + mn)
+    if G <= 256:
+        # cost of every run of groups i..j (i <= j) at once: (G, G), upper triangle
+        i_, j_ = np.arange(G)[:, None], np.arange(G)[None, :]
+        mn_all = np.maximum.accumulate(np.where(j_ >= i_, w_n[None, :], 0.0), axis=1)
+        padded = (cum[1:][None, :] - cum[:-1][:, None]) * (w_d[None, :] + mn_all)
         pieces = np.maximum(np.ceil(padded / chunk_readings), 1.0)
-        cost = best[:j] + padded + pieces * _CALL_OVERHEAD_READINGS
-        i = int(np.argmin(cost))
-        best[j], prev[j] = cost[i], i
+        run_cost = padded + pieces * _CALL_OVERHEAD_READINGS
+        for j in range(1, G + 1):
+            cost = best[:j] + run_cost[:j, j - 1]
+            i = int(np.argmin(cost))
+            best[j], prev[j] = cost[i], i
+    else:
+        for j in range(1, G + 1):
+            # runs of groups i..j-1 (i = 0..j-1)
+            mn = np.maximum.accumulate(w_n[:j][::-1])[::-1]
+            count = cum[j] - cum[:j]
+            padded_j = count * (w_d[j - 1] + mn)
+            pieces_j = np.maximum(np.ceil(padded_j / chunk_readings), 1.0)
+            cost = best[:j] + padded_j + pieces_j * _CALL_OVERHEAD_READINGS
+            i = int(np.argmin(cost))
+            best[j], prev[j] = cost[i], i
     runs = []
     j = G
     while j > 0:

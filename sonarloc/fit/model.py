@@ -172,7 +172,10 @@ def beam_log_factor(theta: ArrayLike, tier: str, params: ModuleParams,
         g = np.exp(e) if want_g else e
         if not derivative:
             return g, e, e
-        return g, np.where(e < cap, t * inv_s2, 0.0), e
+        dlng = t * inv_s2
+        if e.size and e.max() >= cap:       # capped (far off-axis): flat
+            dlng[e >= cap] = 0.0
+        return g, dlng, e
     if tier in ("piston", "waveform"):
         return _piston_table(params.diameter_m, params.carrier_hz, params.c_mps).lookup_log(
             t, derivative, want_g)
@@ -372,19 +375,25 @@ def echo_terms(kappa: ArrayLike, g: ArrayLike, z: ArrayLike | None, params: Modu
             return EchoTerms(zeros, zeros, zeros, zeros, m, dm, var)
         d = u * scale
         return EchoTerms(zeros, zeros, zeros, zeros, d, np.full(u.shape, scale), (s * d) ** 2)
-    z = np.broadcast_to(np.asarray(z, dtype=float), u.shape)
-    act = z > -_Z_HIGH
+    zf: Array = np.broadcast_to(np.asarray(z, dtype=float), u.shape)
+    act = zf > -_Z_HIGH
     n_act = int(np.count_nonzero(act))
     waveform = tier == "waveform"
-    if n_act == z.size:               # all near the arc edge: no masking
-        log_p, m0, curv, ratio, dratio = _echo_core(z, s, waveform)
+    act_idx: NDArray[np.bool_] | None = act
+    if 4 * n_act >= zf.size:
+        # mostly near the arc edge: all at once (deeper inside clipped to z = -7, where
+        # the terms are within 1e-10 of the constants) rather than masked
+        if n_act < zf.size:
+            zf = np.maximum(zf, -_Z_HIGH)
+        log_p, m0, curv, ratio, dratio = _echo_core(zf, s, waveform)
+        act_idx = None
     else:
         log_p, dlogp_, curv, ratio, dratio = (np.zeros(u.shape), np.zeros(u.shape),
                                               np.zeros(u.shape), np.ones(u.shape),
                                               np.zeros(u.shape))
         m0 = dlogp_
         if n_act:
-            za = z[act]
+            za = zf[act]
             lp_a, m0_a, curv_a, ratio_a, dratio_a = _echo_core(za, s, waveform)
             log_p[act], m0[act], curv[act] = lp_a, m0_a, curv_a
             if not waveform:
@@ -392,11 +401,15 @@ def echo_terms(kappa: ArrayLike, g: ArrayLike, z: ArrayLike | None, params: Modu
     dlogp = -m0
     info = np.zeros(u.shape)
     if want_info and n_act:
-        l0 = log_p[act]
-        lpdf = -0.5 * z[act] ** 2 - _LOG_SQRT_2PI
+        l0 = log_p if act_idx is None else log_p[act_idx]
+        za = zf if act_idx is None else zf[act_idx]
+        lpdf = -0.5 * za ** 2 - _LOG_SQRT_2PI
         with np.errstate(divide="ignore"):
             lq = np.log(-np.expm1(l0))        # log Phi(z), accurate for all z
-        info[act] = np.exp(2.0 * lpdf - l0 - lq)
+        if act_idx is None:
+            info = np.exp(2.0 * lpdf - l0 - lq)
+        else:
+            info[act_idx] = np.exp(2.0 * lpdf - l0 - lq)
     if waveform:
         m, dm, var = waveform_delay_table(params).lookup(u)
         return EchoTerms(log_p, dlogp, info, curv, m, dm, var)
@@ -525,8 +538,11 @@ def noecho_terms(z: ArrayLike, want_info: bool = True
     z = np.asarray(z, dtype=float)
     act = z < _Z_HIGH
     n_act = int(np.count_nonzero(act))
-    if n_act == z.size:
-        za = z
+    if 4 * n_act >= z.size:
+        # mostly near the arc: all at once (beyond clipped to z = 7, where the terms are
+        # within 1e-10 of the constants) rather than masked
+        za = z if n_act == z.size else np.minimum(z, _Z_HIGH)
+        n_act = z.size
     else:
         za = z[act]
     # Phi directly (half the cost of log_ndtr) where it is far from underflow
