@@ -580,18 +580,20 @@ def screen(state: Gaussian, obs: EchoObservation, probability: float = 0.999
 
 
 def ambiguous(state: Gaussian, obs: EchoObservation, rivals: Sequence[EchoObservation],
-              probability: float = 0.999) -> NDArray[np.bool_]:
-    """(n,) readings of ``obs`` that another map feature explains as well.
+              probability: float = 0.999, min_detect: float = 0.5) -> NDArray[np.bool_]:
+    """(n,) readings of ``obs`` that another map feature, nearer, explains as well.
 
     The module reports the *first* threshold crossing, so where two reflectors lie at
     nearly the same range (a wall's normal-incidence point next to its corner, seen by
     a beam sweeping along the wall) a segment's readings come from either, and the
     segmenter keeps them in one segment. A reading that also passes the per-reading
     screen (:func:`screen`, same ``probability``) of a rival feature (same readings,
-    transducer poses and chain, that feature's geometry and strength; a rival beyond
-    its detection arc never passes) cannot tell the two apart: fused as a reading of
-    ``obs.feature`` it pulls the pose by the range difference, millimetres that the
-    forward model's sub-millimetre SDs turn into a strong, wrong update.
+    transducer poses and chain, that feature's geometry and strength) is the rival's
+    when the rival predicts the earlier crossing and is detected there with
+    probability at least ``min_detect``: fused as a reading of ``obs.feature`` it would
+    pull the pose by the range difference, millimetres that the forward model's
+    sub-millimetre SDs turn into a strong, wrong update. Where ``obs.feature`` predicts
+    the earlier crossing the reading stays its own (the nearer reflector wins).
 
     Parameters
     ----------
@@ -599,12 +601,22 @@ def ambiguous(state: Gaussian, obs: EchoObservation, rivals: Sequence[EchoObserv
     obs : the readings as measurements of the associated feature.
     rivals : the same readings as measurements of each other candidate feature.
     probability : chi-square(1) gate of the screen.
+    min_detect : detection probability of the rival needed to claim a reading.
     """
     out = np.zeros(len(obs), dtype=bool)
+    if not rivals:
+        return out
+    h_own, _, _ = obs.linearize(state.mean).measure(state.mean)
     for rival in rivals:
         if len(rival) != len(obs):
             raise ValueError(f"rival observation has {len(rival)} readings, `obs` has "
                              f"{len(obs)}")
         rival.linearize(state.mean)
-        out |= screen(state, rival, probability)
+        h, _, _ = rival.measure(state.mean)
+        rng, theta, _, _ = geometry(np.asarray(state.mean, dtype=float), rival.rel,
+                                    rival.feature)
+        p_det = delay_table(float(rival.c_mps)).lookup(theta, rival.kappa_at(rng))[3]
+        with np.errstate(invalid="ignore"):
+            nearer = (h < h_own) & (p_det >= min_detect)
+        out |= screen(state, rival, probability) & nearer
     return out

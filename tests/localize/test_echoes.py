@@ -234,9 +234,10 @@ def test_ambiguous_flags_readings_of_a_wall_next_to_its_corner() -> None:
     """The failure seen on panning drives: a beam sweeping along the wall x = 0 near its
     corner (0, 4.2) hears the wall's normal-incidence point, 4 mm nearer than the
     corner. Read as the corner, those readings pass the per-reading screen (a few SDs)
-    and would pull the pose by millimetres; the wall explains them too, so they are
-    ambiguous. The corner's own readings, where the wall's point is 17 cm nearer (or
-    beyond its arc), are not."""
+    and would pull the pose by millimetres; the wall, nearer and detected, explains them
+    too, so they are its readings. Read as the wall, they stay the wall's (the corner is
+    farther); the corner's own readings, where the wall's point is 17 cm nearer (or
+    beyond its arc), stay the corner's."""
     rng = np.random.default_rng(3)
     cov = np.diag([0.002**2, 0.002**2, math.radians(0.3) ** 2])
     pose = np.array([4.1, 4.02, math.pi])
@@ -249,6 +250,10 @@ def test_ambiguous_flags_readings_of_a_wall_next_to_its_corner() -> None:
     assert echoes.screen(state, as_corner).sum() >= 6     # the screen alone lets them in
     amb = echoes.ambiguous(state, as_corner, [_obs(WALL_X0, rel, 0.15, z)])
     assert amb[echoes.screen(state, as_corner)].all()
+    # read as the wall they are the wall's: its point is the nearer one (first crossing)
+    as_wall = _obs(WALL_X0, rel, 0.15, z).linearize(pose)
+    assert echoes.screen(state, as_wall).all()
+    assert not echoes.ambiguous(state, as_wall, [_corner_obs(rel, z)]).any()
     # the corner seen from farther along the wall: its readings are its own
     pose2 = np.array([4.1, 3.0, math.pi])
     rel2 = _pan_rel(np.arange(-22.0, -9.9, 1.5))
