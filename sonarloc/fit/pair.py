@@ -207,50 +207,66 @@ class _Segment:
         rep_own = None if owner is None else np.repeat(owner, m)
         if D == 3:
             return self._eval(comps, False, rep_own)[0].reshape(S, m)
-        terms = []
+        terms, probs = [], []
         for k in range(D // 3):
             U, inv = np.unique(stencil[:, 3 * k:3 * k + 3], axis=0, return_inverse=True)
             inv = inv.reshape(-1)
             u = U.shape[0]
             q = ((x[:, None, 3 * k:3 * k + 3] + U) * _SCALE).reshape(-1, 3)
-            own_u = None if owner is None else np.repeat(owner, u)
-            t = self._component(q, self._readings(own_u))
-            terms.append(tuple(np.broadcast_to(a, (S * u, a.shape[-1])).reshape(S, u, a.shape[-1])
-                               [:, inv].reshape(S * m, a.shape[-1]) for a in t))
-        y = self.y if rep_own is None else self.y[rep_own]
-        return self._combine(terms, comps, y, *self._masks(rep_own), False)[0].reshape(S, m)
+            t = self._terms(q, None if owner is None else np.repeat(owner, u))
+
+            def spread(a: Array, u: int = u, inv: NDArray[np.intp] = inv) -> Array:
+                """Rows (S u, ...) of the distinct points -> rows (S m, ...) of all."""
+                a = np.broadcast_to(a, (S * u, *a.shape[1:]))
+                return a.reshape(S, u, *a.shape[1:])[:, inv].reshape(S * m, *a.shape[1:])
+
+            terms.append(tuple(spread(a) for a in t))
+            probs.append(spread(np.exp(t[2])))
+        mask = self._masks(rep_own)[0]
+        return self._combine(terms, comps, mask, False, probs=probs)[0].reshape(S, m)
+
+    def _terms(self, q: Array, owner: NDArray[np.intp] | None) -> tuple[Array, ...]:
+        """Per-reading terms of components q (S, 3) for the likelihood: echo mean (S, n),
+        variance, log P(echo), log normal density of the reading; the readings (S, n);
+        and the sum of log P(no echo) over the no-echo readings (S,)."""
+        rd = self._readings(owner)
+        mean, s2, log_p, lqn = self._component(q, rd)
+        y = rd[3] if rd[3].ndim == 2 else rd[3][None, :]
+        lnorm = -0.5 * (y - mean) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
+        ne_mask = self._masks(owner)[1]
+        if ne_mask is not None:
+            lqn = np.where(ne_mask, lqn, 0.0)
+        return mean, s2, log_p, lnorm, np.broadcast_to(y, mean.shape), lqn.sum(1)
 
     def _eval(self, comps: list[Array], detail: bool, owner: NDArray[np.intp] | None
               ) -> tuple[Array, Array, Array]:
-        rd = self._readings(owner)
-        terms = [self._component(q, rd) for q in comps]
-        return self._combine(terms, comps, rd[3], *self._masks(owner), detail)
+        terms = [self._terms(q, owner) for q in comps]
+        return self._combine(terms, comps, self._masks(owner)[0], detail)
 
-    def _combine(self, terms: list[tuple[Array, ...]], comps: list[Array], y: Array,
-                 mask: NDArray[np.bool_] | None, ne_mask: NDArray[np.bool_] | None,
-                 detail: bool) -> tuple[Array, Array, Array]:
-        """The likelihood from the components' per-reading terms (:meth:`_component`)."""
-        y = y if y.ndim == 2 else y[None, :]
-        lnorm = [-0.5 * (y - m) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
-                 for m, s2, _, _ in terms]
+    def _combine(self, terms: list[tuple[Array, ...]], comps: list[Array],
+                 mask: NDArray[np.bool_] | None, detail: bool,
+                 probs: list[Array] | None = None) -> tuple[Array, Array, Array]:
+        """The likelihood from the components' terms (:meth:`_terms`); ``probs``:
+        P(echo) of each component if known."""
+        lnorm = [t[3] for t in terms]
         if len(comps) == 1:
             parts = [terms[0][2] + lnorm[0]]
         else:
-            (ma, sa2, lpa, _), (mb, sb2, lpb, _) = terms
+            (ma, sa2, lpa, _, _, _), (mb, sb2, lpb, _, _, _) = terms
             # w = P(A's crossing before B's) when both are detected
             w = ndtr((mb - ma) / np.sqrt(sa2 + sb2))
-            pa, pb = np.exp(lpa), np.exp(lpb)
+            pa, pb = probs if probs is not None else (np.exp(lpa), np.exp(lpb))
             parts = [lpa + lnorm[0] + np.log(np.maximum(1.0 - pb * (1.0 - w), 1e-300)),
                      lpb + lnorm[1] + np.log(np.maximum(1.0 - pa * w, 1e-300))]
         # a uniform floor exp(-cap / 2) per echo: a spike costs at most about `cap`
-        ll = np.logaddexp(np.logaddexp.reduce(np.stack(parts), axis=0), -0.5 * self.cap)
+        ll = np.logaddexp(parts[0] if len(parts) == 1 else np.logaddexp(parts[0], parts[1]),
+                          -0.5 * self.cap)
         per = -2.0 * ll
         if mask is not None:
             per = np.where(mask, per, 0.0)
         c = per.sum(1)
         for t in terms:
-            lqn = t[3] if ne_mask is None else np.where(ne_mask, t[3], 0.0)
-            c = c - 2.0 * lqn.sum(1)
+            c = c - 2.0 * t[5]
         for q in comps:
             c = c + _kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)[0]
         c = np.where(np.isfinite(c), c, 1e12)   # off the cliffs: the optimiser backs off
@@ -262,7 +278,7 @@ class _Segment:
         s_all = np.stack([t[1] for t in terms], axis=1)
         m_sel = np.take_along_axis(m_all, pick[:, None, :], axis=1)[:, 0]
         s_sel = np.take_along_axis(s_all, pick[:, None, :], axis=1)[:, 0]
-        return c, resp, (y - m_sel) / np.sqrt(s_sel)
+        return c, resp, (terms[0][4] - m_sel) / np.sqrt(s_sel)
 
 
 class _Segments(_Segment):
@@ -393,13 +409,14 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
         sv = x_new - x[rows]
         yv = g_new - g[rows]
         sy = np.einsum("si,si->s", sv, yv)
-        for j in np.flatnonzero(moved & (sy > 1e-12)):
-            s_, y_, r = sv[j], yv[j], rows[j]
-            if first[r]:                         # scale the initial inverse Hessian
-                Hinv[r] *= sy[j] / float(y_ @ y_)
-            rho = 1.0 / sy[j]
-            V = np.eye(D) - rho * np.outer(s_, y_)
-            Hinv[r] = V @ Hinv[r] @ V.T + rho * np.outer(s_, s_)
+        upd = np.flatnonzero(moved & (sy > 1e-12))
+        for j in upd[first[rows[upd]]].tolist():   # scale the initial inverse Hessian
+            Hinv[rows[j]] *= sy[j] / float(yv[j] @ yv[j])
+        if upd.size:                             # the BFGS update of all rows at once
+            r, s_, y_ = rows[upd], sv[upd], yv[upd]
+            rho = (1.0 / sy[upd])[:, None, None]
+            V = np.eye(D) - rho * (s_[:, :, None] * y_[:, None, :])
+            Hinv[r] = V @ Hinv[r] @ np.swapaxes(V, 1, 2) + rho * (s_[:, :, None] * s_[:, None, :])
         first[rows[moved]] = False
         f_old = f[rows]
         x[rows], f[rows], g[rows] = x_new, f_new, g_new

@@ -127,3 +127,56 @@ def test_lockstep_bfgs_matches_scipy_per_start_and_holds_fixed_variables(rng):
     assert cs.min() < float(np.asarray(seg.cost(P._unscale(starts))).min()) - 10.0
     xf, _ = P._minimise_batch(seg, starts[:2], fixed=[2, None])
     assert xf[0, 2] == starts[0, 2] and xf[1, 2] != starts[1, 2]
+
+
+def test_padded_segments_cost_each_row_on_its_own_segment(rng):
+    # rows of a _Segments evaluate their own segment (padding counts nothing), and the
+    # stencil evaluation reusing one component's terms gives cost()'s numbers exactly
+    cfg = FitConfig()
+    scans = [pan_scan([Reflector.polar(r, b, k)], rng, -30, 30, step)
+             for r, b, k, step in ((1.2, 3.0, 0.67, 0.3), (2.5, -4.0, 2.68, 1.0),
+                                   (1.8, 0.0, 0.15, 2.0))]
+    batch = pack_segments([(s.t_s, s.x_m, s.y_m, s.yaw_rad, s.tof_us) for s in scans])
+    singles = [P._Segment(batch, b, cfg, "gauss") for b in range(3)]
+    assert len({s.y.size for s in singles}) == 3 and len({s.npx.size for s in singles}) > 1
+    group = P._Segments(singles)
+    owner = np.array([0, 1, 2, 2, 0, 1])
+    x = np.array([[1200.0 + d, 3.0 + d, math.log(0.67), 1200.0, 8.0 - d, math.log(1.0)]
+                  for d in (-0.5, 0.0, 0.5)] * 2)
+    x[owner == 1, 0::3] += 1300.0
+    x[owner == 2, 0::3] += 600.0
+    for comps in (P._unscale(x), P._unscale(x[:, :3])):
+        got = group.cost(comps, owner)
+        want = [float(singles[o].cost([c[j:j + 1] for c in comps])[0])
+                for j, o in enumerate(owner.tolist())]
+        np.testing.assert_allclose(got, want, rtol=1e-12)
+    D = 6
+    stencil = np.concatenate([np.zeros((1, D)), np.eye(D) * 1e-4, -np.eye(D) * 1e-4])
+    for ev, own in ((singles[1], None), (group, owner)):
+        fast = ev.cost_stencil(x, stencil, own)
+        full = ev.cost(P._unscale((x[:, None, :] + stencil).reshape(-1, D)),
+                       None if own is None else np.repeat(own, len(stencil)))
+        np.testing.assert_array_equal(fast, full.reshape(fast.shape))
+
+
+def test_candidates_searched_together_decide_as_one_at_a_time(rng):
+    # resolve_pair_groups on many candidates at once (padded, in lockstep) gives each
+    # the result of its search alone (up to rounding of the padded sums)
+    from sonarloc.fit.landmarks import fit_segments
+    from sonarloc.fit.segment import Segmenter
+    segs = []
+    for sep, dr in ((14.0, 0.0005), (9.0, 0.001), (20.0, 0.0), (6.0, 0.0)):
+        refl = [Reflector.polar(1.5, -sep / 2, 0.67), Reflector.polar(1.5 + dr, sep / 2, 0.67)]
+        segs += list(Segmenter().feed(pan_scan(refl, rng, -40, 40, 0.3)))
+    cfg = FitConfig()
+    together = P.resolve_pair_groups(segs, fit_segments(segs, cfg), cfg)
+    lms = fit_segments(segs, cfg)
+    assert sum(P.is_candidate(lm, cfg) for lm in lms) >= 3
+    alone = [P.resolve_pair_groups([s], [lm], cfg)[0] for s, lm in zip(segs, lms, strict=True)]
+    assert any(len(g) == 2 for g in together)
+    for a, b in zip(together, alone, strict=True):
+        assert [lm.status for lm in a] == [lm.status for lm in b]
+        for la, lb in zip(a, b, strict=True):
+            np.testing.assert_allclose(la.params, lb.params, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(la.cov, lb.cov, rtol=1e-6, atol=1e-15)
+            assert la.extra.get("pair_basis", "")[:20] == lb.extra.get("pair_basis", "")[:20]
