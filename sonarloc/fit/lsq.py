@@ -172,7 +172,9 @@ class FitConfig:
         covariance of the Gauss-Newton matrix of the three parameters (calibrated for
         what this method uses). Echoes only: the no-echo readings' detection terms
         (which the default uses to bound the arc) are left out, so the bearing is that
-        of the TOF curve alone (benchmarks/results/fit.md)."""
+        of the TOF curve alone: about a per-segment ``curve_fit``'s error, 4-5x the
+        default's, more segments ``FLAT``, and no faster than ``fast()``
+        (benchmarks/results/fit.md). For data whose no-echo readings cannot be trusted."""
         return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True,
                            grid_max_echoes=16, method="profile"), **changes)
 
