@@ -259,11 +259,14 @@ def pack_flat(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array, yaw_ra
         padded (tof with NaN, the rest with 0), and validity."""
         width = max(int(count.max(initial=0)), 1)
         lin = s * width + (np.arange(s.size) - (end - count)[s])   # flat index in (B, width)
+        # one block for all columns (a large one gets huge pages: fewer page faults)
+        block = np.zeros((k, B * width))
+        if k > 3:
+            block[3] = np.nan
         out = []
         for j in range(k):
-            a = np.full(B * width, np.nan) if j == 3 else np.zeros(B * width)
-            a[lin] = rel[j][idx]
-            out.append(a.reshape(B, width))
+            block[j, lin] = rel[j][idx]
+            out.append(block[j].reshape(B, width))
         ok = np.zeros(B * width, dtype=bool)
         ok[lin] = True
         return out, ok.reshape(B, width)

@@ -274,43 +274,71 @@ def relative_sensor_chain(base_ref: ArrayLike, base_at: ArrayLike, sensor_at: Ar
 
     Parameters
     ----------
-    base_ref : (3,) odometry pose of ``base_link`` at the reference time.
-    base_at : (n, 3) odometry poses of ``base_link`` at the readings' times, in time
+    base_ref : (..., 3) odometry pose of ``base_link`` at the reference time.
+    base_at : (..., n, 3) odometry poses of ``base_link`` at the readings' times, in time
         order, none after the reference.
-    sensor_at : (n, 3) odometry poses of the transducers at those times.
+    sensor_at : (..., n, 3) odometry poses of the transducers at those times.
     noise : odometry increment noise model.
+
+    Leading axes are a batch of segments (:mod:`sonarloc.localize.batchfuse` pads
+    shorter ones at the start with copies of their first reading: a zero increment adds
+    no noise, so the padding changes nothing).
 
     Returns
     -------
-    rel : (n, 3) transducer poses in ``base_link`` at the reference time.
-    p_fac, v_fac : (n, 3, 3) with ``cov(err s_i, err s_j) = p_fac[i] @ v_fac[j]`` for
-        i <= j (reading i no later than reading j).
+    rel : (..., n, 3) transducer poses in ``base_link`` at the reference time.
+    p_fac, v_fac : (..., n, 3, 3) with ``cov(err s_i, err s_j) = p_fac[i] @ v_fac[j]``
+        for i <= j (reading i no later than reading j).
     """
     ref = np.asarray(base_ref, dtype=float)
-    base = np.asarray(base_at, dtype=float).reshape(-1, 3)
-    sens = np.asarray(sensor_at, dtype=float).reshape(-1, 3)
-    n = len(base)
-    b = se2.between(ref, base)                      # base at t_i in base at ref
-    rel = se2.between(ref, sens)                    # transducer at t_i in base at ref
-    mount = se2.between(base, sens)                 # transducer in base_link at t_i
-    # chain backwards from the reference: b_i = b_{i+1} ⊕ u_i, u_i = between(base_{i+1}, base_i)
-    nxt = np.vstack([base[1:], ref[None, :]])
+    base = np.asarray(base_at, dtype=float)
+    if base.ndim == 1:
+        base = base.reshape(-1, 3)
+    sens = np.asarray(sensor_at, dtype=float).reshape(base.shape)
+    ref_n = ref[..., None, :]
+    b = se2.between(ref_n, base)                    # base at t_i in base at ref
+    rel = se2.between(ref_n, sens)                  # transducer at t_i in base at ref
+    # chain backwards from the reference: b_i = b_{i+1} ⊕ u_i, u_i = between(base_{i+1},
+    # base_i), b_n = 0. The Jacobians of ⊕ in b_{i+1} are I + (W_i - W_{i+1}) e₃ᵀ with
+    # W = (-y, x, 0) of b, so the chain's products telescope (as in ekf.predict_chain):
+    # Σ_i = Σ_{k >= i} Φ_ik w_k Φ_ikᵀ, Φ_ik = I + (W_i - W_k) e₃ᵀ, w_k the noise of u_k
+    # turned into the frame of b_{k+1}: suffix sums of w_k, qt_k W_k and qt_k W_k W_kᵀ.
+    nxt = np.concatenate([base[..., 1:, :], np.broadcast_to(ref_n, ref_n.shape)], axis=-2)
     u = se2.between(nxt, base)
-    q = noise.cov(u)
-    b_next = np.vstack([b[1:], np.zeros((1, 3))])
-    j1, j2 = se2.compose_jacobians(b_next, u)
-    sigma = np.zeros((n, 3, 3))
-    a_mat = np.zeros((n, 3, 3))
-    s_next = np.zeros((3, 3))
-    a_next = np.eye(3)
-    for i in range(n - 1, -1, -1):
-        s_i = j1[i] @ s_next @ j1[i].T + j2[i] @ q[i] @ j2[i].T
-        a_i = j1[i] @ a_next
-        sigma[i], a_mat[i] = 0.5 * (s_i + s_i.T), a_i
-        s_next, a_next = sigma[i], a_i
-    k, _ = se2.compose_jacobians(b, mount)          # d s_i / d b_i
-    p_fac = k @ a_mat
-    v_fac = np.linalg.solve(a_mat, sigma) @ np.swapaxes(k, -1, -2)
+    d = np.hypot(u[..., 0], u[..., 1])
+    turn = np.abs(u[..., 2])                        # wrapped by between
+    qx = noise.along_var_per_m * d + noise.xy_var_per_rad * turn
+    qy = noise.cross_var_per_m * d + noise.xy_var_per_rad * turn
+    qt = noise.yaw_var_per_m * d + noise.yaw_var_per_rad * turn
+    b_next = np.concatenate([b[..., 1:, :], np.zeros(b.shape[:-2] + (1, 3))], axis=-2)
+    c, s = np.cos(b_next[..., 2]), np.sin(b_next[..., 2])
+    wx, wy = -b[..., 1], b[..., 0]                  # W_i
+
+    # suffix sums (over k >= i along the readings) of the nine chain quantities at once
+    terms = np.stack([c * c * qx + s * s * qy, c * s * (qx - qy), s * s * qx + c * c * qy,
+                      qt, qt * wx, qt * wy, qt * wx * wx, qt * wx * wy, qt * wy * wy])
+    (a_xx, a_xy, a_yy, s0, s1x, s1y, s2xx, s2xy, s2yy) = \
+        np.cumsum(terms[..., ::-1], axis=-1)[..., ::-1]
+    sigma = np.empty(base.shape + (3,))
+    sigma[..., 0, 0] = a_xx + s0 * wx * wx - 2.0 * wx * s1x + s2xx
+    sigma[..., 0, 1] = sigma[..., 1, 0] = a_xy + s0 * wx * wy - wx * s1y - s1x * wy + s2xy
+    sigma[..., 1, 1] = a_yy + s0 * wy * wy - 2.0 * wy * s1y + s2yy
+    sigma[..., 0, 2] = sigma[..., 2, 0] = s0 * wx - s1x
+    sigma[..., 1, 2] = sigma[..., 2, 1] = s0 * wy - s1y
+    sigma[..., 2, 2] = s0
+    # the error of s_i = b_i ⊕ mount_i: K_i δb_i, K_i = I + (W(rel_i) - W_i) e₃ᵀ; the
+    # chain from the reference to b_i: A_i = I + W_i e₃ᵀ, so cov(s_i, s_j) = K_i A_i ·
+    # A_j⁻¹ Σ_j K_jᵀ for i <= j
+    p_fac = np.zeros(base.shape + (3,))
+    p_fac[..., 0, 0] = p_fac[..., 1, 1] = p_fac[..., 2, 2] = 1.0
+    p_fac[..., 0, 2], p_fac[..., 1, 2] = -rel[..., 1], rel[..., 0]      # K_i A_i
+    a_inv = np.zeros_like(p_fac)
+    a_inv[..., 0, 0] = a_inv[..., 1, 1] = a_inv[..., 2, 2] = 1.0
+    a_inv[..., 0, 2], a_inv[..., 1, 2] = -wx, -wy
+    k_t = np.zeros_like(p_fac)
+    k_t[..., 0, 0] = k_t[..., 1, 1] = k_t[..., 2, 2] = 1.0
+    k_t[..., 2, 0], k_t[..., 2, 1] = -rel[..., 1] - wx, rel[..., 0] - wy
+    v_fac = a_inv @ sigma @ k_t
     return rel, p_fac, v_fac
 
 

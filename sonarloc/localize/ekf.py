@@ -194,24 +194,35 @@ def predict(state: Gaussian, increment: ArrayLike, noise: OdomNoise = OdomNoise(
 
 
 def _predict_one(state: Gaussian, u: Array, noise: OdomNoise) -> Gaussian:
-    """:func:`predict` for one filter, in scalar arithmetic (same numbers, less overhead)."""
-    x, y, th = (float(v) for v in state.mean)
-    dx, dy, dth = (float(v) for v in u)
+    """:func:`predict` for one filter, in scalar arithmetic (same numbers to rounding,
+    less overhead): ``F = I + (a, b, 0) e₃ᵀ`` makes ``F P Fᵀ`` a few products."""
+    x, y, th = state.mean.tolist()
+    dx, dy, dth = u.tolist()
     c, s = math.cos(th), math.sin(th)
     d = math.hypot(dx, dy)
-    turn = abs(float(se2.wrap_angle(dth)))
+    turn = abs((dth + math.pi) % (2.0 * math.pi) - math.pi)
     qx = noise.along_var_per_m * d + noise.xy_var_per_rad * turn
     qy = noise.cross_var_per_m * d + noise.xy_var_per_rad * turn
     qt = noise.yaw_var_per_m * d + noise.yaw_var_per_rad * turn
-    f = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
-    # G Q Gᵀ with G = rot(th) ⊕ 1 and Q diagonal
-    gq = np.array([[c * c * qx + s * s * qy, c * s * (qx - qy), 0.0],
-                   [c * s * (qx - qy), s * s * qx + c * c * qy, 0.0],
-                   [0.0, 0.0, qt]])
-    cov = f @ state.cov @ f.T + gq
+    a, b = -s * dx - c * dy, c * dx - s * dy
+    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = state.cov.tolist()
+    # F P: rows 0 and 1 gain a (b) times row 2; then (F P) Fᵀ: columns likewise
+    f00, f01, f02 = p00 + a * p20, p01 + a * p21, p02 + a * p22
+    f10, f11, f12 = p10 + b * p20, p11 + b * p21, p12 + b * p22
+    m00, m01 = f00 + a * f02, f01 + b * f02
+    m10, m11 = f10 + a * f12, f11 + b * f12
+    m20, m21 = p20 + a * p22, p21 + b * p22
+    # + G Q Gᵀ with G = rot(th) ⊕ 1 and Q diagonal; symmetrised
+    gxy = c * s * (qx - qy)
+    o01 = 0.5 * (m01 + m10) + gxy
+    o02 = 0.5 * (f02 + m20)
+    o12 = 0.5 * (f12 + m21)
+    cov = np.array([[m00 + c * c * qx + s * s * qy, o01, o02],
+                    [o01, m11 + s * s * qx + c * c * qy, o12],
+                    [o02, o12, p22 + qt]])
     mean = np.array([x + c * dx - s * dy, y + s * dx + c * dy,
-                     float(se2.wrap_angle(th + dth))])
-    return Gaussian(mean, symmetrize(cov))
+                     (th + dth + math.pi) % (2.0 * math.pi) - math.pi])
+    return Gaussian(mean, cov)
 
 
 def predict_chain(state: Gaussian, increments: ArrayLike, noise: OdomNoise = OdomNoise()

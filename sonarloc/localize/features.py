@@ -153,18 +153,19 @@ class FeatureMap:
 
     def points_visible_from(self, xy: ArrayLike, max_range_m: float = math.inf
                             ) -> NDArray[np.bool_]:
-        """(P,) which point features can echo towards position ``xy`` (2,) in ``map``.
+        """(..., P) which point features can echo towards positions ``xy`` (..., 2) in
+        ``map``.
 
         Corners are seen only from inside the angle between their walls, edges from
         outside it and within :data:`EDGE_RANGE_M`; all within ``max_range_m``.
         """
-        p = np.asarray(xy, dtype=float)
+        p = np.asarray(xy, dtype=float)[..., None, :]
         d = p - self.point_xy
-        dist = np.hypot(d[:, 0], d[:, 1])
+        dist = np.hypot(d[..., 0], d[..., 1])
         ok = dist <= max_range_m + self.point_radius_m
         has_cone = ~np.isnan(self.point_cone_rad[:, 0])
         if np.any(has_cone):
-            phi = np.arctan2(d[:, 1], d[:, 0])
+            phi = np.arctan2(d[..., 1], d[..., 0])
             a1, a2 = self.point_cone_rad[:, 0], self.point_cone_rad[:, 1]
             # inside the (< 180 deg) angle between the two wall directions
             half = 0.5 * se2.wrap_angle(a2 - a1)
@@ -180,16 +181,17 @@ class FeatureMap:
 
     def walls_facing(self, xy: ArrayLike, margin_m: float = 0.2,
                      max_range_m: float = math.inf) -> NDArray[np.bool_]:
-        """(W,) walls whose foot of the perpendicular from ``xy`` lies on the segment
-        (extended by ``margin_m`` at both ends) within ``max_range_m``: where a specular
-        echo can come from.
+        """(..., W) walls whose foot of the perpendicular from ``xy`` (..., 2) lies on the
+        segment (extended by ``margin_m`` at both ends) within ``max_range_m``: where a
+        specular echo can come from.
         """
-        p = np.asarray(xy, dtype=float)
+        p = np.asarray(xy, dtype=float)[..., None, :]
         a, b = self.wall_ends[:, 0], self.wall_ends[:, 1]
         ab = b - a
         length = np.hypot(ab[:, 0], ab[:, 1])
-        t = np.einsum("ij,ij->i", p - a, ab) / length
-        dist = np.abs(ab[:, 0] * (p[1] - a[:, 1]) - ab[:, 1] * (p[0] - a[:, 0])) / length
+        t = np.sum((p - a) * ab, axis=-1) / length
+        dist = np.abs(ab[:, 0] * (p[..., 1] - a[:, 1]) - ab[:, 1] * (p[..., 0] - a[:, 0])) \
+            / length
         return np.asarray((t >= -margin_m) & (t <= length + margin_m) & (dist <= max_range_m))
 
 

@@ -238,6 +238,7 @@ class LocalizerStats:
     odom: int = 0
     tof: int = 0
     landmarks: int = 0
+    segments: int = 0
     observations: int = 0
     accepted: int = 0
     echoes_fused: int = 0
@@ -251,6 +252,8 @@ class LocalizerStats:
                  f"{self.accepted} fused"]
         if self.landmarks:
             parts.insert(2, f"{self.landmarks} landmarks fitted")
+        if self.segments:
+            parts.insert(2, f"{self.segments} segments")
         if self.echoes_fused:
             parts.append(f"{self.echoes_fused} readings fused")
         if self.outcomes.get("echo_matched"):
@@ -407,6 +410,20 @@ def _too_few(seg: Any, need: int) -> Landmark:
                     sensors=tuple(sorted({int(v) for v in np.asarray(r.sensor)[echo]})))
 
 
+def _fitted_kappa(lm: Landmark) -> float:
+    """The fitted strength of ``lm`` [us] (NaN when it has none)."""
+    p = np.asarray(lm.params, dtype=float)
+    return float(p[2]) if p.shape == (3,) else math.nan
+
+
+def _kappa_fallback(fitted_kappa_us: float) -> float:
+    """Strength used for a map feature without one: the fit's, kept within 0.05..10 us,
+    else 1 us."""
+    if math.isfinite(fitted_kappa_us):
+        return min(max(fitted_kappa_us, 0.05), 10.0)
+    return 1.0
+
+
 def _echo_arrays(lm: Landmark) -> tuple[Array, ...] | None:
     """``lm.extra["echoes"]`` as five equal-length float arrays (t, x, y, yaw, tof), or
     None when absent or malformed."""
@@ -553,6 +570,10 @@ class Localizer:
         readings itself) and the history is not trimmed (call :meth:`trim_history`);
         read estimates with :meth:`estimate_at`.
         """
+        if isinstance(t_s, list) and isinstance(odom, list) and 0 < len(t_s) <= 4 and \
+                len(odom) == len(t_s) and self._entries:
+            self._extend_few(t_s, odom)
+            return
         t = np.asarray(t_s, dtype=float).reshape(-1)
         pose = np.asarray(odom, dtype=float).reshape(-1, 3)
         if len(t) != len(pose):
@@ -587,6 +608,23 @@ class Localizer:
                 state = ekf.predict(last.state, se2.between(last.odom, pose[k]), noise)
                 self._append(_Entry(tk, pose[k], state))
         self._last_odom_t = float(self._times[-1])
+
+    def _extend_few(self, t_s: list[float], odom: list[Any]) -> None:
+        """:meth:`extend_odometry` of a few records after the first (lists, no arrays)."""
+        noise = self.config.odom_noise
+        for tk, pk in zip(t_s, odom, strict=True):
+            tk = float(tk)
+            x, y, yaw = (float(v) for v in pk)
+            if not (math.isfinite(tk) and math.isfinite(x) and math.isfinite(y)
+                    and math.isfinite(yaw)):
+                raise ValueError("`t_s` and `odom` must be finite")
+            self.stats.odom += 1
+            tk = max(tk, self._last_odom_t)
+            pose = np.array([x, y, (yaw + math.pi) % (2.0 * math.pi) - math.pi])
+            last = self._entries[-1]
+            state = ekf.predict(last.state, se2.between(last.odom, pose), noise)
+            self._append(_Entry(tk, pose, state))
+            self._last_odom_t = tk
 
     def trim_history(self) -> None:
         """Drop history older than ``history_s`` (as :meth:`on_odom` does)."""
@@ -727,11 +765,12 @@ class Localizer:
             assoc = associate(state_ref, obs, self.fmap, self.config.association)
             self.stats.outcomes[assoc.status] += 1
             if assoc.matched and assoc.feature is not None:
-                eo = self._echo_for(chain, assoc.kind, assoc.index, lm, state_ref)
+                eo = self._echo_for(chain, assoc.kind, assoc.index, _fitted_kappa(lm),
+                                    state_ref)
                 if eo is None:
                     self.stats.outcomes["echo_outliers"] += 1
         if eo is None:
-            found = self._associate_echoes(chain, lm, state_ref)
+            found = self._associate_echoes(chain, _fitted_kappa(lm), state_ref)
             if found is None:
                 self._rejected(t_ref)
                 self.stats.outcomes["echo_unmatched"] += 1
@@ -765,25 +804,28 @@ class Localizer:
         return t, 0.5e-6 * self._c_mps * tof, rel, p_fac, v_fac
 
     def _echo_for(self, chain: tuple[Array, Array, Array, Array, Array],
-                  kind: str | None, index: int, lm: Landmark, state: Gaussian
+                  kind: str | None, index: int, fitted_kappa_us: float, state: Gaussian
                   ) -> EchoObservation | None:
         """The chain's readings of map feature (kind, index), screened one by one against
         ``state``, without those another map feature explains as well
-        (:func:`~sonarloc.localize.echoes.ambiguous`); None when none is left."""
-        eo = self._feature_echo(chain, kind, index, lm)
+        (:func:`~sonarloc.localize.echoes.ambiguous`); None when none is left.
+        ``fitted_kappa_us`` (NaN: none) stands in for a map feature without a strength."""
+        eo = self._feature_echo(chain, kind, index, fitted_kappa_us)
         eo.linearize(state.mean)
         keep = echoes.screen(state, eo, self.config.echo_screen_probability)
         if not keep.any():
             return None
         eo = eo.subset(keep)
-        rivals = [r.subset(keep) for r in self._rivals(chain, kind, index, lm, state)]
+        rivals = [r.subset(keep) for r in self._rivals(chain, kind, index, fitted_kappa_us,
+                                                       state)]
         if rivals:
             eo = eo.subset(~echoes.ambiguous(state, eo, rivals,
                                              self.config.echo_screen_probability))
         return eo if len(eo) else None
 
     def _feature_echo(self, chain: tuple[Array, Array, Array, Array, Array],
-                      kind: str | None, index: int, lm: Landmark) -> EchoObservation:
+                      kind: str | None, index: int, fitted_kappa_us: float
+                      ) -> EchoObservation:
         """The chain's readings as measurements of map feature (kind, index)."""
         t, z, rel, p_fac, v_fac = chain
         if kind == "point":
@@ -793,14 +835,15 @@ class Localizer:
             feat = self.fmap.wall(index)
             kap = float(self.fmap.wall_kappa_us[index])
         if not (math.isfinite(kap) and kap > 0):
-            fitted = float(lm.params[2]) if np.asarray(lm.params).shape == (3,) else math.nan
-            kap = min(max(fitted, 0.05), 10.0) if math.isfinite(fitted) else 1.0
+            kap = _kappa_fallback(fitted_kappa_us)
         kind_name = self.fmap.point_kind[index] if kind == "point" else \
             self.fmap.wall_kind[index]
         return EchoObservation(z, rel, p_fac, v_fac, kap, feat, float(t[-1]), self._c_mps,
                                kind_name)
+
     def _rivals(self, chain: tuple[Array, Array, Array, Array, Array], kind: str | None,
-                index: int, lm: Landmark, state: Gaussian) -> list[EchoObservation]:
+                index: int, fitted_kappa_us: float, state: Gaussian
+                ) -> list[EchoObservation]:
         """The chain's readings as measurements of every *other* map feature that can echo
         towards the segment's last transducer position from about the readings' range
         (geometry only; the same line or point under another index is not a rival)."""
@@ -827,11 +870,11 @@ class Localizer:
                                              self.fmap.wall_line[walls])
         near_p = np.any(np.abs(rng_p - z) <= tol, axis=1)
         near_w = np.any(np.abs(rng_w - z) <= tol, axis=1)
-        return [self._feature_echo(chain, k, int(i), lm)
+        return [self._feature_echo(chain, k, int(i), fitted_kappa_us)
                 for k, idx in (("point", pts[near_p]), ("wall", walls[near_w])) for i in idx]
 
     def _associate_echoes(self, chain: tuple[Array, Array, Array, Array, Array],
-                          lm: Landmark, state: Gaussian
+                          fitted_kappa_us: float, state: Gaussian
                           ) -> tuple[EchoObservation, Association] | None:
         """Which map feature explains a segment's readings (those the fit could not
         associate): each candidate's readings screened, the stacked squared Mahalanobis
@@ -858,7 +901,7 @@ class Localizer:
                                                   <= tol]]
         scored: list[tuple[int, float, float, EchoObservation, str, int]] = []
         for kind, k in cands:
-            eo = self._echo_for(chain, kind, k, lm, state)
+            eo = self._echo_for(chain, kind, k, fitted_kappa_us, state)
             if eo is None or len(eo) < need:
                 continue
             h, hx, r = eo.measure(state.mean)

@@ -27,9 +27,30 @@ from typing import Any
 
 import numpy as np
 
+from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import OdomRecord, TofRecord
-from sonarloc.localize.localizer import Localizer, PoseEstimate, SegmentFitSource
+from sonarloc.localize import echoes, ekf
+from sonarloc.localize.batchfuse import (
+    FAST_DXY_M,
+    FAST_DYAW_RAD,
+    FAST_STEP_M,
+    FAST_STEP_RAD,
+    BatchFuser,
+    Linearized,
+    Prepared,
+    SegmentEchoes,
+    interpolate_track,
+    reduced_update,
+)
+from sonarloc.localize.echoes import EchoObservation
+from sonarloc.localize.localizer import (
+    ECHO_MIN_FRACTION,
+    Localizer,
+    PoseEstimate,
+    SegmentFitSource,
+    _Entry,
+)
 
 EstimateCallback = Callable[[OdomRecord, PoseEstimate], None]
 
@@ -46,11 +67,25 @@ class OfflinePipeline:
     batch_segments : closed segments fitted together.
     max_wait_s : log time a closed segment waits at most for the batch to fill.
     round_odom : odom records gathered before the readings up to them are segmented.
+    fast : fuse the segments' readings without fitting them (association by the
+        readings, linearised many segments at a time at the beliefs predicted by the
+        odometry: :mod:`sonarloc.localize.batchfuse`). None (default): for the ``kuc``
+        method with ``kuc_fusion="echoes"`` (whose fits only serve association). False:
+        every segment fitted and given to :meth:`Localizer.add_landmark` on time (the
+        rows then equal a live Localizer's given the same landmarks on time).
+    linearize_segments : (fast) segments linearised together at most (transducer
+        chains, candidates, forward model: at the beliefs the odometry predicts from the
+        latest one).
+    chunk_segments, chunk_s : (fast) segments screened, gated and associated together
+        at most, and the longest span of their reference times [s] (the beliefs they are
+        decided at are predicted that far ahead without the updates in between).
     """
 
     def __init__(self, localizer: Localizer, on_estimate: EstimateCallback | None = None,
                  batch_segments: int = 1024, max_wait_s: float = 120.0,
-                 round_odom: int = 50) -> None:
+                 round_odom: int = 50, fast: bool | None = None,
+                 linearize_segments: int = 128, chunk_segments: int = 32,
+                 chunk_s: float = 0.5) -> None:
         if localizer.config.method not in ("kuc", "odometry"):
             raise ValueError(f"the offline pipeline runs methods 'kuc' and 'odometry', got "
                              f"{localizer.config.method!r}")
@@ -59,6 +94,26 @@ class OfflinePipeline:
                              f"{batch_segments!r}")
         if not (math.isfinite(max_wait_s) and max_wait_s >= 0):
             raise ValueError(f"`max_wait_s` must be non-negative, got {max_wait_s!r}")
+        cfg = localizer.config
+        echo_level = cfg.method == "kuc" and cfg.kuc_fusion == "echoes"
+        if fast and not echo_level:
+            raise ValueError(f"`fast` needs method 'kuc' with kuc_fusion 'echoes', got "
+                             f"{cfg.method!r} / {cfg.kuc_fusion!r}")
+        if not (isinstance(chunk_segments, int) and chunk_segments >= 1):
+            raise ValueError(f"`chunk_segments` must be a positive integer, got "
+                             f"{chunk_segments!r}")
+        self.fast = echo_level if fast is None else bool(fast)
+        if not (math.isfinite(chunk_s) and chunk_s > 0):
+            raise ValueError(f"`chunk_s` must be positive, got {chunk_s!r}")
+        if not (isinstance(linearize_segments, int) and linearize_segments >= 1):
+            raise ValueError(f"`linearize_segments` must be a positive integer, got "
+                             f"{linearize_segments!r}")
+        self.linearize_segments = linearize_segments
+        self.chunk_segments = chunk_segments
+        self.chunk_s = chunk_s
+        self._chunk = chunk_segments
+        self._segs: list[SegmentEchoes] = []     # (fast) closed, waiting to be fused
+        self._fuser: BatchFuser | None = None
         self.loc = localizer
         self.on_estimate = on_estimate
         self.batch_segments = batch_segments
@@ -115,6 +170,11 @@ class OfflinePipeline:
         if self._source is not None:
             seg = self._source.segmenter
             horizon = min(horizon, seg.open_since_s)
+            if self.fast:
+                self._fuse_fast(horizon)
+                self.loc.trim_history()
+                self._trim_track()
+                return
             if self._waiting and (final or len(self._waiting) >= self.batch_segments
                                   or t_odom - float(self._waiting[0].readings.t_s[0])
                                   >= self.max_wait_s):
@@ -131,6 +191,8 @@ class OfflinePipeline:
         if len(self._track_t) < 2:
             return
         t_min = min((r.t_s for r in self._tof), default=self._track_t[-1])
+        if self.fast:  # the readings of segments still to come, inside the history
+            t_min = min(t_min, self.loc._times[0] if self.loc._times else -math.inf)
         k = int(np.searchsorted(self._track_t, t_min, side="right")) - 1
         k = min(max(k, 0), len(self._track_t) - 1)
         if k > 0:
@@ -142,6 +204,13 @@ class OfflinePipeline:
         self._push_ready(t_odom, final)
         if final and self._source is not None:
             self._waiting += self._source.segmenter.flush()
+        if self.fast and self._waiting:
+            self.loc.stats.segments += len(self._waiting)
+            for sg in self._waiting:
+                se = SegmentEchoes.from_segment(sg)
+                if se is not None:
+                    self._segs.append(se)
+            self._waiting = []
 
     def _push_ready(self, t_odom: float, final: bool) -> None:
         if not self._tof:
@@ -168,17 +237,8 @@ class OfflinePipeline:
                 sweep_away_deg=loc.segment_sweep_away_deg(ready[0].pan_deg is not None))
         t = np.array([r.t_s for r in ready])
         # odometry pose at each reading: linear between records, yaw the short way round
-        tt, tr = np.array(self._track_t), np.array(self._track)
-        i = np.searchsorted(tt, t, side="right")
-        a = np.clip(i - 1, 0, len(tt) - 1)
-        b = np.minimum(a + 1, len(tt) - 1)
-        span = tt[b] - tt[a]
-        f = np.where((b > a) & (span > 0) & (t > tt[a]),
-                     (t - tt[a]) / np.where(span > 0, span, 1.0), 0.0)
-        dth = (tr[b, 2] - tr[a, 2] + math.pi) % (2.0 * math.pi) - math.pi
-        bx = tr[a, 0] + f * (tr[b, 0] - tr[a, 0])
-        by = tr[a, 1] + f * (tr[b, 1] - tr[a, 1])
-        bth = (tr[a, 2] + f * dth + math.pi) % (2.0 * math.pi) - math.pi
+        base = interpolate_track(np.array(self._track_t), np.array(self._track), t)
+        bx, by, bth = base[:, 0], base[:, 1], base[:, 2]
         mounts = loc._mounts
         m = np.array([mounts[r.sensor] for r in ready])
         pan = np.array([0.0 if r.pan_deg is None else math.radians(r.pan_deg) for r in ready])
@@ -244,3 +304,168 @@ class OfflinePipeline:
             k += 1
         if k:
             del rows[:k]
+
+    # -- fast path (no fits: segments fused by their readings) ---------------------
+
+    def _enter_upto(self, odom: list[tuple[float, OdomRecord]], pos: int, t: float) -> int:
+        """Enter the pending odom records at or before ``t`` (from ``pos``); rows of those
+        before ``t`` handed out. Returns the new position."""
+        end = pos
+        while end < len(odom) and odom[end][0] <= t:
+            end += 1
+        if end > pos:
+            part = odom[pos:end]
+            self.loc.extend_odometry([tk for tk, _ in part],
+                                     [(r.x_m, r.y_m, math.radians(r.yaw_deg)) for _, r in part])
+            self._rows += part
+        if self._rows and self._rows[0][0] < t:
+            self._hand_out(t)
+        return end
+
+    def _fuse_fast(self, horizon: float) -> None:
+        """Fuse the waiting segments whose reference is before ``horizon`` in time order,
+        linearised ``chunk_segments`` at a time; hand out the rows before ``horizon``."""
+        loc = self.loc
+        odom, self._odom = self._odom, []
+        now = [s for s in self._segs if s.t_ref < horizon]
+        self._segs = [s for s in self._segs if not s.t_ref < horizon]
+        now.sort(key=lambda s: s.t_ref)
+        pos = 0
+        k = 0
+        if self._fuser is None and now:
+            c = loc.config
+            a = c.association
+            self._fuser = BatchFuser(loc.fmap, c.odom_noise, loc._c_mps,
+                                     c.echo_screen_probability, c.echo_gate_probability,
+                                     a.max_range_m, a.wall_margin_m, a.min_match_probability,
+                                     ECHO_MIN_FRACTION)
+        noise = loc.config.odom_noise
+        lin: Linearized | None = None
+        base = 0                              # index in ``now`` of lin's first segment
+        while k < len(now):
+            if lin is None or k - base >= len(lin.t_ref):
+                pos = self._enter_upto(odom, pos, now[k].t_ref)
+                if not loc._entries:
+                    loc.stats.observations += len(now) - k
+                    loc.stats.skipped["landmark_before_init"] += len(now) - k
+                    break
+                assert self._fuser is not None
+                last = loc._entries[-1]
+                base = k
+                lin = self._fuser.linearize(now[k:k + self.linearize_segments],
+                                            np.array(self._track_t), np.array(self._track),
+                                            loc._times[0], last.odom, last.state)
+                assert lin is not None
+            # decide a few segments at a time at the beliefs the latest one predicts
+            t_end = now[k].t_ref + self.chunk_s
+            j = k + 1
+            stop = base + len(lin.t_ref)
+            while j < stop and j - k < self._chunk and now[j].t_ref < t_end:
+                j += 1
+            pos = self._enter_upto(odom, pos, now[k].t_ref)
+            last = loc._entries[-1]
+            pred = ekf.predict(
+                ekf.Gaussian(np.broadcast_to(last.state.mean, (j - k, 3)).copy(),
+                             np.broadcast_to(last.state.cov, (j - k, 3, 3)).copy()),
+                se2.between(last.odom, lin.odom_ref[k - base:j - base]), noise)
+            assert self._fuser is not None
+            prepared = self._fuser.decide(lin, k - base, j - base, pred.mean, pred.cov)
+            k = j
+            slow = 0
+            for p in prepared:
+                pos = self._enter_upto(odom, pos, p.t_ref)
+                slow += not self._fuse_prepared(p)
+            if slow:
+                # updates the reduced forms could not take: the belief moved far from the
+                # linearisation; re-linearise the rest, and decide fewer at a time for now
+                lin = None
+                self._chunk = max(1, self._chunk // 4)
+            else:
+                self._chunk = min(self.chunk_segments, 2 * self._chunk)
+        end = len(odom) if not math.isfinite(horizon) else \
+            next((j for j in range(pos, len(odom)) if not odom[j][0] < horizon), len(odom))
+        if end > pos:
+            part = odom[pos:end]
+            loc.extend_odometry([tk for tk, _ in part],
+                                [(r.x_m, r.y_m, math.radians(r.yaw_deg)) for _, r in part])
+            self._rows += part
+            pos = end
+        self._odom = odom[pos:]
+        self._hand_out(horizon)
+
+    def _fuse_prepared(self, p: Prepared) -> bool:
+        """Fuse one prepared segment into the history (appended: it is the latest).
+        Returns False when it took the per-segment path."""
+        loc = self.loc
+        st = loc.stats
+        st.observations += 1
+        if p.outcome == "none":
+            st.outcomes["echo_none"] += 1
+            return True
+        last = loc._entries[-1]
+        # the belief at the reference time: the last one moved by the odometry since
+        ax, ay, ath = last.odom.tolist()
+        bx, by, bth = p.odom_ref.tolist()
+        c, s = math.cos(ath), math.sin(ath)
+        u = np.array([c * (bx - ax) + s * (by - ay), -s * (bx - ax) + c * (by - ay),
+                      (bth - ath + math.pi) % (2.0 * math.pi) - math.pi])
+        state_ref = ekf.predict(last.state, u, loc.config.odom_noise)
+        x0 = p.x0.tolist()
+        m0, m1, m2 = state_ref.mean.tolist()
+        dyaw = abs((m2 - x0[2] + math.pi) % (2.0 * math.pi) - math.pi)
+        near = abs(m0 - x0[0]) + abs(m1 - x0[1]) <= FAST_DXY_M and dyaw <= FAST_DYAW_RAD
+        if near and p.outcome == "unmatched":
+            loc._rejected(p.t_ref)
+            st.outcomes["echo_unmatched"] += 1
+            return True
+        fuser = self._fuser
+        assert fuser is not None
+        if near and p.reduced is not None and p.feature is not None and \
+                p.screen_holds(state_ref, fuser.screen_gate):
+            res = reduced_update(state_ref, p.reduced)
+            big = True
+            if res is not None:
+                new, d2 = res
+                n0, n1, n2 = new.mean.tolist()
+                big = abs(n0 - m0) + abs(n1 - m1) > FAST_STEP_M or \
+                    abs((n2 - m2 + math.pi) % (2.0 * math.pi) - math.pi) > FAST_STEP_RAD
+            if not big:
+                st.outcomes["echo_matched"] += 1
+                d2 += p.reduced.resid2
+                if not d2 <= fuser.gate(p.n_kept):
+                    st.outcomes["echo_gated"] += 1
+                    loc._rejected(p.t_ref)
+                    return True
+                obs = EchoObservation(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)),
+                                      np.zeros((0, 3, 3)), math.nan, p.feature, p.t_ref,
+                                      loc._c_mps, p.kind, compressed=p.reduced)
+                self._append_fused(p, new, obs, p.n_kept)
+                return True
+        # the per-segment path: associate and update (iterated) at the true belief
+        assert p.chain is not None
+        found = loc._associate_echoes(p.chain, math.nan, state_ref)
+        if found is None:
+            loc._rejected(p.t_ref)
+            st.outcomes["echo_unmatched"] += 1
+            return False
+        eo, _ = found
+        st.outcomes["echo_matched"] += 1
+        gate = ekf.chi2_gate(len(eo), loc.config.echo_gate_probability)
+        new, innov = echoes.update(state_ref, eo, gate)
+        if not bool(np.all(innov.accepted)):
+            st.outcomes["echo_gated"] += 1
+            loc._rejected(p.t_ref)
+            return False
+        self._append_fused(p, new, eo, len(eo))
+        return False
+
+    def _append_fused(self, p: Prepared, state: ekf.Gaussian, obs: EchoObservation,
+                      n: int) -> None:
+        loc = self.loc
+        last = loc._entries[-1]
+        loc._append(_Entry(max(p.t_ref, last.t), p.odom_ref, state, obs, obs.feature))
+        st = loc.stats
+        st.echoes_fused += n
+        st.accepted += 1
+        loc._consecutive_rejected = 0
+        loc._last_accept_t = max(loc._last_accept_t, p.t_ref)

@@ -10,7 +10,9 @@ robot would (fits fused when they complete, rewinding the history); ``batch`` (t
 default for the ``kuc`` and ``odometry`` methods) runs the
 :class:`~sonarloc.localize.offline.OfflinePipeline`: readings segmented and fitted in
 large batches, each landmark fused at its reference reading as if fitting took no time,
-an order of magnitude faster.
+an order of magnitude faster; with reading-level fusion (the default) the segments are
+not fitted at all but fused by their readings, many linearised at a time
+(:mod:`~sonarloc.localize.batchfuse`).
 """
 
 from __future__ import annotations
@@ -64,7 +66,7 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
                init: tuple[float, float, float] | None = None,
                on_estimate: Callable[[OdomRecord, PoseEstimate], None] | None = None,
                localizer: Localizer | None = None, mode: Mode = "auto",
-               batch_segments: int = 1024) -> ReplayResult:
+               batch_segments: int = 1024, fast: bool | None = None) -> ReplayResult:
     """Localize a whole log.
 
     Parameters
@@ -79,7 +81,11 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
     mode : ``"online"`` (record by record, as live), ``"batch"`` (the offline pipeline;
         methods ``kuc`` and ``odometry`` with the default landmark source) or
         ``"auto"`` (batch where it applies).
-    batch_segments : segments fitted together in batch mode.
+    batch_segments : segments fitted together in batch mode (``fast=False``).
+    fast : batch mode only: the :class:`~sonarloc.localize.offline.OfflinePipeline`'s
+        ``fast`` (None: segments fused by their readings without fits, linearised many
+        at a time, for ``kuc_fusion="echoes"``; False: every segment fitted and fused
+        on time through :meth:`Localizer.add_landmark`).
 
     Raises
     ------
@@ -100,7 +106,7 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
                          f"landmark source and without relocalization, not "
                          f"{loc.config.method!r}" + (" with relocalize" if
                                                       loc.config.relocalize else ""))
-    pipe = OfflinePipeline(loc, on_estimate, batch_segments=batch_segments) \
+    pipe = OfflinePipeline(loc, on_estimate, batch_segments=batch_segments, fast=fast) \
         if mode != "online" and batchable else None
     rows = 0
     t0 = time.perf_counter()

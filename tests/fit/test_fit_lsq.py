@@ -301,3 +301,16 @@ def test_pack_segments_matches_a_plain_per_segment_layout(rows):
         with pytest.raises(ValueError, match="segment 0"):
             pack_segments([(np.zeros(2), np.zeros(3), np.zeros(3), np.zeros(3),
                             np.zeros(3))] + segs)
+
+
+def test_bracket_on_spread_echoes_gives_the_same_converged_fit(rng):
+    # the grid bracket on at most 8 evenly spread echoes of 0.3 deg pans (about 60
+    # echoes each) must lead the refinement to the fit bracketed on all of them
+    batch = _pan_batch(rng, 40, 2.0, -5.0, 2.68)
+    assert batch.valid.sum(1).min() > 30
+    full = fit_batch(batch, "point", "gauss", FitConfig(grid_max_echoes=None))
+    spread = fit_batch(batch, "point", "gauss", FitConfig(grid_max_echoes=8))
+    sd = np.sqrt(np.einsum("bkk->bk", full.cov))
+    assert np.all(np.abs(spread.local - full.local) < 0.05 * sd)
+    with pytest.raises(ValueError, match="grid_max_echoes"):
+        FitConfig(grid_max_echoes=2)

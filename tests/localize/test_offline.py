@@ -87,10 +87,10 @@ def test_predict_chain_equals_repeated_predict():
 
 
 def test_batch_is_on_time_fusion(ring_log, fmap):
-    """Batch rows = a live Localizer given each landmark at the next odom record (the
-    rewind makes that on-time fusion)."""
+    """Batch rows (``fast=False``: fitted, one landmark at a time) = a live Localizer
+    given each landmark at the next odom record (the rewind makes that on-time fusion)."""
     loc = Recording(fmap)
-    res, rows = _rows(ring_log, fmap, localizer=loc, mode="batch")
+    res, rows = _rows(ring_log, fmap, localizer=loc, mode="batch", fast=False)
     n_odom = sum(isinstance(r, OdomRecord) for r in iter_log(io.StringIO(ring_log)))
     assert res.rows == len(rows) == n_odom
     assert loc.stats.accepted > 10
@@ -118,10 +118,13 @@ def test_batch_is_on_time_fusion(ring_log, fmap):
     assert live.stats.outcomes == loc.stats.outcomes
 
 
-def test_batch_fits_the_same_landmarks_as_online(ring_log, fmap):
+def test_batch_fuses_the_same_segments_as_online(ring_log, fmap):
     on, rows_on = _rows(ring_log, fmap, mode="online")
     ba, rows_ba = _rows(ring_log, fmap, mode="batch")
-    assert on.localizer.stats.landmarks == ba.localizer.stats.landmarks > 20
+    # the fast batch path does not fit: one observation per segment, as online
+    assert ba.localizer.stats.landmarks == 0
+    assert on.localizer.stats.landmarks == ba.localizer.stats.segments > 20
+    assert on.localizer.stats.observations == ba.localizer.stats.observations
     assert on.localizer.stats.tof == ba.localizer.stats.tof
     assert [t for t, _ in rows_on] == [t for t, _ in rows_ba]
     truth = {r.t_s: r for r in iter_log(io.StringIO(ring_log)) if isinstance(r, TruthRecord)}
@@ -136,8 +139,8 @@ def test_batch_fits_the_same_landmarks_as_online(ring_log, fmap):
 
 
 def test_fit_batch_size_barely_matters(ring_log, fmap):
-    _, a = _rows(ring_log, fmap, mode="batch", batch_segments=1)
-    _, b = _rows(ring_log, fmap, mode="batch")
+    _, a = _rows(ring_log, fmap, mode="batch", batch_segments=1, fast=False)
+    _, b = _rows(ring_log, fmap, mode="batch", fast=False)
     diff = max(float(np.max(np.abs(x.state.mean - y.state.mean)))
                for (_, x), (_, y) in zip(a, b, strict=True))
     assert diff < 1e-3  # the batch fitter's rounding, not the fusion
@@ -148,7 +151,7 @@ def test_panning_rig_and_odometry_method(fmap):
     on, rows_on = _rows(text, fmap, mode="online")
     ba, rows_ba = _rows(text, fmap, mode="batch")
     assert len(rows_on) == len(rows_ba)
-    assert on.localizer.stats.landmarks == ba.localizer.stats.landmarks > 0
+    assert on.localizer.stats.landmarks == ba.localizer.stats.segments > 0
     _, odo_on = _rows(text, fmap, mode="online", config=LocalizerConfig(method="odometry"))
     _, odo_ba = _rows(text, fmap, mode="batch", config=LocalizerConfig(method="odometry"))
     for (_, x), (_, y) in zip(odo_on, odo_ba, strict=True):
