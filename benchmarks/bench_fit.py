@@ -491,19 +491,36 @@ def _children_cpu_s() -> float:
     return float(ru.ru_utime + ru.ru_stime)
 
 
-def _landmark_diff(a: dict[str, object], b: dict[str, object]) -> tuple[int, int]:
-    """Landmarks of two `fit --json` outputs differing in (kind, range, bearing, kappa,
-    status, covariance, n_readings, position, tier), and in their reason only."""
+def _landmark_diff(a: dict[str, object], b: dict[str, object]) -> dict[str, float]:
+    """Landmarks of two `fit --json` outputs: how many differ in (kind, range, bearing,
+    kappa, status, covariance, n_readings, position, tier), how many only in their
+    reason, how many in kind or status, and the median / largest change of bearing
+    [deg] and range [mm] (NaN if the lists differ in length)."""
     la, lb = a["landmarks"], b["landmarks"]
     assert isinstance(la, list) and isinstance(lb, list)
-    if len(la) != len(lb):
-        return max(len(la), len(lb)), 0
     keys = ("kind", "range_m", "bearing_deg", "kappa_us", "status", "cov", "n_readings",
             "x_m", "y_m", "rho_m", "alpha_deg", "tier")
-    fields = sum(any(x.get(k) != y.get(k) for k in keys) for x, y in zip(la, lb, strict=True))
-    reasons = sum(x.get("reason") != y.get("reason") and all(
-        x.get(k) == y.get(k) for k in keys) for x, y in zip(la, lb, strict=True))
-    return fields, reasons
+    if len(la) != len(lb):
+        return {"diff_fields": float(max(len(la), len(lb))), "diff_reasons": math.nan,
+                "diff_kind_status": math.nan, "dbear_med": math.nan, "dbear_max": math.nan,
+                "drange_med_mm": math.nan, "drange_max_mm": math.nan}
+    pairs = list(zip(la, lb, strict=True))
+    db = [abs((float(x["bearing_deg"]) - float(y["bearing_deg"]) + 180.0) % 360.0 - 180.0)
+          for x, y in pairs if x.get("bearing_deg") is not None
+          and y.get("bearing_deg") is not None]
+    dr = [1e3 * abs(float(x["range_m"]) - float(y["range_m"])) for x, y in pairs
+          if x.get("range_m") is not None and y.get("range_m") is not None]
+    return {
+        "diff_fields": float(sum(any(x.get(k) != y.get(k) for k in keys) for x, y in pairs)),
+        "diff_reasons": float(sum(x.get("reason") != y.get("reason") and all(
+            x.get(k) == y.get(k) for k in keys) for x, y in pairs)),
+        "diff_kind_status": float(sum(x.get("kind") != y.get("kind")
+                                      or x.get("status") != y.get("status")
+                                      for x, y in pairs)),
+        "dbear_med": float(np.median(db)) if db else math.nan,
+        "dbear_max": float(np.max(db)) if db else math.nan,
+        "drange_med_mm": float(np.median(dr)) if dr else math.nan,
+        "drange_max_mm": float(np.max(dr)) if dr else math.nan}
 
 
 def large_csv(n_readings: int, repeats: int, rng: np.random.Generator
@@ -548,8 +565,7 @@ def large_csv(n_readings: int, repeats: int, rng: np.random.Generator
             out[f"{name}_cli_cpu"] = float(np.median(cpus[name]))
             out[f"{name}_import_wall"] = float(np.median(starts[name]))
         if "before" in outputs:
-            out["diff_fields"], out["diff_reasons"] = _landmark_diff(outputs["before"],
-                                                                     outputs["now"])
+            out.update(_landmark_diff(outputs["before"], outputs["now"]))
             out.update(_same_input_check(roots, path, Path(tmp)))
         out["n_landmarks"] = len(outputs["now"]["landmarks"])  # type: ignore[arg-type]
     side = out["now_segment"] + out["now_fit"] + out["now_resolve"]
@@ -613,7 +629,11 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
         lines.append(
             f"Landmarks of the command, before against now: {int(csv['diff_fields'])} of "
             f"{int(csv['n_landmarks'])} differ in kind, range, bearing, kappa, status, "
-            f"covariance, n_readings or tier; {int(csv['diff_reasons'])} only in their "
+            f"covariance, n_readings or tier ({int(csv['diff_kind_status'])} in kind or "
+            f"status; bearing changes median {csv['dbear_med']:.2g} deg, largest "
+            f"{csv['dbear_max']:.2g} deg; range median {csv['drange_med_mm']:.2g} mm, largest "
+            f"{csv['drange_max_mm']:.2g} mm: the fit stage, `fit_segments`, changed since "
+            f"{BASELINE_REV}); {int(csv['diff_reasons'])} only in their "
             "reason text. The segmenter and the pair/cut stage alone, both versions on the "
             "same input (*now*'s segments and single fits, so changes of `fit_segments` "
             f"since {BASELINE_REV} stay out): {int(csv['seg_diff'])} of "
