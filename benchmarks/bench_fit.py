@@ -247,10 +247,14 @@ def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, fl
         f = fit_batch(pack_segments(arrays), "point", "gauss")
         return [(float(p[0]), math.degrees(float(p[1])), float(p[2])) for p in f.local]
 
-    def run_cfg(cfg: FitConfig | None, segments: Sequence[Any] = arrays
+    sds: dict[str, np.ndarray] = {}     # reported bearing SD [deg] of the batch methods
+
+    def run_cfg(cfg: FitConfig | None, segments: Sequence[Any] = arrays, name: str = ""
                 ) -> Callable[[], list[tuple[float, float, float] | None]]:
         def run() -> list[tuple[float, float, float] | None]:
             f = fit_batch(pack_segments(segments), "point", "gauss", cfg)
+            if name:
+                sds[name] = np.rad2deg(np.sqrt(f.cov[:, 1, 1]))
             return [(float(p[0]), math.degrees(float(p[1])), float(p[2])) for p in f.local]
         return run
 
@@ -259,16 +263,18 @@ def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, fl
                 for lm in fit_segments(segs)]
 
     rows: list[dict[str, float | str]] = []
+    n_profile = ("sonarloc fit_batch, `FitConfig.profile()` (12 deg grid on <= 16 echoes, "
+                 "bearing on the echoes' profiled LS cost: 3 stencils; echoes only)")
+    n_fast = ("sonarloc fit_batch, `FitConfig.fast()` (12 deg grid on <= 16 echoes, one "
+              "guarded step)")
+    n_batch = "sonarloc fit_batch, `FitConfig.batch()` (6 deg grid, one reweighted round)"
+    n_default = "sonarloc fit_batch (default)"
+    small_cfg = {n_profile: FitConfig.profile(), n_fast: FitConfig.fast(),
+                 n_batch: FitConfig.batch(), n_default: None}
     runners = [("conventional (beam axis at min TOF)", run_conventional),
                ("scipy curve_fit per segment (eq. 3)", run_curve_fit),
-               ("sonarloc fit_batch, `FitConfig.fast()` (12 deg grid on <= 16 echoes, one "
-                "guarded step)", run_cfg(FitConfig.fast())),
-               ("sonarloc fit_batch, `FitConfig.batch()` (6 deg grid, one reweighted round)",
-                run_cfg(FitConfig.batch())),
-               ("sonarloc fit_batch (default)", run_cfg(None)),
+               *((name, run_cfg(cfg, name=name)) for name, cfg in small_cfg.items()),
                ("sonarloc fit_segments (default, with model selection)", run_full)]
-    small_cfg = {runners[2][0]: FitConfig.fast(), runners[3][0]: FitConfig.batch(),
-                 runners[4][0]: None}
     results = []
     t_small: dict[str, float] = {}
     for name, fn in runners:
@@ -297,8 +303,20 @@ def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, fl
             er.append(est[0] - r)
             if math.isfinite(est[2]):
                 ek.append(est[2] - kap)
+        sd_ratio = z_rms = math.nan
+        if name in sds:
+            # reported bearing SD against the error, over the segments not diverged whose
+            # SD is below the FLAT threshold (those a pipeline would report as OK)
+            ok = np.array([_within(est, tr) for est, tr in zip(out, truth, strict=True)])
+            ok &= sds[name] < FitConfig().flat_bearing_sd_deg
+            d = np.array([(est[1] - tr[1] + 180.0) % 360.0 - 180.0 if est is not None
+                          else math.nan for est, tr in zip(out, truth, strict=True)])[ok]
+            sd_ratio = float(np.sqrt(np.mean(sds[name][ok] ** 2)) / np.sqrt(np.mean(d ** 2)))
+            z_rms = float(np.sqrt(np.mean((d / sds[name][ok]) ** 2)))
         rows.append(dict(
-            name=name, us_per_seg=1e6 * t / n,
+            name=name, us_per_seg=1e6 * t / n, sd_ratio=sd_ratio, z_rms=z_rms,
+            flat=float(np.mean(sds[name] >= FitConfig().flat_bearing_sd_deg))
+            if name in sds else math.nan,
             us_per_seg_small=1e6 * t_small[name] if name in t_small else math.nan,
             rmse_b=float(np.sqrt(np.mean(np.square(eb)))) if eb else math.nan,
             rmse_b_cf=float(np.sqrt(np.mean(np.square(eb_cf)))) if eb_cf else math.nan,
@@ -314,6 +332,13 @@ def _small_cell(r: dict[str, float | str], curve: dict[str, float | str]) -> str
     if math.isnan(t):
         return ""
     return f"{t:.0f} ({float(curve['us_per_seg']) / t:.1f}x)"
+
+
+def _calib_cell(r: dict[str, float | str]) -> str:
+    if math.isnan(float(r["sd_ratio"])):
+        return " | "
+    return (f"{float(r['sd_ratio']):.2f}; {float(r['z_rms']):.2f} | "
+            f"{100 * float(r['flat']):.1f} %")
 
 
 def _within(est: tuple[float, float, float] | None, truth: tuple[float, float, float]
@@ -347,10 +372,13 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
                             repeats)
         t_f, _ = cpu_median(lambda b=batch: fit_batch(b, "point", "gauss", FitConfig.fast()),
                             repeats)
+        t_pr, _ = cpu_median(
+            lambda b=batch: fit_batch(b, "point", "gauss", FitConfig.profile()), repeats)
         t_w, _ = cpu_median(lambda b=batch: fit_batch(b, "point", "waveform"), repeats)
         rows.append(dict(step=step, echoes=float(batch.valid.sum(1).mean()),
                          noecho=float(batch.ne_valid.sum(1).mean()), segs_s=n / t_b,
-                         segs_s_batch=n / t_p, segs_s_fast=n / t_f, segs_s_waveform=n / t_w))
+                         segs_s_batch=n / t_p, segs_s_fast=n / t_f, segs_s_profile=n / t_pr,
+                         segs_s_waveform=n / t_w))
         print(f"  pan {step} deg: {n / t_b:.0f} segments/s", file=sys.stderr)
     return rows
 
@@ -463,19 +491,36 @@ def _children_cpu_s() -> float:
     return float(ru.ru_utime + ru.ru_stime)
 
 
-def _landmark_diff(a: dict[str, object], b: dict[str, object]) -> tuple[int, int]:
-    """Landmarks of two `fit --json` outputs differing in (kind, range, bearing, kappa,
-    status, covariance, n_readings, position, tier), and in their reason only."""
+def _landmark_diff(a: dict[str, object], b: dict[str, object]) -> dict[str, float]:
+    """Landmarks of two `fit --json` outputs: how many differ in (kind, range, bearing,
+    kappa, status, covariance, n_readings, position, tier), how many only in their
+    reason, how many in kind or status, and the median / largest change of bearing
+    [deg] and range [mm] (NaN if the lists differ in length)."""
     la, lb = a["landmarks"], b["landmarks"]
     assert isinstance(la, list) and isinstance(lb, list)
-    if len(la) != len(lb):
-        return max(len(la), len(lb)), 0
     keys = ("kind", "range_m", "bearing_deg", "kappa_us", "status", "cov", "n_readings",
             "x_m", "y_m", "rho_m", "alpha_deg", "tier")
-    fields = sum(any(x.get(k) != y.get(k) for k in keys) for x, y in zip(la, lb, strict=True))
-    reasons = sum(x.get("reason") != y.get("reason") and all(
-        x.get(k) == y.get(k) for k in keys) for x, y in zip(la, lb, strict=True))
-    return fields, reasons
+    if len(la) != len(lb):
+        return {"diff_fields": float(max(len(la), len(lb))), "diff_reasons": math.nan,
+                "diff_kind_status": math.nan, "dbear_med": math.nan, "dbear_max": math.nan,
+                "drange_med_mm": math.nan, "drange_max_mm": math.nan}
+    pairs = list(zip(la, lb, strict=True))
+    db = [abs((float(x["bearing_deg"]) - float(y["bearing_deg"]) + 180.0) % 360.0 - 180.0)
+          for x, y in pairs if x.get("bearing_deg") is not None
+          and y.get("bearing_deg") is not None]
+    dr = [1e3 * abs(float(x["range_m"]) - float(y["range_m"])) for x, y in pairs
+          if x.get("range_m") is not None and y.get("range_m") is not None]
+    return {
+        "diff_fields": float(sum(any(x.get(k) != y.get(k) for k in keys) for x, y in pairs)),
+        "diff_reasons": float(sum(x.get("reason") != y.get("reason") and all(
+            x.get(k) == y.get(k) for k in keys) for x, y in pairs)),
+        "diff_kind_status": float(sum(x.get("kind") != y.get("kind")
+                                      or x.get("status") != y.get("status")
+                                      for x, y in pairs)),
+        "dbear_med": float(np.median(db)) if db else math.nan,
+        "dbear_max": float(np.max(db)) if db else math.nan,
+        "drange_med_mm": float(np.median(dr)) if dr else math.nan,
+        "drange_max_mm": float(np.max(dr)) if dr else math.nan}
 
 
 def large_csv(n_readings: int, repeats: int, rng: np.random.Generator
@@ -520,8 +565,7 @@ def large_csv(n_readings: int, repeats: int, rng: np.random.Generator
             out[f"{name}_cli_cpu"] = float(np.median(cpus[name]))
             out[f"{name}_import_wall"] = float(np.median(starts[name]))
         if "before" in outputs:
-            out["diff_fields"], out["diff_reasons"] = _landmark_diff(outputs["before"],
-                                                                     outputs["now"])
+            out.update(_landmark_diff(outputs["before"], outputs["now"]))
             out.update(_same_input_check(roots, path, Path(tmp)))
         out["n_landmarks"] = len(outputs["now"]["landmarks"])  # type: ignore[arg-type]
     side = out["now_segment"] + out["now_fit"] + out["now_resolve"]
@@ -585,7 +629,11 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
         lines.append(
             f"Landmarks of the command, before against now: {int(csv['diff_fields'])} of "
             f"{int(csv['n_landmarks'])} differ in kind, range, bearing, kappa, status, "
-            f"covariance, n_readings or tier; {int(csv['diff_reasons'])} only in their "
+            f"covariance, n_readings or tier ({int(csv['diff_kind_status'])} in kind or "
+            f"status; bearing changes median {csv['dbear_med']:.2g} deg, largest "
+            f"{csv['dbear_max']:.2g} deg; range median {csv['drange_med_mm']:.2g} mm, largest "
+            f"{csv['drange_max_mm']:.2g} mm: the fit stage, `fit_segments`, changed since "
+            f"{BASELINE_REV}); {int(csv['diff_reasons'])} only in their "
             "reason text. The segmenter and the pair/cut stage alone, both versions on the "
             "same input (*now*'s segments and single fits, so changes of `fit_segments` "
             f"since {BASELINE_REV} stay out): {int(csv['seg_diff'])} of "
@@ -617,7 +665,7 @@ def plot(acc: list[dict[str, float | str]], meth: list[dict[str, float | str]],
     a1.set_xlabel("RMSE / Cramér–Rao bound")
     a1.set_title("Monte-Carlo accuracy against the bound", fontsize=9)
     a1.legend(fontsize=7, loc="lower right")
-    markers = ["s", "^", "v", "<", "o", "D"]
+    markers = ["s", "^", "P", "v", "<", "o", "D"]
     for r, m in zip(meth, markers, strict=False):
         a2.loglog(float(r["us_per_seg"]), float(r["rmse_b"]), m, ms=8, label=str(r["name"]))
     a2.set_xlabel("CPU time per segment [us]")
@@ -693,12 +741,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         "segments curve_fit itself handled, for a like-for-like comparison. Times include "
         f"packing the segments into a batch; the batch methods fit all {n_meth} segments in "
         f"one call, and (last column) the first {SMALL_CALL} per call (fixed per-call "
-        "costs weigh more).",
+        "costs weigh more). *Bearing SD / RMSE*: RMS of the reported bearing SD over the "
+        "RMSE, and RMS of error / SD, over the segments not diverged whose bearing SD is "
+        "below `flat_bearing_sd_deg` (3 deg; above it `fit_segments` says `FLAT`: their "
+        "share is *flat*).",
         "",
         "| method | CPU us / segment | speed vs curve_fit | bearing RMSE (deg) | "
         "bearing RMSE on curve_fit's (deg) | range RMSE (mm) | kappa RMSE (us) | fail | "
-        f"of which diverged | CPU us / segment, {SMALL_CALL} per call (speed vs curve_fit) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        f"of which diverged | CPU us / segment, {SMALL_CALL} per call (speed vs curve_fit) "
+        "| bearing SD / RMSE; RMS error/SD | flat |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in meth:
         k = float(r["rmse_k"])
@@ -708,23 +760,25 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{float(r['rmse_b']):.3f} | {float(r['rmse_b_cf']):.3f} | "
             f"{float(r['rmse_r_mm']):.3f} | "
             f"{'n/a' if math.isnan(k) else f'{k:.3f}'} | {100 * float(r['fail']):.1f} % | "
-            f"{100 * float(r['diverged']):.1f} % | {_small_cell(r, curve)} |")
+            f"{100 * float(r['diverged']):.1f} % | {_small_cell(r, curve)} | "
+            f"{_calib_cell(r)} |")
     lines += [
         "",
         f"## 3. Batch throughput (`fit_batch`, {n_thr} segments, one core)",
         "",
-        "Segments/s of the gauss tier with the default settings, `FitConfig.batch()` and "
-        "`FitConfig.fast()`, and of the waveform tier (default settings); a pre-packed "
-        "batch.",
+        "Segments/s of the gauss tier with the default settings, `FitConfig.batch()`, "
+        "`FitConfig.fast()` and `FitConfig.profile()` (echoes only), and of the waveform "
+        "tier (default settings); a pre-packed batch.",
         "",
         "| pan step (deg) | echoes / segment | no-echo readings / segment | default | "
-        "`batch()` | `fast()` | waveform tier |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
+        "`batch()` | `fast()` | `profile()` | waveform tier |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in thr:
         lines.append(f"| {float(r['step']):g} | {float(r['echoes']):.1f} | "
                      f"{float(r['noecho']):.1f} | **{float(r['segs_s']):.0f}** | "
                      f"**{float(r['segs_s_batch']):.0f}** | {float(r['segs_s_fast']):.0f} | "
+                     f"{float(r['segs_s_profile']):.0f} | "
                      f"{float(r['segs_s_waveform']):.0f} |")
     lines += large_csv_lines(csv, q)
     lines += [

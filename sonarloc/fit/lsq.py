@@ -32,6 +32,9 @@ from sonarloc.physics.tof import ModuleParams
 
 Array = NDArray[np.float64]
 
+METHODS = ("full", "profile")
+"""Refinement methods of :class:`FitConfig` (``method``)."""
+
 
 @dataclass(frozen=True)
 class FitConfig:
@@ -77,6 +80,19 @@ class FitConfig:
         this many, evenly spread from its first to its last echo and weighted up to the
         whole count; ``None``: all. The bracket needs the curve's shape, not every
         reading; the refinement always uses all.
+    method : ``"full"``: refine all three parameters by damped Fisher scoring on the
+        whole likelihood (TOF terms, detection terms of echoes and no-echo readings).
+        ``"profile"``: refine the bearing on the profile of the echoes' weighted LS cost
+        (for a fixed bearing the Gaussian/piston model is linear in (To, kappa)):
+        ``profile_evals`` parabolas through a narrowing 3-point stencil, then (To,
+        kappa) solved at the result; the covariance is that of the weighted Gauss-Newton
+        matrix of the three parameters there. Echoes only (like a ``curve_fit``): no
+        detection terms, untruncated mean delays; the grid bracket still uses the
+        no-echo readings. Waveform-tier fits fall back to ``"full"`` without detection
+        terms (so that costs of tiers fitted with one config compare).
+    profile_evals : stencil evaluations of the ``"profile"`` method.
+    profile_step_deg : half-width of the first stencil [deg]; each next one is a
+        quarter of it, or the same where the minimum lay at the stencil's edge.
     """
 
     module: ModuleParams = field(default_factory=ModuleParams)
@@ -100,15 +116,22 @@ class FitConfig:
     chunk_readings: int = 65536
     follow_variances: bool = False
     grid_max_echoes: int | None = 32
+    method: str = "full"
+    profile_evals: int = 3
+    profile_step_deg: float = 3.0
 
     def __post_init__(self) -> None:
         for name in ("grid_step_deg", "margin_deg", "outlier_sigma", "flat_bearing_sd_deg",
                      "kappa_min_us", "kappa_guess_us", "tolerance", "kappa_lo_us",
-                     "kappa_hi_us", "kappa_soft_log_sd"):
+                     "kappa_hi_us", "kappa_soft_log_sd", "profile_step_deg"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
-        for name in ("rounds", "iterations", "chunk_readings", "min_echoes"):
+        if self.method not in METHODS:
+            raise ValueError(f"`method` must be one of {', '.join(METHODS)}; got "
+                             f"{self.method!r}")
+        for name in ("rounds", "iterations", "chunk_readings", "min_echoes",
+                     "profile_evals"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise ValueError(f"`{name}` must be a positive integer, got {v!r}")
@@ -140,6 +163,20 @@ class FitConfig:
         understates the error about 2x)."""
         return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True,
                            grid_max_echoes=16), **changes)
+
+    @classmethod
+    def profile(cls, **changes: Any) -> FitConfig:
+        """The quickest settings: ``fast()``'s grid bracket, then the bearing refined on
+        the profiled weighted-LS cost of all echoes (three narrowing 3-point stencils,
+        each only exponentials and weighted sums), (To, kappa) solved there and the
+        covariance of the Gauss-Newton matrix of the three parameters (calibrated for
+        what this method uses). Echoes only: the no-echo readings' detection terms
+        (which the default uses to bound the arc) are left out, so the bearing is that
+        of the TOF curve alone: about a per-segment ``curve_fit``'s error, 4-5x the
+        default's, more segments ``FLAT``, and no faster than ``fast()``
+        (benchmarks/results/fit.md). For data whose no-echo readings cannot be trusted."""
+        return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True,
+                           grid_max_echoes=16, method="profile"), **changes)
 
     def with_speed_of_sound(self, c_mps: float) -> FitConfig:
         """The same settings with another speed of sound [m/s]."""
@@ -871,20 +908,97 @@ def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cf
     """Grid bracket + refinement (from a second start where the grid is ambiguous), or
     refinement from another model's fit of the same segments (``start_fit``)."""
     if start_fit is not None:
-        st = _refine(kind, tier, start_fit.local.copy(), batch, y, use, cfg, cfg.rounds)
+        st = _refine_any(kind, tier, start_fit.local.copy(), batch, y, use, cfg)
         return st, start_fit.arc.copy()
     start, start2, second, arc = _grid_start(kind, tier, batch, y, use, cfg)
-    st = _refine(kind, tier, start, batch, y, use, cfg, cfg.rounds)
+    st = _refine_any(kind, tier, start, batch, y, use, cfg)
     idx = np.flatnonzero(second)
     if idx.size:
         sub = _take(batch, idx)
-        st2 = _refine(kind, tier, start2[idx], sub, y[idx], use[idx], cfg, cfg.rounds)
+        st2 = _refine_any(kind, tier, start2[idx], sub, y[idx], use[idx], cfg)
         f1 = st.take(idx).full_cost(use[idx])
         f2 = st2.full_cost(use[idx])
         better = np.flatnonzero(f2 < f1)
         if better.size:
             st.put(idx[better], st2.take(better))
     return st, arc
+
+
+def _refine_any(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
+                cfg: FitConfig) -> _State:
+    """The refinement ``cfg.method`` asks for (see :class:`FitConfig`)."""
+    if cfg.method == "full":
+        return _refine(kind, tier, p, batch, y, use, cfg, cfg.rounds)
+    nodet = replace(cfg, detection=False)
+    if tier == "waveform":          # not linear in kappa: the full method, echoes only
+        return _refine(kind, tier, p, batch, y, use, nodet, nodet.rounds)
+    return _profile_refine(kind, tier, p, batch, y, use, nodet)
+
+
+def _profile_refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array,
+                    use: NDArray, cfg: FitConfig) -> _State:
+    """Bearing refined on the profile (over To, kappa) of the echoes' weighted LS cost.
+
+    Weights from the jitter model at the start ``p`` (held fixed); ``cfg.profile_evals``
+    parabolas through 3-point stencils around the current bearing (half-width
+    ``cfg.profile_step_deg``, then a quarter of the last unless the minimum lay at the
+    stencil's edge; a step moves at most one half-width, to the lower side where the
+    stencil is not convex); (To, kappa) solved at the result; then one model pass
+    (no detection terms: ``cfg.detection`` is off) for the residuals, the objective and
+    the Gauss-Newton matrix. ``converged``: the last parabola's minimum lay inside its
+    stencil. Every stencil's best node is kept if the parabola's vertex is not lower,
+    so the objective cannot rise along the way.
+    """
+    mod = cfg.module
+    tau = M.us_per_m(mod)
+    B = p.shape[0]
+    moving = _is_moving(batch)
+    with np.errstate(invalid="ignore"):
+        y0 = np.nanmin(np.where(use, y, np.inf), axis=1)
+    y0 = np.where(np.isfinite(y0), y0, 0.0)
+    yc = np.where(use, y - y0[:, None], 0.0)
+    # TOF weights relative to the on-axis variance (what _node_profile's cost scales by)
+    s2 = _variances(kind, tier, p, batch, cfg)
+    wt = np.where(use, float(M.tof_variance_us2(0.0, mod)) / s2, 0.0)
+    phi = p[:, 1].copy()
+    r0 = p[:, 0].copy()
+    h = np.full(B, np.deg2rad(cfg.profile_step_deg))
+    unit = np.array([-1.0, 0.0, 1.0])
+    inside = np.zeros(B, dtype=bool)
+    best_phi = phi.copy()
+    best_c = np.full(B, np.inf)
+    for _ in range(cfg.profile_evals):
+        phis = phi[:, None] + h[:, None] * unit[None, :]
+        T, K, c = _node_profile(kind, tier, batch, phis, r0, yc, use, wt, moving, cfg)
+        c = np.where(np.isfinite(c), c, np.inf)
+        cl, c0, cr = c[:, 0], c[:, 1], c[:, 2]
+        kb = np.argmin(c, axis=1)
+        cb = c[np.arange(B), kb]
+        better = cb < best_c
+        best_phi = np.where(better, phis[np.arange(B), kb], best_phi)
+        best_c = np.where(better, cb, best_c)
+        denom = cl - 2.0 * c0 + cr
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shift = np.where(denom > 0, 0.5 * (cl - cr) / denom,
+                             np.where(cl < cr, -1.0, 1.0))
+        shift = np.where(np.isfinite(shift), np.clip(shift, -1.0, 1.0), 0.0)
+        inside = np.abs(shift) < 1.0
+        phi = phi + shift * h
+        if moving:     # the geometry's range follows (a fixed-point iteration)
+            r0 = np.maximum((T[np.arange(B), kb] + y0) / tau, 1e-3)
+        h = np.where(inside, 0.25 * h, h)
+    # (To, kappa) at the last vertex; the best stencil node where that is lower
+    T, K, c = _node_profile(kind, tier, batch, phi[:, None], r0, yc, use, wt, moving, cfg)
+    worse = ~(c[:, 0] <= best_c)
+    if worse.any():
+        phi = np.where(worse, best_phi, phi)
+        T, K, _ = _node_profile(kind, tier, batch, phi[:, None], r0, yc, use, wt, moving,
+                                cfg)
+    q = np.stack([np.maximum((T[:, 0] + y0) / tau, 1e-3), phi,
+                  np.maximum(K[:, 0], cfg.kappa_min_us)], axis=-1)
+    q = np.where(np.isfinite(q), q, p)
+    F, _, H, e, s2q = _evaluate_s2(kind, tier, q, batch, y, use, None, cfg)
+    return _State(q, inside, F, H, e, s2q)
 
 
 def _covariance(H: Array) -> Array:

@@ -6,25 +6,31 @@ odometry chain, the candidates among the map features, each candidate's readings
 linearised through the forward model, screened and gated, the winner's stacked update
 iterated. Almost all of that depends on the belief only through the point it is
 linearised at, and in a replay the belief at a segment's reference time is known in
-advance to within a millimetre: the latest belief moved by the odometry since
-(``map→odom ⊕ odom pose``). :func:`prepare` does that work for many segments in one
-pass of numpy calls, linearised at those predicted beliefs, and leaves each segment as
-its association and a reduced update of at most three rows (:class:`Prepared`,
-:class:`~sonarloc.localize.echoes.Compressed`). The caller
-(:class:`~sonarloc.localize.offline.OfflinePipeline`) then applies the reduced
-updates in time order to the true belief, which moves the prediction by ``H (x - x0)``
-exactly (linear in the offset), and falls back to the Localizer's own per-segment
-path where the offset or the update step is too large to trust the linearisation
-(:data:`FAST_DXY_M`, :data:`FAST_DYAW_RAD`): the first updates after a poor prior.
+advance to within millimetres: the latest belief moved by the odometry since
+(``map→odom ⊕ odom pose``). :class:`BatchFuser` does that work in two levels:
+:meth:`~BatchFuser.linearize` for many segments in one pass of numpy calls (chains,
+candidates and rivals, the forward model and measurement covariances at those
+predicted beliefs), then :meth:`~BatchFuser.decide` for a few at a time at the beliefs
+the latest one predicts (screening, rivals, the stacked gate, the winner), which leaves
+each segment as its association and a reduced update of at most three rows
+(:class:`Prepared`, :class:`~sonarloc.localize.echoes.Compressed`). The caller
+(:class:`~sonarloc.localize.offline.OfflinePipeline`) applies the reduced updates in
+time order to the true belief (:func:`reduced_update`), which moves the prediction by
+``H (x - x0)`` exactly (linear in the offset), after re-checking the winner's screening
+there (:meth:`Prepared.screen_holds`), and falls back to the Localizer's own
+per-segment path where the offset or the update step is too large to trust the
+linearisation (:data:`FAST_DXY_M`, :data:`FAST_DYAW_RAD`, :data:`FAST_STEP_M`,
+:data:`FAST_STEP_RAD`): the first updates after a poor prior.
 
-Association is decided at the predicted belief: mean and covariance of the belief
-before the batch moved by the odometry since, without the updates of the segments
-fused in between (a slightly wider gate than the one-at-a-time path's). The rules are
-those of :meth:`~sonarloc.localize.localizer.Localizer._associate_echoes`: candidates
-that can echo towards the transducers and whose ranges are near the readings', each
-candidate's readings screened one by one (chi-square(1)), the stacked squared
-Mahalanobis distance gated (chi-square(n)), the candidate keeping the most readings
-wins if no other comes close in likelihood.
+Association is decided at predicted beliefs: the latest belief moved by the odometry,
+without the updates of the segments decided with it (at most ``chunk_s`` of them, a
+slightly wider gate than the one-at-a-time path's). The rules are those of
+:meth:`~sonarloc.localize.localizer.Localizer._associate_echoes` and ``_echo_for``:
+candidates that can echo towards the transducers and whose ranges are near the
+readings', each candidate's readings screened one by one (chi-square(1)), readings a
+detected, nearer rival explains as well dropped (:func:`~sonarloc.localize.echoes.
+ambiguous`), the stacked squared Mahalanobis distance gated (chi-square(n)), the
+candidate keeping the most readings wins if no other comes close in likelihood.
 """
 
 from __future__ import annotations
@@ -92,7 +98,7 @@ class SegmentEchoes:
 
 @dataclass
 class Prepared:
-    """One segment linearised and associated at a predicted belief (:func:`prepare`).
+    """One segment associated at a predicted belief (:meth:`BatchFuser.decide`).
 
     ``outcome``: ``matched`` (``kind``/``index``/``feature`` say which map feature;
     ``reduced`` its readings' update), ``unmatched`` (no feature explains the readings)
@@ -363,24 +369,14 @@ class BatchFuser:
                                                for k in range(1, max(2 * dof, 16))])
         return float(self._gates[dof])
 
-    def prepare(self, segs: list[SegmentEchoes], track_t: Array, track: Array,
-                t_min: float, last_odom: Array, last_state: Gaussian) -> list[Prepared]:
-        """Linearise and associate ``segs`` at the beliefs predicted from ``last_state``
-        (the latest belief, at odometry pose ``last_odom``) by the odometry ``track``
-        (:meth:`linearize`, then :meth:`decide` at those beliefs)."""
-        lin = self.linearize(segs, track_t, track, t_min, last_odom, last_state)
-        if lin is None:
-            return []
-        return self.decide(lin, 0, len(segs), lin.xh, lin.ph)
-
     def linearize(self, segs: list[SegmentEchoes], track_t: Array, track: Array,
                   t_min: float, last_odom: Array, last_state: Gaussian) -> Linearized | None:
-        """The state-independent part of :meth:`prepare`, for many segments: readings
-        padded, transducer chains, candidate features, every candidate's readings
-        through the forward model at the beliefs predicted from ``last_state`` by the
-        odometry ``track`` (times ``track_t``; it must cover the readings and reference
-        times). Readings before ``t_min`` (the history's start) are left out. None
-        without segments."""
+        """The first level, for many segments: readings padded, transducer chains,
+        candidate features and rivals, every candidate's readings through the forward
+        model at the beliefs predicted from ``last_state`` (the latest belief, at
+        odometry pose ``last_odom``) by the odometry ``track`` (times ``track_t``; it
+        must cover the readings and reference times). Readings before ``t_min`` (the
+        history's start) are left out. None without segments."""
         if not segs:
             return None
         S = len(segs)

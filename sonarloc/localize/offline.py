@@ -2,9 +2,14 @@
 
 A recorded log can be localized faster than record by record: every reading's
 transducer pose is interpolated from the odometry in one numpy call, the segmenter
-runs in a lean loop, the closed segments are fitted together in large batches (the
-fitter's cost per segment falls steeply with the batch size), and the odometry between
-landmark updates is predicted in closed form (:func:`~sonarloc.localize.ekf.predict_chain`).
+runs in a lean loop, and the odometry between landmark updates is predicted in closed
+form (:func:`~sonarloc.localize.ekf.predict_chain`). With reading-level fusion (the
+default, ``fast``) the closed segments are not fitted: they are associated by their
+readings and reduced to small updates many at a time
+(:mod:`~sonarloc.localize.batchfuse`), applied in time order with no history replay.
+Otherwise they are fitted together in large batches (the fitter's cost per segment
+falls steeply with the batch size) and fused one by one through
+:meth:`Localizer.add_landmark`.
 
 The filter result is that of *on-time* fusion: a landmark is fused at its reference
 reading, before any later odometry, whatever batch it was fitted in. A pose row for an
@@ -16,7 +21,8 @@ latency. A live :class:`Localizer` fed record by record fuses the same landmarks
 associates each one when its fit completes, after the landmarks fitted before it.
 
 Memory stays bounded: odometry waits for the fitter at most ``max_wait_s`` of log time
-or ``batch_segments`` segments, and the Localizer's history is trimmed as usual.
+or ``batch_segments`` segments (fast: for the open segments only), and the Localizer's
+history is trimmed as usual.
 """
 
 from __future__ import annotations
