@@ -42,7 +42,7 @@ def test_serve_sim_map_over_tcp_and_record(run_cli, tmp_path) -> None:
     proc, url = serve("--map", ROOM, "--listen", "127.0.0.1:0", "--duration", "4",
                       "--rate", "8", "--sent-log", str(sent), "--linger", "0.2")
     assert url.startswith("socket://127.0.0.1:")
-    rec = run_cli("record", url, "--out", str(out), "--timeout", "1.5", check=True)
+    rec = run_cli("record", url, "--out", str(out), "--timeout", "5", check=True)
     err = finish(proc)
     assert out.read_text() == sent.read_text()
     assert '"type":"rig"' in out.read_text().splitlines()[0]
