@@ -259,10 +259,7 @@ def interpolate_track(track_t: Array, track: Array, t: Array) -> Array:
     span = track_t[b] - track_t[a]
     f = np.where((b > a) & (span > 0) & (t > track_t[a]),
                  (t - track_t[a]) / np.where(span > 0, span, 1.0), 0.0)
-    ta, tb = track[a], track[b]
-    dth = (tb[:, 2] - ta[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
-    return np.stack([ta[:, 0] + f * (tb[:, 0] - ta[:, 0]), ta[:, 1] + f * (tb[:, 1] - ta[:, 1]),
-                     (ta[:, 2] + f * dth + math.pi) % (2.0 * math.pi) - math.pi], axis=-1)
+    return se2.interpolate(track[a], track[b], f)
 
 
 @dataclass
@@ -487,14 +484,6 @@ class BatchFuser:
                         zero - 1.0], axis=-1)
         return rng, theta, dr, dth
 
-    @staticmethod
-    def _transducers(x: Array, rel: Array) -> Array:
-        """Transducer poses in map (C, N, 3): beliefs ``x`` (C, 3) ⊕ ``rel`` (C, N, 3)."""
-        c0, s0 = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
-        return np.stack([x[:, None, 0] + c0 * rel[..., 0] - s0 * rel[..., 1],
-                         x[:, None, 1] + s0 * rel[..., 0] + c0 * rel[..., 1],
-                         x[:, None, 2] + rel[..., 2]], axis=-1)
-
     def _measure(self, x: Array, rel: Array, fs: NDArray[np.intp], theta_lin: Array,
                  mean: Array, slope: Array, z: Array,
                  geom: tuple[Array, Array, Array, Array] | None = None
@@ -506,7 +495,7 @@ class BatchFuser:
         (:meth:`~sonarloc.localize.echoes.EchoObservation.measure`)."""
         c0, s0 = np.cos(x[:, 2])[:, None], np.sin(x[:, 2])[:, None]
         rng, theta, dr, dth = geom if geom is not None else \
-            self._geometry(self._transducers(x, rel), fs)
+            self._geometry(se2.compose(x[:, None, :], rel), fs)
         us_to_m = self._us_to_m
         dtheta = (theta - theta_lin + math.pi) % (2.0 * math.pi) - math.pi
         nu = z - (rng + us_to_m * (mean + slope * dtheta) + self._bias_m)
@@ -549,7 +538,7 @@ class BatchFuser:
         is_rival = one_gap <= tol[ps]
         # the readings through the forward model at these beliefs (the delay model as
         # linearised)
-        geom = self._geometry(self._transducers(x[ps], rel[ps + a]), fs)
+        geom = self._geometry(se2.compose(x[ps][:, None, :], rel[ps + a]), fs)
         with np.errstate(invalid="ignore"):
             redo = ok & (np.abs((geom[1] - th_lin + math.pi) % (2.0 * math.pi) - math.pi)
                          > RELINEARIZE_DELAY_RAD)
