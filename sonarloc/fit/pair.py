@@ -90,7 +90,7 @@ _SCALE = np.array([1e-3, math.pi / 180.0, 1.0])   # mm, deg, ln kappa -> m, rad,
 
 @dataclass
 class PairFit:
-    """Result of :func:`fit_pair` for one segment.
+    """Result of the two-reflector fit (:func:`resolve_pair_groups`) for one segment.
 
     ``local``: (2, 3) ``(r [m], phi [rad], kappa [us])`` of the components seen from the
     reference pose (ordered by bearing); ``cov``: (2, 3, 3) their marginal covariances;
@@ -597,35 +597,11 @@ def _pick_starts(full: Array, grid: _Grid, n_starts: int) -> list[Array]:
     return best
 
 
-def fit_pair(batch: SegmentBatch, b: int, single_local: Array, tier: str,
-             cfg: FitConfig | None = None, n_starts: int = N_STARTS) -> PairFit | None:
-    """Fit one and two point reflectors to segment ``b`` of ``batch`` and decide.
-
-    Parameters
-    ----------
-    batch : padded segments (:func:`sonarloc.fit.lsq.pack_segments`).
-    b : which segment.
-    single_local : (3,) the single-landmark fit ``(r [m], phi [rad], kappa [us])``.
-    tier : model tier of both components (that of the single fit).
-
-    Returns
-    -------
-    :class:`PairFit`, or None when the segment has too few echoes for two landmarks
-    or no bearing pair could be bracketed.
-    """
-    cfg = cfg or FitConfig()
-    if tier == "conventional":
-        return None
-    seg = _Segment(batch, b, cfg, tier)
-    if seg.y.size < 2 * cfg.min_echoes or not np.all(np.isfinite(single_local)):
-        return None
-    return _fit_pairs([seg], [np.asarray(single_local, float)], n_starts)[0]
-
-
 def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
                n_starts: int = N_STARTS) -> list[PairFit]:
-    """:func:`fit_pair` for several segments of one tier (all moving or all still),
-    every search step of all of them in one cost call (:class:`_Segments`)."""
+    """Fit one and two point reflectors to each of several segments of one tier (all
+    moving or all still), every search step of all of them in one cost call
+    (:class:`_Segments`)."""
     C = len(segs)
     cfg = segs[0].cfg
     ev: _Segment = segs[0] if C == 1 else _Segments(segs)
@@ -916,7 +892,7 @@ def resolve_pairs(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                   config: FitConfig | None = None) -> list[Landmark]:
     """Replace single landmarks by two where the two-reflector model is accepted.
 
-    Tries :func:`fit_pair` on the results :func:`is_candidate` picks; an accepted pair
+    Tries the two-reflector model on the results :func:`is_candidate` picks; an accepted pair
     gives two point landmarks (``extra["pair_of"]`` = the segment id, ``pair_gain``,
     ``pair_basis``); a rejected one leaves the single landmark, with the test's
     numbers in ``extra["pair_basis"]`` (and appended to the reason when it was not
