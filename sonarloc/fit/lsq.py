@@ -191,13 +191,15 @@ class FitConfig:
 
     @classmethod
     def batch(cls, **changes: Any) -> FitConfig:
-        """Settings for bulk fitting of clean segments: a 6 deg grid and one round whose
-        variances follow every step (``follow_variances``). Same accuracy as the default
-        on single-reflector segments (benchmarks/results/fit.md), about 1.5-2x faster
-        (stationary gauss-tier segments in float32: ``float32``, within a few thousandths
-        of an SD of float64); on ill-posed segments (corners, merged wall and corner) it
-        may settle elsewhere than the default, so the online pipeline keeps the
-        default."""
+        """Settings for bulk fitting of clean segments: a 6 deg grid bracket for every
+        segment and one round whose variances follow every step (``follow_variances``).
+        Same accuracy as the default on single-reflector segments
+        (benchmarks/results/fit.md), about 1.5-2x faster than the grid-started fit
+        (stationary gauss-tier segments in float32: ``float32``, within a few
+        thousandths of an SD of float64); the default's arc start (``start="arc"``) is
+        faster still on pans whose arc is whole. On ill-posed segments (corners, merged
+        wall and corner) it may settle elsewhere than the default, so the online
+        pipeline keeps the default."""
         return replace(cls(grid_step_deg=6.0, rounds=1, follow_variances=True, float32=True,
                            chunk_readings=131072, start="grid"), **changes)
 
