@@ -278,10 +278,17 @@ def misfit(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: st
     return bad
 
 
-REBRACKET_DCOST = 10.0
+REBRACKET_DCOST = 100.0
 """An alternative tier refined from the Gaussian fit is bracketed again on the grid only
 when it stays worse than its bar by more than this (-2 log-likelihood): a wrong basin
-shows as hundreds of units, a tier the data do not follow (eq. 3 data) as a few."""
+shows as hundreds of units, a tier the data do not follow (eq. 3 data) as a few tens.
+Measured: where the fresh bracket changed the tier it had stayed 185-265 above the bar
+(rods and poles at 2.8-3 m whose Gaussian fit collapsed to a flat curve, the continuous
+rotation of benchmarks/bench_fit.py section 4; an auto-tier plane of
+benchmarks/bench_fit_quality.py); of the 1153 refinements of that rotation that stayed
+10-100 above it, none came below the bar after a fresh bracket (one came within
+``TIER_TIE``, a kappa SD). Bracketing those again was two thirds of the re-bracketing
+cost (was 10 until 2026-11-21)."""
 
 
 def _rebracket(batch: SegmentBatch, idx: NDArray[np.int64], alt: BatchFit, bar: Array,

@@ -1,0 +1,59 @@
+"""Model selection (sonarloc.fit.select): the screened re-bracketing of other tiers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sonarloc.fit import select as S
+from sonarloc.fit.landmarks import fit_segments
+from sonarloc.fit.segment import Segmenter
+from sonarloc.fit.synth import Reflector, simulate_readings
+
+
+@pytest.fixture(scope="module")
+def rotation_segments():
+    """Segments of a continuous rotation (1 deg per ping) over the scene of
+    benchmarks/bench_fit.py section 4: far rods and poles partly hidden by nearer
+    reflectors, whose Gaussian fits sit in another basin of the waveform tier."""
+    rng = np.random.default_rng(2003)
+    n = 14400
+    refl = [Reflector.polar(r, b, k) for r, b, k in (
+        (1.5, 0, 0.67), (2.0, 50, 2.68), (2.5, 100, 0.67), (1.2, 150, 0.15),
+        (3.0, -160, 0.67), (1.8, -100, 2.68), (2.2, -50, 0.67), (2.8, -20, 2.68))]
+    scan = simulate_readings(np.arange(n) * 0.01, 0.0, 0.0, np.deg2rad(np.arange(n) * 1.0),
+                             refl, rng)
+    return list(Segmenter().feed(scan))
+
+
+def test_rebracketing_only_far_worse_refinements_keeps_the_choices(rotation_segments,
+                                                                  monkeypatch):
+    # REBRACKET_DCOST (100) skips the fresh brackets of refinements that stayed a few
+    # tens above their bar: on this scan the tiers, kinds, statuses and fits are those
+    # of bracketing everything that stayed 10 above it (the rule before 2026-11-21), at
+    # a fraction of the brackets
+    rows: list[int] = []
+    fit_batch = S.fit_batch
+
+    def counting(batch, kind, tier, cfg, *args, **kwargs):
+        if tier != "gauss" and kwargs.get("start") is None:
+            rows.append(batch.size)
+        return fit_batch(batch, kind, tier, cfg, *args, **kwargs)
+
+    monkeypatch.setattr(S, "fit_batch", counting)
+    now = fit_segments(rotation_segments)
+    n_now = sum(rows)
+    rows.clear()
+    monkeypatch.setattr(S, "REBRACKET_DCOST", 10.0)
+    before = fit_segments(rotation_segments)
+    assert 0 < n_now < 0.5 * sum(rows)
+    for a, b in zip(now, before, strict=True):
+        assert (a.kind, a.tier, a.status) == (b.kind, b.tier, b.status)
+        np.testing.assert_allclose(a.params, b.params, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(a.cov, b.cov, rtol=1e-9, atol=1e-15)
+    # the re-bracketing itself still changes tiers here (Gaussian fits in a wrong basin)
+    monkeypatch.setattr(S, "_rebracket", lambda batch, idx, alt, bar, cfg: alt)
+    plain = fit_segments(rotation_segments)
+    changed = [a.extra["tier_basis"] for a, p in zip(now, plain, strict=True)
+               if a.tier != p.tier]
+    assert changed and all("fits the data better" in str(c) for c in changed)
