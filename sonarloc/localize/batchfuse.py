@@ -17,10 +17,11 @@ each segment as its association and a reduced update of at most three rows
 (:class:`~sonarloc.localize.offline.OfflinePipeline`) applies the reduced updates in
 time order to the true belief (:func:`reduced_update`), which moves the prediction by
 ``H (x - x0)`` exactly (linear in the offset), after re-checking the winner's screening
-there (:meth:`Prepared.screen_holds`), and falls back to the Localizer's own
-per-segment path where the offset or the update step is too large to trust the
-linearisation (:data:`FAST_DXY_M`, :data:`FAST_DYAW_RAD`, :data:`FAST_STEP_M`,
-:data:`FAST_STEP_RAD`): the first updates after a poor prior.
+there (:meth:`Prepared.screen_holds`); where the offset is too large to trust the
+linearisation (:data:`FAST_DXY_M`, :data:`FAST_DYAW_RAD`: the updates decided before it
+moved the belief) it decides the segment anew at the belief now, and where the update
+step is too large (:data:`FAST_STEP_M`, :data:`FAST_STEP_RAD`: the first updates after a
+poor prior) it falls back to the Localizer's own per-segment path.
 
 Association is decided at predicted beliefs: the latest belief moved by the odometry,
 without the updates of the segments decided with it (at most ``chunk_s`` of them, a
@@ -52,8 +53,9 @@ from sonarloc.physics.reflectors import ReflectorKind, kappa_at_range_us
 Array = NDArray[np.float64]
 
 #: Largest offset of the true belief from the one a segment was linearised at (position
-#: [m], yaw [rad]) for which its reduced update is used as it is; beyond, the segment
-#: goes through the Localizer's per-segment (iterated) path.
+#: [m], yaw [rad]) for which its reduced update is used as it is; beyond, the segment is
+#: decided anew at the true belief (the first of a decision: the Localizer's per-segment
+#: path).
 FAST_DXY_M = 0.02
 FAST_DYAW_RAD = 0.02
 #: Largest update step (position [m], yaw [rad]) accepted from a reduced update; a

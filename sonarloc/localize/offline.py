@@ -2,8 +2,9 @@
 
 A recorded log can be localized faster than record by record: every reading's
 transducer pose is interpolated from the odometry in one numpy call, the segmenter
-runs in a lean loop, and the odometry between landmark updates is predicted in closed
-form (:func:`~sonarloc.localize.ekf.predict_chain`). With reading-level fusion (the
+takes them in batches (:meth:`~sonarloc.fit.segment.Segmenter.push_many`), and the
+odometry between landmark updates is predicted in closed form
+(:func:`~sonarloc.localize.ekf.predict_chain`). With reading-level fusion (the
 default, ``fast``) the closed segments are not fitted: they are associated by their
 readings and reduced to small updates many at a time
 (:mod:`~sonarloc.localize.batchfuse`), applied in time order with no history replay.
@@ -29,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -59,6 +60,8 @@ from sonarloc.localize.localizer import (
 )
 
 EstimateCallback = Callable[[OdomRecord, PoseEstimate], None]
+#: How :meth:`OfflinePipeline._fuse_prepared` fused a segment.
+FuseHow = Literal["reduced", "segment", "stale"]
 
 #: The (empty) readings of an observation fused through its reduced form alone.
 _NO_READINGS = (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
@@ -91,9 +94,9 @@ class OfflinePipeline:
         at most, and the longest span of their reference times [s] (the beliefs they are
         decided at are predicted that far ahead without the updates in between; the
         updates themselves are applied one by one at the true beliefs, and a segment
-        whose belief moved too far takes the per-segment path). 2 s: the replay's
-        steady error as with 0.5 s (within 0.005 mm / 0.005 deg over the benchmark's
-        drives), a third fewer numpy calls per segment.
+        whose belief moved too far is linearised and decided anew, with the rest). 2 s:
+        the replay's steady error as with 0.5 s (within 0.005 mm / 0.005 deg over the
+        benchmark's drives), a third fewer numpy calls per segment.
     """
 
     def __init__(self, localizer: Localizer, on_estimate: EstimateCallback | None = None,
@@ -261,15 +264,10 @@ class OfflinePipeline:
         px = bx + c * m[:, 0] - s * m[:, 1]
         py = by + s * m[:, 0] + c * m[:, 1]
         pth = bth + m[:, 2] + pan
-        tof = [math.nan if r.tof_us is None else float(r.tof_us) for r in ready]
-        sensors = [r.sensor for r in ready]
-        push = self._source.segmenter.push
-        closed = self._waiting
-        for args in zip(t.tolist(), px.tolist(), py.tolist(), pth.tolist(), tof, sensors,
-                        strict=True):
-            out = push(*args)
-            if out:
-                closed += out
+        tof = np.array([math.nan if r.tof_us is None else float(r.tof_us) for r in ready])
+        sensors = np.array([r.sensor for r in ready], dtype=np.int64)
+        closed = self._source.segmenter.push_many(t, px, py, pth, tof, sensors)
+        self._waiting += [s for _, s in closed]
 
     def _fuse(self, horizon: float) -> None:
         """Fuse the landmarks referring to times before ``horizon`` at their reference
@@ -385,14 +383,19 @@ class OfflinePipeline:
                 se2.between(last.odom, lin.odom_ref[k - base:j - base]), noise)
             assert self._fuser is not None
             prepared = self._fuser.decide(lin, k - base, j - base, pred.mean, pred.cov)
-            k = j
-            slow = 0
-            for p in prepared:
+            slow = stale = False
+            for i, p in enumerate(prepared):
                 pos = self._enter_upto(odom, pos, p.t_ref)
-                slow += not self._fuse_prepared(p)
-            if slow:
-                # updates the reduced forms could not take: the belief moved far from the
-                # linearisation; re-linearise the rest, and decide fewer at a time for now
+                how = self._fuse_prepared(p, redecide=i > 0)
+                if how == "stale":
+                    stale = True
+                    break
+                k += 1
+                slow |= how == "segment"
+            if slow or stale:
+                # updates the reduced forms could not take (or the belief moved away from
+                # where the rest were decided): re-linearise the rest at the belief now,
+                # and decide fewer at a time for now
                 lin = None
                 self._chunk = max(1, self._chunk // 4)
             else:
@@ -408,15 +411,20 @@ class OfflinePipeline:
         self._odom = odom[pos:]
         self._hand_out(horizon)
 
-    def _fuse_prepared(self, p: Prepared) -> bool:
+    def _fuse_prepared(self, p: Prepared, redecide: bool = False) -> FuseHow:
         """Fuse one prepared segment into the history (appended: it is the latest).
-        Returns False when it took the per-segment path."""
+
+        Returns how: ``"reduced"`` (by its reduced update, or rejected as decided),
+        ``"segment"`` (the Localizer's per-segment path: the update too large for the
+        reduced form, or, unless ``redecide``, the belief too far from the one it was
+        decided at) or ``"stale"`` (``redecide`` and the belief too far: nothing done,
+        the caller decides it again at the belief now)."""
         loc = self.loc
         st = loc.stats
-        st.observations += 1
         if p.outcome == "none":
+            st.observations += 1
             st.outcomes["echo_none"] += 1
-            return True
+            return "reduced"
         last = loc._entries[-1]
         # the belief at the reference time: the last one moved by the odometry since
         # (in floats: a Gaussian is made only for what goes into the history)
@@ -427,10 +435,13 @@ class OfflinePipeline:
         m0, m1, m2 = mean_ref
         dyaw = abs((m2 - x0[2] + math.pi) % (2.0 * math.pi) - math.pi)
         near = abs(m0 - x0[0]) + abs(m1 - x0[1]) <= FAST_DXY_M and dyaw <= FAST_DYAW_RAD
+        if redecide and not near:
+            return "stale"
+        st.observations += 1
         if near and p.outcome == "unmatched":
             loc._rejected(p.t_ref)
             st.outcomes["echo_unmatched"] += 1
-            return True
+            return "reduced"
         fuser = self._fuser
         assert fuser is not None
         if near and p.reduced is not None and p.feature is not None and \
@@ -448,12 +459,12 @@ class OfflinePipeline:
                 if not d2 <= fuser.gate(p.n_kept):
                     st.outcomes["echo_gated"] += 1
                     loc._rejected(p.t_ref)
-                    return True
+                    return "reduced"
                 obs = EchoObservation(*_NO_READINGS, math.nan, p.feature, p.t_ref,
                                       loc._c_mps, p.kind, compressed=p.reduced)
                 self._append_fused(p, ekf.Gaussian(np.array(new_mean), np.array(new_cov)),
                                    obs, p.n_kept)
-                return True
+                return "reduced"
         state_ref = ekf.Gaussian(np.array(mean_ref), np.array(cov_ref))
         # the per-segment path: associate and update (iterated) at the true belief
         assert p.chain is not None
@@ -461,7 +472,7 @@ class OfflinePipeline:
         if found is None:
             loc._rejected(p.t_ref)
             st.outcomes["echo_unmatched"] += 1
-            return False
+            return "segment"
         eo, _ = found
         st.outcomes["echo_matched"] += 1
         gate = ekf.chi2_gate(len(eo), loc.config.echo_gate_probability)
@@ -469,9 +480,9 @@ class OfflinePipeline:
         if not bool(np.all(innov.accepted)):
             st.outcomes["echo_gated"] += 1
             loc._rejected(p.t_ref)
-            return False
+            return "segment"
         self._append_fused(p, new, eo, len(eo))
-        return False
+        return "segment"
 
     def _append_fused(self, p: Prepared, state: ekf.Gaussian, obs: EchoObservation,
                       n: int) -> None:

@@ -131,7 +131,7 @@ class Checking(OfflinePipeline):
         self.checked = 0
         self.disagree = []
 
-    def _fuse_prepared(self, p):
+    def _fuse_prepared(self, p, redecide=False):
         loc = self.loc
         if p.outcome != "none" and loc._entries:
             last = loc._entries[-1]
@@ -155,7 +155,7 @@ class Checking(OfflinePipeline):
                                                c.rq.T @ c.q_nu, rtol=1e-6,
                                                atol=1e-6 * np.abs(c.rq.T @ c.q_nu).max())
                     assert p.reduced.resid2 == pytest.approx(c.resid2, rel=1e-5, abs=1e-9)
-        return super()._fuse_prepared(p)
+        return super()._fuse_prepared(p, redecide)
 
 
 def _run(text, fmap, pipe_cls=OfflinePipeline, **kw):
@@ -202,6 +202,48 @@ def test_many_at_a_time_stays_close_to_one_at_a_time(ring_log, fmap):
         return math.sqrt(np.mean([(e.x_m - truth[t].x_m) ** 2 + (e.y_m - truth[t].y_m) ** 2
                                   for t, e in rows if t > 5.0]))
     assert rmse(many) < 0.003 and rmse(many) < rmse(one) + 0.0005
+
+
+class Recording(OfflinePipeline):
+    """The fast path, recording how each prepared segment was fused and how far the
+    true belief was from the one it was decided at."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.hows = []
+
+    def _fuse_prepared(self, p, redecide=False):
+        loc = self.loc
+        last = loc._entries[-1]
+        x = ekf.predict(last.state, se2.between(last.odom, p.odom_ref),
+                        loc.config.odom_noise).mean
+        far = abs(x[0] - p.x0[0]) + abs(x[1] - p.x0[1]) > batchfuse.FAST_DXY_M or \
+            abs(float(se2.wrap_angle(x[2] - p.x0[2]))) > batchfuse.FAST_DYAW_RAD
+        how = super()._fuse_prepared(p, redecide)
+        self.hows.append((p.t_ref, p.outcome, far, redecide, how))
+        return how
+
+
+def test_a_segment_decided_at_a_stale_belief_is_decided_anew(ring_log, fmap):
+    """Where the updates decided before it in its chunk moved the belief too far from
+    the one a segment was decided at (the first updates after the poor prior), the
+    segment is not fused (nor counted) but decided again at the belief now, where it is
+    near (first of its decision) and takes its reduced update; the per-segment path is
+    left to the few whose update step is too large."""
+    pipe, loc, _ = _run(ring_log, fmap, Recording)
+    hows = pipe.hows
+    stale = [i for i, h in enumerate(hows) if h[4] == "stale"]
+    assert stale, "the drive's first updates (a 5 cm / 2 deg prior) leave a stale belief"
+    for i in stale:
+        t, outcome, far, redecide, _ = hows[i]
+        assert far and redecide and outcome != "none"
+        t2, _, far2, redecide2, how2 = hows[i + 1]   # the same segment, decided anew
+        assert t2 == t and not far2 and not redecide2 and how2 != "stale"
+    assert not any(far and how != "stale" and h_out != "none"
+                   for _, h_out, far, redecide, how in hows if redecide)
+    assert sum(h[4] == "segment" for h in hows) <= 4
+    assert loc.stats.observations == sum(h[4] != "stale" for h in hows) == \
+        loc.stats.segments
 
 
 def test_replay_log_fast_switch(ring_log, fmap):
