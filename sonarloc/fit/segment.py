@@ -34,10 +34,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from sonarloc.io.scancsv import ScanReadings
 from sonarloc.physics.tof import ModuleParams
@@ -47,6 +49,11 @@ _TWO_PI = 2.0 * math.pi
 
 def _wrap(a: float) -> float:
     return a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)
+
+
+def _wrap_array(a: np.ndarray) -> np.ndarray:
+    """:func:`_wrap` of an array, in the same float operations (the same bits)."""
+    return a - _TWO_PI * np.floor((a + math.pi) / _TWO_PI)
 
 
 @dataclass(frozen=True)
@@ -171,6 +178,22 @@ class _Open:
     occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
 
 
+class _RecentIndex:
+    """The readings of a chunk grouped by sensor: ``by_sensor[c]`` the indices of
+    sensor ``c``'s readings in order, ``rank[i]`` the position of reading ``i`` there."""
+
+    def __init__(self, sensor: np.ndarray) -> None:
+        order = np.argsort(sensor, kind="stable")
+        starts = np.flatnonzero(np.r_[True, sensor[order][1:] != sensor[order][:-1]])
+        ends = np.r_[starts[1:], len(order)]
+        rank = np.empty(len(order), dtype=np.int64)
+        rank[order] = np.arange(len(order)) - np.repeat(starts, ends - starts)
+        self.rank: list[int] = rank.tolist()
+        self.by_sensor: dict[int, list[int]] = {
+            int(sensor[order[a]]): order[a:b].tolist()
+            for a, b in zip(starts.tolist(), ends.tolist(), strict=True)}
+
+
 class Segmenter:
     """Online segmenter (the only stateful object of ``sonarloc.fit``).
 
@@ -242,14 +265,8 @@ class Segmenter:
 
     def _push(self, t: float, x: float, y: float, yaw: float, tof: float, sensor: int
               ) -> list[Segment]:
-        """:meth:`push` of Python floats and an int.
-
-        The per-reading loops over the open segments are written out inline (this runs
-        once per reading, over every open segment): the match score and the miss test
-        of :meth:`_off_axis` without calls, the gap test skipped while the oldest
-        last echo cannot be ``max_gap_s`` old. Same segments as the plain form
-        (tests/fit/segment_reference.py, compared in tests).
-        """
+        """:meth:`push` of Python floats and an int: the checks and counters of one
+        reading, then :meth:`_step`."""
         st = self.stats
         st.readings += 1
         if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)
@@ -261,6 +278,97 @@ class Segmenter:
             return []
         self._last_t = t
         yaw = yaw - _TWO_PI * math.floor((yaw + math.pi) / _TWO_PI)
+        if math.isnan(tof):
+            st.no_echo += 1
+            R = math.inf
+        else:
+            st.echoes += 1
+            R = (tof - self._half_count_us) * self._m_per_us
+        row = (t, x, y, yaw, tof, sensor)
+        closed, start = self._step(row, R)
+        if self._censor:
+            self._remember(row, R)
+        if start:
+            dq = self._recent.get(sensor)
+            closed += self._start(row, R, [e for e in dq if e[0] is not row] if dq else [])
+        return closed
+
+    def push_many(self, t_s: ArrayLike, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
+                  tof_us: ArrayLike, sensor: ArrayLike | None = None,
+                  chunk: int = 65536) -> list[tuple[int, Segment]]:
+        """Add many readings at once: the same segments and counters as :meth:`push` of
+        each in turn, faster.
+
+        Parameters
+        ----------
+        t_s, x_m, y_m, yaw_rad, tof_us : (n,) readings in arrival order (as :meth:`push`).
+        sensor : (n,) transducer ids (None: all 0).
+        chunk : readings handled together at most (bounds the temporary arrays; the
+            segmenter itself keeps only its open segments between chunks).
+
+        Returns
+        -------
+        The segments closed, in order, each with the index (into the arrays) of the
+        reading that closed it.
+
+        The checks, counters, wrapped axes and ranges of all readings are computed in
+        numpy; the per-reading decisions run through the same :meth:`_step` as
+        :meth:`push`, except where the outcome is known in advance: readings without an
+        echo while no segment is open change nothing, and a run of echoes from the same
+        spot each matching the previous one extends the only open segment (a panning
+        transducer crossing a landmark) in one go.
+        """
+        cols = [np.asarray(a, dtype=float).ravel() for a in (t_s, x_m, y_m, yaw_rad, tof_us)]
+        n = len(cols[0])
+        sens = np.zeros(n, dtype=np.int64) if sensor is None else \
+            np.asarray(sensor).astype(np.int64).ravel()
+        for name, a in zip(("x_m", "y_m", "yaw_rad", "tof_us", "sensor"), [*cols[1:], sens],
+                           strict=True):
+            if len(a) != n:
+                raise ValueError(f"`{name}` has length {len(a)}, expected {n}")
+        if not (isinstance(chunk, int) and chunk >= 1):
+            raise ValueError(f"`chunk` must be a positive integer, got {chunk!r}")
+        closed: list[tuple[int, Segment]] = []
+        for lo in range(0, n, chunk):
+            hi = min(lo + chunk, n)
+            t, x, y, yaw, tof = (a[lo:hi] for a in cols)
+            closed += self._push_chunk(t, x, y, yaw, tof, sens[lo:hi], lo)
+        return closed
+
+    def flush(self) -> list[Segment]:
+        """Close every open segment (end of stream)."""
+        closed: list[Segment] = []
+        for s in list(self._open):
+            closed += self._close(s, "flush")
+        return closed
+
+    def feed(self, scan: ScanReadings, chunk: int = 65536) -> Iterator[Segment]:
+        """Push every reading of ``scan`` in order (:meth:`push_many`, ``chunk`` at a
+        time), then flush; yields closed segments."""
+        for lo in range(0, len(scan), chunk):
+            part = slice(lo, lo + chunk)
+            for _, s in self.push_many(scan.t_s[part], scan.x_m[part], scan.y_m[part],
+                                       scan.yaw_rad[part], scan.tof_us[part],
+                                       scan.sensor[part], chunk=chunk):
+                yield s
+        yield from self.flush()
+
+    # -- the per-reading decisions (shared by push and push_many) ----------------------
+
+    def _step(self, row: tuple[float, float, float, float, float, int], R: float
+              ) -> tuple[list[Segment], bool]:
+        """One accepted reading ``row`` = (t, x, y, yaw wrapped, tof, sensor), ``R`` its
+        range (inf: no echo): closes, misses, censoring and the extension of the best
+        matching segment. Returns the segments closed and whether this echo opens a new
+        segment (left to the caller, which knows the sensor's recent readings).
+
+        The loops over the open segments are written out inline (this runs once per
+        reading, over every open segment): the match score and the miss test of
+        :meth:`_off_axis` without calls, the gap test skipped while the oldest last
+        echo cannot be ``max_gap_s`` old. Same segments as the plain form
+        (tests/fit/segment_reference.py, compared in tests).
+        """
+        t, x, y, yaw, tof, sensor = row
         closed: list[Segment] = []
         opened = self._open
         # time gaps close segments first, then a panning beam that has moved on
@@ -277,10 +385,7 @@ class Segmenter:
         wide = self._tan_miss_wide
         miss = self._miss
         gone: list[_Open] = []
-        if not math.isnan(tof):
-            st.echoes += 1
-            R = (tof - self._half_count_us) * self._m_per_us
-            row = (t, x, y, yaw, tof, sensor)
+        if R < math.inf:
             gate = self._gate_m
             beam = self._beam
             best, best_score = None, math.inf
@@ -343,25 +448,20 @@ class Segmenter:
                     gone.append(s)
             for s in gone:
                 closed += self._close(s, "misses")
-            if self._censor:
-                self._remember(row, R)
-            if best is not None:
-                best.rows.append(row)
-                best.n_echo += 1
-                best.last = (t, x, y, yaw, R, sensor)
-                best.mid = (x + R * math.cos(yaw + 0.0), y + R * math.sin(yaw + 0.0))
-                best.arc = None
-                best.misses = 0
-                best.trailing = 0
-                best.occluded_trail = False
-                best.sensors.add(sensor)
-                if len(best.rows) >= self._max_readings:
-                    closed += self._close(best, "full")
-            else:
-                closed += self._start(row, R)
+            if best is None:
+                return closed, True
+            best.rows.append(row)
+            best.n_echo += 1
+            best.last = (t, x, y, yaw, R, sensor)
+            best.mid = (x + R * math.cos(yaw + 0.0), y + R * math.sin(yaw + 0.0))
+            best.arc = None
+            best.misses = 0
+            best.trailing = 0
+            best.occluded_trail = False
+            best.sensors.add(sensor)
+            if len(best.rows) >= self._max_readings:
+                closed += self._close(best, "full")
         else:
-            st.no_echo += 1
-            row = (t, x, y, yaw, tof, sensor)
             for s in opened:
                 mx, my = s.mid
                 dx, dy = mx - x, my - y
@@ -379,27 +479,111 @@ class Segmenter:
                         gone.append(s)
             for s in gone:
                 closed += self._close(s, "misses")
-            if self._censor:
-                self._remember(row, math.inf)
-        return closed
+        return closed, False
 
-    def flush(self) -> list[Segment]:
-        """Close every open segment (end of stream)."""
-        closed: list[Segment] = []
-        for s in list(self._open):
-            closed += self._close(s, "flush")
-        return closed
-
-    def feed(self, scan: ScanReadings) -> Iterator[Segment]:
-        """Push every reading of ``scan`` in order, then flush; yields closed segments."""
-        cols = (scan.t_s.tolist(), scan.x_m.tolist(), scan.y_m.tolist(),
-                scan.yaw_rad.tolist(), scan.tof_us.tolist(), scan.sensor.tolist())
-        push = self._push
-        for t, x, y, yaw, tof, sensor in zip(*cols, strict=True):
-            closed = push(t, x, y, yaw, tof, sensor)
+    def _push_chunk(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+                    tof: np.ndarray, sensor: np.ndarray, offset: int
+                    ) -> list[tuple[int, Segment]]:
+        """:meth:`push_many` of one chunk (float64 / int64 arrays of one length)."""
+        st = self.stats
+        n = len(t)
+        # the checks of :meth:`_push`, for all readings at once: bad values, then time
+        # going backwards (behind the latest accepted time, as a running maximum)
+        valid = (np.isfinite(t) & np.isfinite(x) & np.isfinite(y) & np.isfinite(yaw)
+                 & ~np.isinf(tof) & ~(tof <= 0.0))
+        latest = np.maximum.accumulate(np.concatenate(([self._last_t],
+                                                       np.where(valid, t, -np.inf))))
+        late = valid & (t < latest[:-1])
+        keep = np.flatnonzero(valid & ~late)
+        echo_mask = ~np.isnan(tof[keep])
+        st.readings += n
+        st.bad += int(n - np.count_nonzero(valid))
+        st.out_of_order += int(np.count_nonzero(late))
+        st.echoes += int(np.count_nonzero(echo_mask))
+        st.no_echo += int(len(keep) - np.count_nonzero(echo_mask))
+        self._last_t = float(latest[-1])
+        if not len(keep):
+            return []
+        t, x, y, tof, sensor = t[keep], x[keep], y[keep], tof[keep], sensor[keep]
+        yaw = _wrap_array(yaw[keep])
+        R = np.where(echo_mask, (tof - self._half_count_us) * self._m_per_us, np.inf)
+        chain = self._chain(t, x, y, yaw, R, sensor)
+        m = len(keep)
+        # the next echo at or after each reading, and the end of each chained run
+        idx = np.arange(m)
+        next_echo = np.minimum.accumulate(np.where(echo_mask, idx, m)[::-1])[::-1].tolist()
+        run_end = np.minimum.accumulate(np.where(chain, m, idx)[::-1])[::-1].tolist()
+        tl, xl, yl, yawl, tofl, sl, Rl = (a.tolist() for a in (t, x, y, yaw, tof, sensor, R))
+        index = (keep + offset).tolist()
+        recent = _RecentIndex(sensor) if self._censor else None
+        opened = self._open
+        step = self._step
+        max_readings = self._max_readings
+        out: list[tuple[int, Segment]] = []
+        i = 0
+        while i < m:
+            if not opened and not Rl[i] < math.inf:
+                i = next_echo[i]       # nothing open, no echo: nothing to do
+                continue
+            row = (tl[i], xl[i], yl[i], yawl[i], tofl[i], sl[i])
+            R_i = Rl[i]
+            closed, start = step(row, R_i)
+            if start:
+                prev = self._recent_rows(recent, i, sl[i], tl, xl, yl, yawl, tofl, sl, Rl) \
+                    if recent is not None else []
+                closed += self._start(row, R_i, prev)
             if closed:
-                yield from closed
-        yield from self.flush()
+                out += [(index[i], s) for s in closed]
+            i += 1
+            # a run of echoes, each matching the one before from the same spot, extends
+            # the only open segment (its last echo the reading just handled)
+            if i < m and chain[i] and len(opened) == 1 and opened[0].rows[-1] is row:
+                s = opened[0]
+                j = min(run_end[i], i + max_readings - 1 - len(s.rows))
+                if j > i:
+                    s.rows += zip(tl[i:j], xl[i:j], yl[i:j], yawl[i:j], tofl[i:j], sl[i:j],
+                                  strict=True)
+                    s.n_echo += j - i
+                    k = j - 1
+                    lt, lx, ly, lyaw, lR = tl[k], xl[k], yl[k], yawl[k], Rl[k]
+                    s.last = (lt, lx, ly, lyaw, lR, sl[k])
+                    s.mid = (lx + lR * math.cos(lyaw + 0.0), ly + lR * math.sin(lyaw + 0.0))
+                    s.arc = None
+                    s.misses = 0
+                    s.trailing = 0
+                    s.occluded_trail = False
+                    i = j
+        if recent is not None:
+            self._remember_chunk(recent, tl, xl, yl, yawl, tofl, sl, Rl)
+        return out
+
+    def _chain(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+               R: np.ndarray, sensor: np.ndarray) -> np.ndarray:
+        """(m,) bool: reading i is an echo that :meth:`_step` surely adds to a segment
+        whose last echo is reading i - 1 (an echo of the same sensor from the same spot,
+        within the gate and the time gap, the beam not swept away): the same-spot
+        branch of the match, in the same float operations, so exactly its outcome."""
+        chain = np.zeros(len(t), dtype=bool)
+        if len(t) < 2:
+            return chain
+        a = yaw[1:] - yaw[:-1]
+        with np.errstate(invalid="ignore"):     # inf - inf: no echo on either side
+            dR = np.abs(R[1:] - R[:-1])
+        c = ((R[1:] < np.inf) & (R[:-1] < np.inf) & (sensor[1:] == sensor[:-1])
+             & (x[1:] == x[:-1]) & (y[1:] == y[:-1]) & ~(t[1:] - t[:-1] > self._max_gap)
+             & ~(np.abs(_wrap_array(a)) > 2.0 * self._beam)
+              & (dR <= self._gate_m))
+        if self._away < math.inf and c.any():
+            # the swept test (off-axis angle of the last echo's landmark) with numpy's
+            # arctan2, which may differ from math.atan2 in the last bits: a margin
+            k = np.flatnonzero(c)
+            lyaw, lR = yaw[k], R[k]
+            mx = x[k] + lR * np.array([math.cos(v + 0.0) for v in lyaw.tolist()])
+            my = y[k] + lR * np.array([math.sin(v + 0.0) for v in lyaw.tolist()])
+            off = np.abs(_wrap_array(np.arctan2(my - y[k + 1], mx - x[k + 1]) - yaw[k + 1]))
+            c[k[~(off <= self._away - 1e-9)]] = False
+        chain[1:] = c
+        return chain
 
     # -- internals -------------------------------------------------------------------
 
@@ -433,25 +617,26 @@ class Segmenter:
         lim = self.config.miss_limit
         return (s.misses >= lim and off >= self._miss_angle) or s.misses >= 4 * lim
 
-    def _start(self, row: tuple[float, float, float, float, float, int], R: float
+    def _start(self, row: tuple[float, float, float, float, float, int], R: float,
+               prev: Sequence[tuple[tuple[float, float, float, float, float, int], float]]
                ) -> list[Segment]:
+        """Open a segment with the echo ``row`` (range ``R``); ``prev``: the earlier
+        readings of its sensor, oldest first, with their ranges (inf: no echo), at most
+        ``censor_window - 1`` of them (the sensor's recent readings with this one)."""
         t, x, y, yaw, _, sensor = row
         closed: list[Segment] = []
         if len(self._open) >= self.config.max_open:
             closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
         lead: list[tuple[float, float, float, float, float, int]] = []
-        dq = self._recent.get(sensor)
-        if dq:
-            # earlier readings of this sensor that saw nothing here: no echo, or a
-            # farther echo won (the first crossing would have been this landmark's)
-            for r, r_range in dq:
-                if (r is not row and t - r[0] <= self.config.max_gap_s
-                        and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
-                        and r_range > R + self._gate_m):
-                    lead.append((r[0], r[1], r[2], r[3], math.nan, r[5]))
+        # earlier readings of this sensor that saw nothing here: no echo, or a farther
+        # echo won (the first crossing would have been this landmark's)
+        for r, r_range in prev:
+            if (t - r[0] <= self.config.max_gap_s
+                    and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
+                    and r_range > R + self._gate_m):
+                lead.append((r[0], r[1], r[2], r[3], math.nan, r[5]))
         s = _Open(self._next_id, lead + [row], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
         # the reading of this sensor just before: a nearer echo there hid this landmark
-        prev = [(r, rr) for r, rr in dq if r is not row] if dq else []
         if prev:
             r, r_range = prev[-1]
             s.occluded_lead = (t - r[0] <= self.config.max_gap_s
@@ -462,6 +647,34 @@ class Segmenter:
         self._open.append(s)
         self._oldest_last = min(self._oldest_last, t)
         return closed
+
+    def _recent_rows(self, recent: _RecentIndex, i: int, sensor: int, *cols: list[Any]
+                     ) -> list[tuple[tuple[float, float, float, float, float, int], float]]:
+        """The ``prev`` of :meth:`_start` for reading ``i`` of a chunk (``cols``: its
+        columns t, x, y, yaw, tof, sensor, R as lists): the sensor's readings before it
+        in the chunk, and before the chunk those :meth:`_remember` kept."""
+        want = self._censor - 1
+        tl, xl, yl, yawl, tofl, sl, Rl = cols
+        mine = recent.by_sensor[sensor]
+        r = recent.rank[i]
+        before = mine[max(0, r - want):r]
+        out = [((tl[j], xl[j], yl[j], yawl[j], tofl[j], sl[j]), Rl[j]) for j in before]
+        if len(out) < want:
+            dq = self._recent.get(sensor)
+            if dq:
+                old = list(dq)[max(0, len(dq) - (want - len(out))):]
+                out = old + out
+        return out
+
+    def _remember_chunk(self, recent: _RecentIndex, *cols: list[Any]) -> None:
+        """:meth:`_remember` of a chunk's last ``censor_window`` readings per sensor."""
+        tl, xl, yl, yawl, tofl, sl, Rl = cols
+        for sensor, mine in recent.by_sensor.items():
+            dq = self._recent.get(sensor)
+            if dq is None:
+                dq = self._recent[sensor] = deque(maxlen=self._censor)
+            dq.extend(((tl[j], xl[j], yl[j], yawl[j], tofl[j], sl[j]), Rl[j])
+                      for j in mine[-self._censor:])
 
     def _close(self, s: _Open, why: str) -> list[Segment]:
         if s not in self._open:

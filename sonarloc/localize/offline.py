@@ -2,8 +2,9 @@
 
 A recorded log can be localized faster than record by record: every reading's
 transducer pose is interpolated from the odometry in one numpy call, the segmenter
-runs in a lean loop, and the odometry between landmark updates is predicted in closed
-form (:func:`~sonarloc.localize.ekf.predict_chain`). With reading-level fusion (the
+takes them in batches (:meth:`~sonarloc.fit.segment.Segmenter.push_many`), and the
+odometry between landmark updates is predicted in closed form
+(:func:`~sonarloc.localize.ekf.predict_chain`). With reading-level fusion (the
 default, ``fast``) the closed segments are not fitted: they are associated by their
 readings and reduced to small updates many at a time
 (:mod:`~sonarloc.localize.batchfuse`), applied in time order with no history replay.
@@ -263,15 +264,10 @@ class OfflinePipeline:
         px = bx + c * m[:, 0] - s * m[:, 1]
         py = by + s * m[:, 0] + c * m[:, 1]
         pth = bth + m[:, 2] + pan
-        tof = [math.nan if r.tof_us is None else float(r.tof_us) for r in ready]
-        sensors = [r.sensor for r in ready]
-        push = self._source.segmenter.push
-        closed = self._waiting
-        for args in zip(t.tolist(), px.tolist(), py.tolist(), pth.tolist(), tof, sensors,
-                        strict=True):
-            out = push(*args)
-            if out:
-                closed += out
+        tof = np.array([math.nan if r.tof_us is None else float(r.tof_us) for r in ready])
+        sensors = np.array([r.sensor for r in ready], dtype=np.int64)
+        closed = self._source.segmenter.push_many(t, px, py, pth, tof, sensors)
+        self._waiting += [s for _, s in closed]
 
     def _fuse(self, horizon: float) -> None:
         """Fuse the landmarks referring to times before ``horizon`` at their reference

@@ -1,10 +1,12 @@
-"""The segmenter's inline per-reading loop gives exactly the segments of its plain form.
+"""The segmenter's inline per-reading loop, and its batch form ``push_many``, give
+exactly the segments of its plain form.
 
 ``segment_reference.py`` holds the segmenter as it was before the loop was written out
-(session 3). Both are fed the same readings (the batch replay's own pushes on simulated
-ring and pan drives, and random streams) and must return the same segments, closed by
-the same reading, for the same reason, with the same readings to the last bit, and the
-same counters.
+(session 3). All are fed the same readings (the batch replay's own pushes on simulated
+ring and pan drives, the fitting stage's hard cases, a long continuous rotation, and
+random streams), ``push_many`` in chunks of several sizes, and must return the same
+segments, closed by the same reading, for the same reason, with the same readings to the
+last bit, and the same counters.
 """
 
 from __future__ import annotations
@@ -20,7 +22,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sonarloc.fit import segment as fast
+from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings
 from sonarloc.io.logfile import LogWriter, SensorMount
+from sonarloc.io.scancsv import ScanReadings
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import LocalizerConfig
 from sonarloc.localize.replay import replay_log
@@ -42,9 +46,26 @@ def _run(module, config, pushes: list[Push]):
     return out, seg
 
 
-def _assert_same(pushes: list[Push], config_kwargs: dict) -> int:
-    got, seg_new = _run(fast, fast.SegmenterConfig(**config_kwargs), pushes)
+def _run_many(config, pushes: list[Push], chunk: int):
+    seg = fast.Segmenter(config)
+    cols = [np.array(c) for c in zip(*pushes, strict=True)] if pushes else [np.zeros(0)] * 6
+    out = seg.push_many(*cols, chunk=chunk)
+    out += [(len(pushes), s) for s in seg.flush()]
+    return out, seg
+
+
+def _assert_same(pushes: list[Push], config_kwargs: dict,
+                 chunks: tuple[int, ...] = (1, 7, 65536)) -> int:
+    """Reference against the online form and ``push_many`` in each of ``chunks``."""
     want, seg_ref = _run(ref, ref.SegmenterConfig(**config_kwargs), pushes)
+    config = fast.SegmenterConfig(**config_kwargs)
+    for got, seg_new in [_run(fast, config, pushes),
+                         *(_run_many(config, pushes, c) for c in chunks)]:
+        _compare(got, seg_new, want, seg_ref)
+    return len(want)
+
+
+def _compare(got, seg_new, want, seg_ref) -> None:
     assert len(got) == len(want)
     for (i_new, a), (i_ref, b) in zip(got, want, strict=True):
         assert (i_new, a.seg_id, a.closed_by, a.occluded) == \
@@ -66,7 +87,8 @@ def _replay_pushes(monkeypatch: pytest.MonkeyPatch, world, rig, duration_s: floa
         w.write_all(simulate_records(world, rig, duration_s=duration_s, seed=seed))
     pushes: list[Push] = []
     configs = []
-    orig_push, orig_init = fast.Segmenter.push, fast.Segmenter.__init__
+    orig_push, orig_many, orig_init = (fast.Segmenter.push, fast.Segmenter.push_many,
+                                       fast.Segmenter.__init__)
 
     def init(self, config=None, module=None):
         orig_init(self, config, module)
@@ -76,8 +98,13 @@ def _replay_pushes(monkeypatch: pytest.MonkeyPatch, world, rig, duration_s: floa
         pushes.append(tuple(args))
         return orig_push(self, *args)
 
+    def push_many(self, *cols, **kwargs):
+        pushes.extend(zip(*(np.asarray(c).tolist() for c in cols), strict=True))
+        return orig_many(self, *cols, **kwargs)
+
     monkeypatch.setattr(fast.Segmenter, "__init__", init)
     monkeypatch.setattr(fast.Segmenter, "push", push)
+    monkeypatch.setattr(fast.Segmenter, "push_many", push_many)
     replay_log(io.StringIO(buf.getvalue()), FeatureMap.from_map(world),
                config=LocalizerConfig(method="kuc"))
     monkeypatch.undo()
@@ -97,10 +124,80 @@ def test_replay_pushes_give_identical_segments(monkeypatch, rig_name):
     assert len(pushes) > 300
     if rig_name == "pan":
         assert kwargs["sweep_away_deg"] is not None     # the swept test is exercised
-    n = _assert_same(pushes, kwargs)
+    n = _assert_same(pushes, kwargs, chunks=(1, 50, 65536))
     assert n > 20
     # and with the edge settings: few open segments, short segments, no censoring
-    _assert_same(pushes, {**kwargs, "max_open": 3, "max_readings": 6, "censor_window": 0})
+    _assert_same(pushes, {**kwargs, "max_open": 3, "max_readings": 6, "censor_window": 0},
+                 chunks=(33,))
+
+
+def _scan_pushes(scan) -> list[Push]:
+    return list(zip(scan.t_s.tolist(), scan.x_m.tolist(), scan.y_m.tolist(),
+                    scan.yaw_rad.tolist(), scan.tof_us.tolist(), scan.sensor.tolist(),
+                    strict=True))
+
+
+def _hard_scans() -> dict[str, object]:
+    """Scans of tests/fit/test_fit_hard_cases.py (seeded): spikes and cross-talk, a
+    coarse pan, continuous rotation through +-180 deg, a moving nodding sensor, NaN /
+    inf / negative values with every time twice, two reflectors a few degrees apart."""
+    rng = np.random.default_rng(11)
+    out: dict[str, object] = {}
+    scan = pan_scan([Reflector.polar(1.46, -17, 0.67), Reflector.polar(1.47, 22, 2.68)],
+                    rng, -40, 40, 0.3)
+    tof = scan.tof_us.copy()
+    spikes = rng.choice(len(tof), 15, replace=False)
+    tof[spikes] = rng.uniform(1500, 12000, 15)
+    inside = np.flatnonzero(np.isfinite(scan.tof_us))[::17]
+    tof[inside] = scan.tof_us[inside] - rng.uniform(20, 35, inside.size)
+    out["spikes"] = ScanReadings(scan.t_s, scan.x_m, scan.y_m, scan.yaw_rad, tof,
+                                 scan.sensor)
+    out["coarse"] = pan_scan([Reflector.polar(2.0, 12.0, 0.67)], rng, -40, 40, 2.0)
+    n = 3 * 720
+    out["rotation"] = simulate_readings(
+        np.arange(n) * 0.03, 0.0, 0.0, np.deg2rad(np.arange(n) * 0.5 - 180.0),
+        [Reflector.polar(r, b, 0.67) for r, b in ((1.5, 180.0), (2.0, -60.0), (2.5, 45.0))],
+        rng)
+    t = np.arange(0, 12.0, 0.04)
+    out["moving"] = simulate_readings(
+        t, -1.0 + 0.25 * t, 0.0, np.pi / 2 + np.deg2rad(15.0) * np.sin(2 * np.pi * t / 3.0),
+        [Reflector.point(0.0, 1.2, 0.67), Reflector.line(2.2, np.deg2rad(95.0), 0.15)], rng)
+    scan = pan_scan([Reflector.polar(1.5, 0.0, 0.67)], rng, -30, 30, 0.3)
+    tof, x, t = scan.tof_us.copy(), scan.x_m.copy(), scan.t_s.copy()
+    tof[::9] = np.inf
+    tof[5::13] = -1.0
+    x[7::31] = np.nan
+    t[1::2] = t[0::2][: len(t[1::2])]
+    out["junk"] = ScanReadings(t, x, scan.y_m, scan.yaw_rad, tof, scan.sensor)
+    out["close pair"] = pan_scan([Reflector.polar(1.5, -2.0, 0.67),
+                                  Reflector.polar(1.53, 3.0, 0.67)], rng, -40, 40, 0.3)
+    return out
+
+
+@pytest.mark.parametrize("name", ["spikes", "coarse", "rotation", "moving", "junk",
+                                  "close pair"])
+@pytest.mark.parametrize("sweep", [None, 50.0])
+def test_hard_case_scans_give_identical_segments(name, sweep):
+    pushes = _scan_pushes(_hard_scans()[name])
+    assert _assert_same(pushes, {"sweep_away_deg": sweep}, chunks=(1, 64, 65536)) >= 1
+
+
+def test_long_rotation_and_feed_give_identical_segments():
+    # the large-CSV benchmark's scan (continuous rotation, 1 deg per ping, 8 reflectors,
+    # 60 turns), through the reference, push_many in chunks, and feed (as fit_scan)
+    rng = np.random.default_rng(2003)
+    n = 21600
+    refl = [Reflector.polar(r, b, k) for r, b, k in (
+        (1.5, 0, 0.67), (2.0, 50, 2.68), (2.5, 100, 0.67), (1.2, 150, 0.15),
+        (3.0, -160, 0.67), (1.8, -100, 2.68), (2.2, -50, 0.67), (2.8, -20, 2.68))]
+    scan = simulate_readings(np.arange(n) * 0.01, 0.0, 0.0, np.deg2rad(np.arange(n) * 1.0),
+                             refl, rng)
+    pushes = _scan_pushes(scan)
+    assert _assert_same(pushes, {}, chunks=(1000, 65536)) > 400
+    want, _ = _run(ref, ref.SegmenterConfig(), pushes)
+    seg = fast.Segmenter()
+    got = [(0, s) for s in seg.feed(scan, chunk=5000)]
+    _compare(got, seg, [(0, s) for _, s in want], _run(ref, ref.SegmenterConfig(), pushes)[1])
 
 
 @st.composite
@@ -111,6 +208,7 @@ def _streams(draw) -> list[Push]:
     seed = draw(st.integers(0, 2**32 - 1))
     rng = np.random.default_rng(seed)
     still = draw(st.booleans())
+    turn = draw(st.sampled_from([0.0, 1.0, -1.5, 3.0]))  # deg per ping, through +-180
     t = np.cumsum(rng.choice([0.0, 0.01, 0.03, 0.3, 2.5], n, p=[0.05, 0.4, 0.4, 0.1, 0.05]))
     if draw(st.booleans()):
         k = rng.integers(0, n)
@@ -119,6 +217,9 @@ def _streams(draw) -> list[Push]:
     base = np.zeros((n, 2)) if still else np.cumsum(rng.normal(0, 0.02, (n, 2)), axis=0)
     yaw = sensor * (math.pi / 2) + rng.normal(0, 0.3, n) if not still else \
         np.linspace(-1.5, 1.5, n) + rng.normal(0, 0.01, n)
+    if turn:   # a rotating pan: whole numbers of degrees, exact repeats of the angles
+        yaw = np.deg2rad(rng.integers(-180, 180) + turn * np.arange(n))
+        sensor = np.where(rng.random(n) < 0.9, 0, sensor)
     refl = rng.uniform(-2, 2, (3, 2))
     tof = np.full(n, np.nan)
     for i in range(n):
@@ -128,7 +229,7 @@ def _streams(draw) -> list[Push]:
         seen = np.abs(ang) < math.radians(22)
         if seen.any() and rng.random() < 0.85:
             r = np.hypot(d[seen, 0], d[seen, 1]).min()
-            tof[i] = 2e6 * r / 343.0 + rng.normal(0, 5)
+            tof[i] = 2e6 * r / 343.0 + rng.normal(0, 5) * (rng.random() < 0.8)
         elif rng.random() < 0.1:
             tof[i] = rng.uniform(1000, 20000)               # spike
     bad = rng.random(n) < 0.03
@@ -140,9 +241,19 @@ def _streams(draw) -> list[Push]:
 
 
 @settings(max_examples=150, deadline=None)
-@given(_streams(), st.sampled_from([None, 50.0]), st.sampled_from([0, 2, 8]),
-       st.sampled_from([2, 64]), st.sampled_from([3, 400]))
-def test_random_streams_give_identical_segments(pushes, sweep, censor, max_open, max_readings):
+@given(_streams(), st.sampled_from([None, 50.0]), st.sampled_from([0, 1, 2, 8]),
+       st.sampled_from([2, 64]), st.sampled_from([3, 400]), st.integers(1, 40))
+def test_random_streams_give_identical_segments(pushes, sweep, censor, max_open, max_readings,
+                                                chunk):
     _assert_same(pushes, {"sweep_away_deg": sweep, "censor_window": censor,
                           "max_open": max_open, "max_readings": max_readings,
-                          "min_echoes": 2, "max_gap_s": 1.0})
+                          "min_echoes": 2, "max_gap_s": 1.0}, chunks=(chunk, 65536))
+
+
+def test_push_many_checks_its_arguments():
+    seg = fast.Segmenter()
+    with pytest.raises(ValueError, match="`tof_us` has length 2"):
+        seg.push_many([0.0], [0.0], [0.0], [0.0], [1.0, 2.0])
+    with pytest.raises(ValueError, match="`chunk` must be a positive integer"):
+        seg.push_many([0.0], [0.0], [0.0], [0.0], [1.0], chunk=0)
+    assert seg.push_many([], [], [], [], []) == [] and seg.stats.readings == 0
