@@ -414,10 +414,10 @@ def large_csv_scan(n_readings: int, rng: np.random.Generator) -> ScanReadings:
     return simulate_readings(np.arange(n_readings) * 0.01, 0.0, 0.0, yaw, refl, rng)
 
 
-BASELINE_REV = "06e309f"
-"""main before session 4's `sonarloc fit` work (2026-11-21: finite-difference gradients
-in the pair search):
-section 4's "before" column, run from a `git archive` of it."""
+BASELINE_REV = "473e0fb"
+"""main before session 5's fit-stage work (2026-11-21: re-bracketing of other tiers from
+10 above their bar, the Gaussian stage grid-started in float64): section 4's "before"
+column, run from a `git archive` of it."""
 
 _STAGES = r"""
 import json, sys, time

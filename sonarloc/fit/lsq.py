@@ -111,7 +111,8 @@ class FitConfig:
         the detection model (others: float64): readings relative to the model range,
         branch-free normal tail probabilities (:func:`sonarloc.fit.model.log_sf32`),
         the objective summed in float64. About 3x cheaper passes; results within a few
-        thousandths of an SD of the float64 ones (tests).
+        thousandths of an SD of the float64 ones (tests). On by default since
+        2026-11-21 (session 5; ``float32=False`` for the float64 passes).
     start : where the refinement starts. ``"grid"``: the global bearing grid bracket.
         ``"arc"``: for stationary point segments (pans) whose echo arc is whole (a
         no-echo reading within 5 deg beyond each end, at most half as many no-echo
@@ -123,6 +124,9 @@ class FitConfig:
         instead of the grid's nodes, and about 3x closer in bearing (0.4 deg RMS against
         1.2-1.4 on 0.3-1 deg pans). The other segments (moving, partial arcs at a scan's
         edge, occluded ends, coarse pans, echoes scattered off the arc) get the grid.
+        The default since 2026-11-21 (session 5): with the default's steps it reaches
+        the grid-started fit's answers (benchmarks/results/fit.md) at about two thirds
+        of its cost.
     arc_iterations : steps of the segments started from the arc (``None``:
         ``iterations``; those from the grid always take ``iterations``).
     """
@@ -152,8 +156,8 @@ class FitConfig:
     profile_evals: int = 3
     profile_step_deg: float = 3.0
     final_derivatives: bool = False
-    float32: bool = False
-    start: str = "grid"
+    float32: bool = True
+    start: str = "arc"
     arc_iterations: int | None = None
 
     def __post_init__(self) -> None:
@@ -187,15 +191,17 @@ class FitConfig:
 
     @classmethod
     def batch(cls, **changes: Any) -> FitConfig:
-        """Settings for bulk fitting of clean segments: a 6 deg grid and one round whose
-        variances follow every step (``follow_variances``). Same accuracy as the default
-        on single-reflector segments (benchmarks/results/fit.md), about 1.5-2x faster
-        (stationary gauss-tier segments in float32: ``float32``, within a few thousandths
-        of an SD of float64); on ill-posed segments (corners, merged wall and corner) it
-        may settle elsewhere than the default, so the online pipeline keeps the
-        default."""
+        """Settings for bulk fitting of clean segments: a 6 deg grid bracket for every
+        segment and one round whose variances follow every step (``follow_variances``).
+        Same accuracy as the default on single-reflector segments
+        (benchmarks/results/fit.md), about 1.5-2x faster than the grid-started fit
+        (stationary gauss-tier segments in float32: ``float32``, within a few
+        thousandths of an SD of float64); the default's arc start (``start="arc"``) is
+        faster still on pans whose arc is whole. On ill-posed segments (corners, merged
+        wall and corner) it may settle elsewhere than the default, so the online
+        pipeline keeps the default."""
         return replace(cls(grid_step_deg=6.0, rounds=1, follow_variances=True, float32=True,
-                           chunk_readings=131072), **changes)
+                           chunk_readings=131072, start="grid"), **changes)
 
     @classmethod
     def fast(cls, **changes: Any) -> FitConfig:
@@ -228,7 +234,7 @@ class FitConfig:
         default's, more segments ``FLAT``, and no faster than ``fast()``
         (benchmarks/results/fit.md). For data whose no-echo readings cannot be trusted."""
         return replace(cls(grid_step_deg=12.0, rounds=1, iterations=1, follow_variances=True,
-                           grid_max_echoes=16, method="profile"), **changes)
+                           grid_max_echoes=16, method="profile", start="grid"), **changes)
 
     def with_speed_of_sound(self, c_mps: float) -> FitConfig:
         """The same settings with another speed of sound [m/s]."""

@@ -26,7 +26,7 @@ Everything is vectorised over the segments of a batch.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -301,7 +301,8 @@ def _rebracket(batch: SegmentBatch, idx: NDArray[np.int64], alt: BatchFit, bar: 
     redo = np.flatnonzero(alt.robust_cost > bar + REBRACKET_DCOST)
     if redo.size == 0:
         return alt
-    fresh = fit_batch(_take(batch, idx[redo]), alt.kind, alt.tier, cfg)
+    fresh = fit_batch(_take(batch, idx[redo]), alt.kind, alt.tier,
+                      replace(cfg, start="grid"))
     better = fresh.robust_cost < alt.robust_cost[redo]
     if not better.any():
         return alt

@@ -75,11 +75,11 @@ def test_arc_start_falls_back_to_the_grid(rng):
 
 
 def test_fast_from_the_arc_reaches_the_default(rng):
-    # one guarded step from the arc start: the default's (converged) answers to a
-    # fraction of an SD, closer than the old grid-started fast() (two steps)
+    # one guarded step from the arc start: the converged grid-started fit's answers to
+    # a fraction of an SD, closer than the old grid-started fast() (two steps)
     segs, truth = _pans(rng, 150)
     batch = pack_segments(segs)
-    ref = fit_batch(batch, "point", "gauss")
+    ref = fit_batch(batch, "point", "gauss", FitConfig(start="grid", float32=False))
     sd = np.sqrt(np.einsum("bkk->bk", ref.cov))
     f = fit_batch(batch, "point", "gauss", FitConfig.fast())
     old = fit_batch(batch, "point", "gauss", FitConfig.fast(start="grid", arc_iterations=None))
@@ -88,12 +88,16 @@ def test_fast_from_the_arc_reaches_the_default(rng):
     rms, rms_old = np.sqrt(np.mean(z ** 2, 0)), np.sqrt(np.mean(z_old ** 2, 0))
     assert np.all(rms < 0.3) and np.all(rms < 0.5 * rms_old), (rms, rms_old)
     assert z.max() < 1.5
-    # start="arc" with the grid's step count: a second step closes in further; the
-    # option is off by default
+    # start="arc" with the grid's step count: a second step closes in further
     f2 = fit_batch(batch, "point", "gauss", FitConfig.fast(arc_iterations=None))
     rms2 = np.sqrt(np.mean(((f2.local - ref.local) / sd) ** 2, 0))
     assert np.all(rms2 < rms), (rms2, rms)
-    assert FitConfig().start == "grid" and FitConfig().arc_iterations is None
+    # the default (since session 5) starts from the arc and takes all its steps: the
+    # grid-started fit's answers to a few hundredths of an SD
+    assert FitConfig().start == "arc" and FitConfig().arc_iterations is None
+    d = fit_batch(batch, "point", "gauss")
+    z_d = np.abs(d.local - ref.local) / sd
+    assert np.all(np.sqrt(np.mean(z_d ** 2, 0)) < 0.05) and z_d.max() < 0.5, z_d.max(0)
 
 
 def test_start_settings_are_checked():
