@@ -602,12 +602,15 @@ class BatchFuser:
         # a candidate's reading is not kept where a rival (another point, another line
         # of the same segment) also passes it, is detected there and predicts the
         # earlier crossing (echoes.ambiguous: the first crossing wins)
-        gid = self._group[fs]
         h = z[ps + a] - nu                                   # predicted ranges
-        claim = passed & is_rival[:, None] & (pd_a[lo:hi] >= RIVAL_MIN_DETECT)
-        pair_of = (ps[:, None] == ps[None, :]) & (gid[:, None] != gid[None, :])  # (c, q)
-        rival_wins = pair_of[:, :, None] & claim[None, :, :] & (h[None, :, :] < h[:, None, :])
-        keep = passed & ~rival_wins.any(axis=1) & is_cand[:, None]
+        detected = pd_a[lo:hi] >= RIVAL_MIN_DETECT
+        claim = passed & is_rival[:, None] & detected
+        pc, pq = self._rival_pairs(ps, fs)
+        beaten = np.zeros(passed.shape, dtype=bool)
+        wins = claim[pq] & (h[pq] < h[pc])                   # (pairs, N)
+        rows_w, cols_w = np.nonzero(wins)
+        beaten[pc[rows_w], cols_w] = True
+        keep = passed & ~beaten & is_cand[:, None]
         n_keep = keep.sum(axis=1)
         need = np.maximum(1, np.ceil(self.min_fraction * lin.n_s[ps + a] - 1e-9)).astype(int)
         live = is_cand & (n_keep >= need) & (n_keep >= 1)
@@ -675,40 +678,74 @@ class BatchFuser:
         resid2 = np.maximum(np.einsum("cn,cn->c", sol[..., 3], sol[..., 3])
                             - np.einsum("ci,ci->c", q_nu, q_nu), 0.0)
         r_ii = r[:, idx, idx]
-        detected = pd_a[lo:hi] >= RIVAL_MIN_DETECT
-        rivals_of = pair_of & is_rival[None, :]
-        for j, (c, sh, nt) in enumerate(zip(wp.tolist(), share[sure].tolist(),
-                                            n_top[sure].tolist(), strict=True)):
-            if not good[j]:
-                continue       # the per-segment path decides
-            f = int(fs[c])
-            k = int(ps[c])
+        wp, j_ok = wp[good], np.flatnonzero(good)            # the rest: the per-segment path
+        screen = self._screen_rows(wp, (pc, pq), (hx, nu, r_ii), (usable, passed),
+                                   detected & usable & is_rival[:, None], h)
+        for j, f, k, nk, d2c, sh, nt, rows in zip(
+                j_ok.tolist(), fs[wp].tolist(), ps[wp].tolist(),
+                n_keep[wp].tolist(), d2[wp].tolist(), share[sure][good].tolist(),
+                n_top[sure][good].tolist(), screen, strict=True):
             pr = out[k]
             pr.n_candidates = nt
             pr.outcome = "matched"
-            pr.kind = "point" if self._is_point[f] else "wall"
-            pr.index = f if self._is_point[f] else f - self.fmap.n_points
+            point = f < self.fmap.n_points
+            pr.kind = "point" if point else "wall"
+            pr.index = f if point else f - self.fmap.n_points
             pr.feature = self._features[f]
-            pr.n_kept = int(n_keep[c])
-            pr.d2 = float(d2[c])
+            pr.n_kept = nk
+            pr.d2 = d2c
             pr.share = sh
-            pr.reduced = Compressed(x[k].copy(), q_nu[j], rq[j], float(resid2[j]), pr.n_kept)
-            # what decided the kept readings: the candidate's own screening of its usable
-            # readings, and each detected, nearer rival's screening of those it passed
-            sel = usable[c]
-            screen: list[tuple[list[float], float, float, bool]] = list(zip(
-                hx[c][sel].tolist(), nu[c][sel].tolist(), r_ii[c][sel].tolist(),
-                passed[c][sel].tolist(), strict=True))
-            qs = np.flatnonzero(rivals_of[c])
-            if qs.size:
-                sel_q = passed[c] & usable[qs] & detected[qs] & (h[qs] < h[c])   # (Q, N)
-                for q, sq in zip(qs.tolist(), sel_q, strict=True):
-                    if sq.any():
-                        screen += zip(hx[q][sq].tolist(), nu[q][sq].tolist(),
-                                      r_ii[q][sq].tolist(), passed[q][sq].tolist(),
-                                      strict=True)
-            pr.screen_rows = screen
+            pr.reduced = Compressed(x[k].copy(), q_nu[j], rq[j], float(resid2[j]), nk)
+            pr.screen_rows = rows
         return out
+
+    def _rival_pairs(self, ps: NDArray[np.intp], fs: NDArray[np.intp]
+                     ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """Pairs (c, q) of candidate pairs ``(ps, fs)`` (segment, feature; in segment
+        order) of the same segment whose features are not the same point or line (a
+        rival of each other: ``Localizer._rivals``), sorted by c, then q."""
+        first = np.flatnonzero(np.concatenate([[True], ps[1:] != ps[:-1]]))
+        size = np.diff(np.append(first, len(ps)))
+        run_start = np.repeat(first, size)                 # (C,) first pair of c's run
+        run_size = np.repeat(size, size)
+        pc = np.repeat(np.arange(len(ps)), run_size)
+        pq = np.repeat(run_start, run_size) + (np.arange(len(pc))
+                                               - np.repeat(np.cumsum(run_size) - run_size,
+                                                           run_size))
+        other = self._group[fs[pc]] != self._group[fs[pq]]
+        return pc[other], pq[other]
+
+    @staticmethod
+    def _screen_rows(wp: NDArray[np.intp], pairs: tuple[NDArray[np.intp], NDArray[np.intp]],
+                     rows: tuple[Array, Array, Array],
+                     screened: tuple[NDArray[np.bool_], NDArray[np.bool_]],
+                     rival_usable: NDArray[np.bool_], h: Array
+                     ) -> list[list[tuple[list[float], float, float, bool]]]:
+        """:attr:`Prepared.screen_rows` of the winning pairs ``wp`` (W,): what decided
+        their kept readings, each a (Jacobian row, innovation, reading variance, passed)
+        of ``rows`` (hx (C, N, 3), nu (C, N), r_ii (C, N)): the winner's own screening
+        of its usable readings (``screened`` = (usable, passed) (C, N)), then each of
+        its rivals' (``pairs``, in q order) screening of the readings the winner passed
+        that the rival (a rival, detected and usable there: ``rival_usable``) predicts
+        nearer (ranges ``h`` (C, N))."""
+        hx, nu, r_ii = rows
+        usable, passed = screened
+        pc, pq = pairs
+        w_of = np.full(len(usable), -1)
+        w_of[wp] = np.arange(len(wp))
+        mine = w_of[pc] >= 0
+        rc, rq = pc[mine], pq[mine]
+        pi, ri = np.nonzero(passed[rc] & rival_usable[rq] & (h[rq] < h[rc]))
+        wi, oi = np.nonzero(usable[wp])
+        src = np.concatenate([wp[wi], rq[pi]])              # the screening's pair, reading
+        col = np.concatenate([oi, ri])
+        owner = np.concatenate([wi, w_of[rc[pi]]])
+        order = np.argsort(owner, kind="stable")            # own rows first, then rivals'
+        src, col = src[order], col[order]
+        bounds = [0, *np.cumsum(np.bincount(owner, minlength=len(wp))).tolist()]
+        flat = list(zip(hx[src, col].tolist(), nu[src, col].tolist(),
+                        r_ii[src, col].tolist(), passed[src, col].tolist(), strict=True))
+        return [flat[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
 
     def _ranges(self, tpose: Array) -> Array:
         """(S, F, N) ranges from transducers ``tpose`` (S, N, 3) to every feature (points

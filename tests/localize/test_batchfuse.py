@@ -122,6 +122,42 @@ def test_feature_queries_batch_over_positions(fmap):
             assert np.array_equal(face[i, j], fmap.walls_facing(xy[i, j], 0.2, 4.0))
 
 
+def test_rival_pairs_and_screen_rows_equal_their_pairwise_forms(fmap):
+    """The rivals within a segment as index pairs, and the winners' screen rows from
+    them, equal the all-pairs forms (every candidate against every other: same segment,
+    other point or line) and a winner-by-winner loop."""
+    fuser = batchfuse.BatchFuser(fmap, OdomNoise(), 343.0, 0.99, 0.99, 5.0, 0.2, 0.9, 0.5)
+    rng = np.random.default_rng(5)
+    n_f = fmap.n_points + fmap.n_walls
+    for _ in range(20):
+        n_seg, n = int(rng.integers(1, 8)), int(rng.integers(3, 7))
+        ps = np.sort(rng.integers(0, n_seg, int(rng.integers(1, 25))))
+        fs = rng.integers(0, n_f, len(ps))
+        pc, pq = fuser._rival_pairs(ps, fs)
+        gid = fuser._group[fs]
+        pair_of = (ps[:, None] == ps[None, :]) & (gid[:, None] != gid[None, :])
+        assert list(zip(pc.tolist(), pq.tolist(), strict=True)) == \
+            [tuple(cq) for cq in np.argwhere(pair_of).tolist()]
+        C = len(ps)
+        hx, nu, r_ii, h = (rng.normal(size=(C, n, 3)), rng.normal(size=(C, n)),
+                           rng.random((C, n)), rng.random((C, n)))
+        usable = rng.random((C, n)) < 0.8
+        passed = usable & (rng.random((C, n)) < 0.7)
+        rival_usable = usable & (rng.random((C, n)) < 0.6)
+        wp = np.sort(rng.choice(C, int(rng.integers(0, C + 1)), replace=False))
+        rows = fuser._screen_rows(wp, (pc, pq), (hx, nu, r_ii), (usable, passed),
+                                  rival_usable, h)
+        for c, got in zip(wp.tolist(), rows, strict=True):
+            sel = usable[c]
+            want = list(zip(hx[c][sel].tolist(), nu[c][sel].tolist(), r_ii[c][sel].tolist(),
+                            passed[c][sel].tolist(), strict=True))
+            for q in np.flatnonzero(pair_of[c]).tolist():
+                sq = passed[c] & rival_usable[q] & (h[q] < h[c])
+                want += zip(hx[q][sq].tolist(), nu[q][sq].tolist(), r_ii[q][sq].tolist(),
+                            passed[q][sq].tolist(), strict=True)
+            assert got == want
+
+
 class Checking(OfflinePipeline):
     """The fast path, each prepared segment also run through the Localizer's own
     one-segment path at the same belief."""
