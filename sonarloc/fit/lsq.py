@@ -1494,8 +1494,8 @@ def _covariance(H: Array) -> Array:
 
 def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
               config: FitConfig | None = None, offsets_us: Array | None = None,
-              use: NDArray[np.bool_] | None = None, start: BatchFit | None = None
-              ) -> BatchFit:
+              use: NDArray[np.bool_] | None = None, start: BatchFit | None = None,
+              rows: NDArray[np.int64] | None = None) -> BatchFit:
     """Fit one landmark model to each of ``B`` segments.
 
     Parameters
@@ -1508,6 +1508,9 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     use : (B, Nd) echoes to use (default: all valid).
     start : another model's fit of the same segments (same kind): refine from it instead
         of bracketing on the grid (for a second tier, whose optimum is near the first's).
+    rows : fit only these segments of ``batch`` (the result has one row per entry, as
+        ``fit_batch(_take(batch, rows), ...)``, without copying them out first; the
+        other arguments then refer to the selected segments).
 
     Returns
     -------
@@ -1521,9 +1524,10 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     cfg = config or FitConfig()
     if start is not None and start.kind != kind:
         raise ValueError(f"`start` is a {start.kind} fit, expected {kind}")
-    B = batch.size
-    n_d = batch.valid.sum(1)
-    n_n = batch.ne_valid.sum(1)
+    pick = np.arange(batch.size) if rows is None else np.asarray(rows, dtype=np.int64)
+    B = pick.size
+    n_d = batch.valid[pick].sum(1)
+    n_n = batch.ne_valid[pick].sum(1)
     # float32 passes cost about half per reading: the fixed per-chunk cost weighs twice
     chunks = _plan_chunks(n_d, n_n, cfg.chunk_readings,
                           _CALL_OVERHEAD_READINGS * (2 if cfg.float32 else 1))
@@ -1541,7 +1545,7 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     for idx in chunks:
         wd = max(int(n_d[idx].max()), 1)
         wn = max(int(n_n[idx].max()), 1)
-        sub = _take(batch, idx, wd, wn)
+        sub = _take(batch, pick[idx], wd, wn)
         part = _fit_direct(
             sub, kind, tier, cfg,
             None if offsets_us is None else offsets_us[idx][:, :wd],

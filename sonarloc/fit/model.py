@@ -42,6 +42,10 @@ simulator's ``auto`` tier, which agrees with it within 1 us)."""
 
 KINDS = ("point", "line")
 
+BEAMS = {"gauss": "gauss", "piston": "piston", "waveform": "piston"}
+"""The beam pattern of each tier (``waveform``: the piston beam): tiers with the same
+beam have the same :func:`beam_delay_factor`."""
+
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _TWO_PI = 2.0 * np.pi
 _G_MAX = 1e12
@@ -149,7 +153,7 @@ def beam_delay_factor(theta: ArrayLike, tier: str, params: ModuleParams,
         g = np.exp(e)
         dg = np.where(e < np.log(_G_MAX), g * t * inv_s2, 0.0) if derivative else g
         return g, dg, e
-    if tier in ("piston", "waveform"):
+    if BEAMS.get(tier) == "piston":
         return _piston_table(params.diameter_m, params.carrier_hz, params.c_mps).lookup(
             t, derivative)
     raise ValueError(f"`tier` must be one of {', '.join(TIERS)}; got {tier!r}")
@@ -176,7 +180,7 @@ def beam_log_factor(theta: ArrayLike, tier: str, params: ModuleParams,
         if e.size and e.max() >= cap:       # capped (far off-axis): flat
             dlng[e >= cap] = 0.0
         return g, dlng, e
-    if tier in ("piston", "waveform"):
+    if BEAMS.get(tier) == "piston":
         return _piston_table(params.diameter_m, params.carrier_hz, params.c_mps).lookup_log(
             t, derivative, want_g)
     raise ValueError(f"`tier` must be one of {', '.join(TIERS)}; got {tier!r}")

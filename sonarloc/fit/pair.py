@@ -686,16 +686,23 @@ def _start_grid(seg: _Segment, single: Array) -> _Grid | None:
                             seg.moving)
     g, _, _ = M.beam_delay_factor(theta, seg.tier, mod, derivative=False)
     g = np.minimum(g, 1e6) * math.exp(0.5 * M.sigma_a(mod) ** 2)
-    yy = seg.y[None, :] - tau * (R - r0)              # (J, n): To + kappa g
     ja, jb = np.triu_indices(J, k=2)
-    to_a = g[ja] <= g[jb]                             # (P, n): echo assigned to A
+    g_ab = g[ja], g[jb]                               # (P, n) each
+    to_a = g_ab[0] <= g_ab[1]                         # (P, n): echo assigned to A
+    if seg.moving:
+        yy = seg.y[None, :] - tau * (R - r0)          # (J, n): To + kappa g
+        y_ab = yy[ja], yy[jb]
+    else:                                             # R = r0: the readings themselves
+        y_ab = seg.y[None, :], seg.y[None, :]
     cost = np.zeros(ja.size)
     sols = np.zeros((ja.size, 4))
-    for k, (jj, mask) in enumerate(((ja, to_a), (jb, ~to_a))):
-        gg, ys = g[jj], yy[jj]
+    n_a = to_a.sum(1)
+    for k, (gg, ys, mask) in enumerate(((g_ab[0], y_ab[0], to_a), (g_ab[1], y_ab[1], ~to_a))):
         w = mask.astype(float)
-        S0, S1, S2 = w.sum(1), (w * gg).sum(1), (w * gg * gg).sum(1)
-        Sy, Sgy, Syy = (w * ys).sum(1), (w * gg * ys).sum(1), (w * ys * ys).sum(1)
+        wg, wy = w * gg, w * ys
+        S0 = (n_a if k == 0 else seg.y.size - n_a).astype(float)   # echoes assigned
+        S1, S2 = wg.sum(1), (wg * gg).sum(1)
+        Sy, Sgy, Syy = wy.sum(1), (wg * ys).sum(1), (wy * ys).sum(1)
         det = S0 * S2 - S1 * S1
         ok = (det > 1e-12 * np.maximum(S0 * S2, 1e-300)) & (S0 >= 3)
         det = np.where(ok, det, 1.0)

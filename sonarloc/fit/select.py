@@ -174,7 +174,8 @@ def _tier_predictions(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64
                       ) -> dict[str, tuple[Array, Array | None]]:
     """Mean delays of the echoes (B, Nd) and detection probabilities of the no-echo
     readings (B, Nn; None without the detection model or no-echo readings) that each
-    tier predicts at the fits of segments ``idx`` (one geometry for all tiers)."""
+    tier predicts at the fits of segments ``idx`` (one geometry for all tiers, one beam
+    pattern and detection probabilities for the tiers that share it)."""
     mod = cfg.module
     sub = _take(batch, idx)
     p = sel.local[idx]
@@ -183,13 +184,17 @@ def _tier_predictions(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64
     ng = (M.geometry(kind, p[:, 0:1], p[:, 1:2], sub.ne_px, sub.ne_py, sub.ne_yaw)
           if cfg.detection and sub.ne_valid.any() else None)
     out: dict[str, tuple[Array, Array | None]] = {}
+    beams: dict[str, tuple[Array, Array | None, Array | None]] = {}
     for t in tiers:
-        g, _, lg = M.beam_delay_factor(geo.theta, t, mod, derivative=False)
-        z = M.detection_z(K, lg, mod) if cfg.detection else None
-        delay = M.echo_terms(K, g, z, mod, want_info=False, tier=t).delay
-        pr = None if ng is None else ndtr(M.detection_z(
-            K, M.beam_delay_factor(ng.theta, t, mod, derivative=False)[2], mod))
-        out[t] = (delay, pr)
+        beam = M.BEAMS[t]
+        if beam not in beams:
+            g, _, lg = M.beam_delay_factor(geo.theta, beam, mod, derivative=False)
+            z = M.detection_z(K, lg, mod) if cfg.detection else None
+            pr = None if ng is None else ndtr(M.detection_z(
+                K, M.beam_delay_factor(ng.theta, beam, mod, derivative=False)[2], mod))
+            beams[beam] = (g, z, pr)
+        g, z, pr = beams[beam]
+        out[t] = (M.echo_terms(K, g, z, mod, want_info=False, tier=t).delay, pr)
     return out
 
 
@@ -301,8 +306,7 @@ def _rebracket(batch: SegmentBatch, idx: NDArray[np.int64], alt: BatchFit, bar: 
     redo = np.flatnonzero(alt.robust_cost > bar + REBRACKET_DCOST)
     if redo.size == 0:
         return alt
-    fresh = fit_batch(_take(batch, idx[redo]), alt.kind, alt.tier,
-                      replace(cfg, start="grid"))
+    fresh = fit_batch(batch, alt.kind, alt.tier, replace(cfg, start="grid"), rows=idx[redo])
     better = fresh.robust_cost < alt.robust_cost[redo]
     if not better.any():
         return alt
@@ -356,8 +360,7 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             rows = np.flatnonzero(mask)
             if rows.size == 0:
                 continue
-            alt = fit_batch(_take(batch, idx[rows]), kind, tier, cfg,
-                            start=sel.rows(idx[rows]))
+            alt = fit_batch(batch, kind, tier, cfg, start=sel.rows(idx[rows]), rows=idx[rows])
             alt = _rebracket(batch, idx[rows], alt, bars[tier][rows], cfg)
             dcost[tier][idx[rows]] = base[rows] - alt.robust_cost   # > 0: tier better
             wins = (alt.robust_cost < bars[tier][rows]) & (alt.robust_cost < best_cost[rows])
@@ -391,8 +394,8 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                 batch, sel, pst, kind, "piston", "waveform", cfg) > WAVEFORM_SCORE_Z)
             rows2 = pst[lean]
             if rows2.size:
-                alt = fit_batch(_take(batch, rows2), kind, "waveform", cfg,
-                                start=sel.rows(rows2))
+                alt = fit_batch(batch, kind, "waveform", cfg, start=sel.rows(rows2),
+                                rows=rows2)
                 alt = _rebracket(batch, rows2, alt,
                                  sel.robust_cost[rows2] - WAVEFORM_THRESHOLD, cfg)
                 d = sel.robust_cost[rows2] - alt.robust_cost
@@ -456,7 +459,7 @@ def select_models(batch: SegmentBatch, cfg: FitConfig) -> Selection:
     point = fit_batch(batch, "point", "gauss", cfg)
     sel = Selection.from_fit(point)
     moving = np.flatnonzero(motion_baseline_m(batch) > MOTION_BASELINE_M)
-    line = fit_batch(_take(batch, moving), "line", "gauss", cfg) if moving.size else None
+    line = fit_batch(batch, "line", "gauss", cfg, rows=moving) if moving.size else None
     choose_kind(sel, line, moving)
     choose_tier(batch, sel, cfg)
     # one viewpoint: point and line are the same fit; the final kappa decides

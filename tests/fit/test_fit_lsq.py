@@ -316,6 +316,27 @@ def test_bracket_on_spread_echoes_gives_the_same_converged_fit(rng):
         FitConfig(grid_max_echoes=2)
 
 
+@pytest.mark.parametrize("tier", ["gauss", "waveform"])
+def test_fit_batch_rows_is_the_fit_of_the_selected_segments(rng, tier):
+    # ``rows`` fits segments of a batch without copying them out first: the same
+    # numbers as fitting ``_take(batch, rows)``, refined from a start or bracketed, and
+    # the result has one row per selected segment at the batch's width
+    from sonarloc.fit.lsq import _take
+
+    batch, _ = _mixed_pans(rng, 12)
+    rows = np.array([7, 2, 2, 11, 0])
+    start = fit_batch(_take(batch, rows), "point", "gauss")
+    for kw in ({}, {"start": start}):
+        ref = fit_batch(_take(batch, rows), "point", tier, **kw)
+        got = fit_batch(batch, "point", tier, rows=rows, **kw)
+        assert got.used.shape == (rows.size, batch.px.shape[1])
+        for f in ("local", "cov", "cost", "robust_cost", "chi2", "n_used", "used", "resid",
+                  "arc", "converged"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(ref, f), err_msg=f)
+    assert not np.array_equal(fit_batch(batch, "point", tier, rows=rows[::-1]).local,
+                              ref.local)
+
+
 def _mixed_pans(rng, n):
     """Pans of the benchmark's kind: poles and rods at 1-3 m, 0.3 or 1 deg steps,
     -40..40 deg around a reflector within +-10 deg; (batch, truth (n, 3))."""

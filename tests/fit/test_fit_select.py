@@ -37,7 +37,7 @@ def test_rebracketing_only_far_worse_refinements_keeps_the_choices(rotation_segm
 
     def counting(batch, kind, tier, cfg, *args, **kwargs):
         if tier != "gauss" and kwargs.get("start") is None:
-            rows.append(batch.size)
+            rows.append(batch.size if kwargs.get("rows") is None else len(kwargs["rows"]))
         return fit_batch(batch, kind, tier, cfg, *args, **kwargs)
 
     monkeypatch.setattr(S, "fit_batch", counting)
@@ -57,3 +57,23 @@ def test_rebracketing_only_far_worse_refinements_keeps_the_choices(rotation_segm
     changed = [a.extra["tier_basis"] for a, p in zip(now, plain, strict=True)
                if a.tier != p.tier]
     assert changed and all("fits the data better" in str(c) for c in changed)
+
+
+def test_tier_predictions_share_the_beam_of_piston_and_waveform(rotation_segments):
+    # the tiers with the same beam (piston, waveform) share its pattern and detection
+    # probabilities: every tier's predictions are those it gets computed on its own
+    from sonarloc.fit.landmarks import _arrays
+    from sonarloc.fit.lsq import FitConfig, fit_batch, pack_segments
+
+    cfg = FitConfig()
+    batch = pack_segments([_arrays(s)[:5] for s in rotation_segments[:60]])
+    sel = S.Selection.from_fit(fit_batch(batch, "point", "gauss", cfg))
+    idx = np.arange(0, batch.size, 2)
+    both = S._tier_predictions(batch, sel, idx, "point", ("gauss", "waveform", "piston"), cfg)
+    for tier in ("gauss", "waveform", "piston"):
+        (d, p), = S._tier_predictions(batch, sel, idx, "point", (tier,), cfg).values()
+        np.testing.assert_array_equal(both[tier][0], d)
+        np.testing.assert_array_equal(both[tier][1], p)
+    # and the tiers do predict differently (the test would see a shared delay)
+    assert not np.array_equal(both["waveform"][0], both["piston"][0])
+    assert not np.array_equal(both["gauss"][1], both["piston"][1])
