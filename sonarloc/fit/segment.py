@@ -624,11 +624,12 @@ class Segmenter:
         """The per-reading loop of :meth:`_push_chunk`: each reading through
         :meth:`_step`, skipping what changes nothing and extending chained runs."""
         m = ch.m
-        chain = self._chain(ch)
+        chained = self._chain(ch)
         pos = np.arange(m)
         # the next echo at or after each reading, and the end of each chained run
         next_echo = np.minimum.accumulate(np.where(ch.echo, pos, m)[::-1])[::-1].tolist()
-        run_end = np.minimum.accumulate(np.where(chain, m, pos)[::-1])[::-1].tolist()
+        run_end = np.minimum.accumulate(np.where(chained, m, pos)[::-1])[::-1].tolist()
+        chain = chained.tolist()
         tl, xl, yl, yawl, tofl, sl, Rl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.tofl, ch.sl, ch.Rl
         recent = _RecentIndex(ch.sensor) if self._censor else None
         opened = self._open
