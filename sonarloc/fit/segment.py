@@ -28,6 +28,11 @@ sensor, up to ``censor_window`` on each side) that show its landmark was *not*
 detected are attached to it with a NaN TOF: no-echo readings, and echoes from farther
 away (the module reports the first crossing, so a farther echo wins only if the
 nearer landmark stayed below threshold). They bound the arc in the fit.
+
+Readings known in advance go through :meth:`Segmenter.push_many` (and
+:meth:`Segmenter.feed`): the same segments and counters as :meth:`Segmenter.push` one
+reading at a time, with the arithmetic of a chunk in numpy and Python per reading only
+where a decision is open.
 """
 
 from __future__ import annotations
@@ -36,7 +41,6 @@ import math
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -163,10 +167,15 @@ class SegmenterStats:
     segments: int = 0       # segments returned
 
 
+_Row = tuple[float, float, float, float, float, int] | int
+"""A segment's reading: (t, x, y, yaw, tof, sensor), or in push_many an index into its
+chunk (``~i``: reading i without its echo)."""
+
+
 @dataclass(eq=False)   # identity: `in` / `remove` on the open list
 class _Open:
     seg_id: int
-    rows: list[tuple[float, float, float, float, float, int]]
+    rows: list[_Row]
     n_echo: int
     last: tuple[float, float, float, float, float, int]  # last echo (t, x, y, yaw, R, sensor)
     misses: int = 0
@@ -192,6 +201,83 @@ class _RecentIndex:
         self.by_sensor: dict[int, list[int]] = {
             int(sensor[order[a]]): order[a:b].tolist()
             for a, b in zip(starts.tolist(), ends.tolist(), strict=True)}
+
+
+def _mids(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, R: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``mid`` of :class:`_Open` for echoes at (x, y, yaw, R): math's cos and sin, so
+    the same bits as :meth:`Segmenter._step`."""
+    a = (yaw + 0.0).tolist()
+    return (x + R * np.array(list(map(math.cos, a))), y + R * np.array(list(map(math.sin, a))))
+
+
+class _Chunk:
+    """The accepted readings of one :meth:`Segmenter.push_many` chunk: arrays (wrapped
+    yaw, range R, inf without an echo) and the same as Python lists. A segment's
+    ``rows`` hold indices into it while it is current (``~i``: reading i without its
+    echo)."""
+
+    def __init__(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
+                 tof: np.ndarray, sensor: np.ndarray, R: np.ndarray) -> None:
+        self.m = len(t)
+        self.t, self.x, self.y, self.yaw, self.R, self.sensor = t, x, y, yaw, R, sensor
+        self.echo = R < np.inf
+        self.cols = np.stack([t, x, y, yaw, tof])          # (5, m)
+        self.tl, self.xl, self.yl, self.yawl, self.tofl, self.Rl = (
+            a.tolist() for a in (t, x, y, yaw, tof, R))
+        self.sl: list[int] = sensor.tolist()
+        self.at = 0      # the reading being handled
+        self.closed: list[tuple[int, _Open, str]] = []    # (at, segment, closed_by)
+
+    def row_of(self, r: int) -> tuple[float, float, float, float, float, int]:
+        """The row tuple of index ``r`` (``~i``: reading i with a NaN TOF)."""
+        i = r if r >= 0 else ~r
+        return (self.tl[i], self.xl[i], self.yl[i], self.yawl[i],
+                self.tofl[i] if r >= 0 else math.nan, self.sl[i])
+
+    def segments(self, index: np.ndarray) -> list[tuple[int, Segment]]:
+        """The segments closed in this chunk (``closed``), built together: their rows
+        (indices, and tuples from before the chunk) taken from the chunk's columns in
+        one go. ``index``: (m,) each reading's index in the caller's arrays.
+
+        Their arrays are views into one block of this chunk's readings."""
+        if not self.closed:
+            return []
+        flat: list[int] = []
+        extra: list[tuple[float, float, float, float, float, int]] = []
+        ends: list[int] = []
+        for _, s, _ in self.closed:
+            rows = s.rows
+            if type(rows[0]) is int:   # all indices (tuples from before come first)
+                flat += rows               # type: ignore[arg-type]
+            else:
+                for r in rows:
+                    if isinstance(r, int):
+                        flat.append(r)
+                    else:
+                        flat.append(self.m + len(extra))
+                        extra.append(r)
+            ends.append(len(flat))
+        i = np.array(flat, dtype=np.int64)
+        bare = i < 0
+        i[bare] = ~i[bare]
+        cols, sensor = self.cols, self.sensor
+        if extra:
+            more = np.array(extra, dtype=float).T
+            cols = np.concatenate([cols, more[:5]], axis=1)
+            sensor = np.concatenate([sensor, more[5].astype(np.int64)])
+        v = cols[:, i]
+        v[4, bare] = np.nan
+        sens = sensor[i]
+        out: list[tuple[int, Segment]] = []
+        a = 0
+        for (at, s, why), b in zip(self.closed, ends, strict=True):
+            readings = ScanReadings(v[0, a:b], v[1, a:b], v[2, a:b], v[3, a:b], v[4, a:b],
+                                    sens[a:b])
+            out.append((int(index[at]),
+                        Segment(readings, s.seg_id, why, (s.occluded_lead, s.occluded_trail))))
+            a = b
+        return out
 
 
 class Segmenter:
@@ -240,6 +326,7 @@ class Segmenter:
         # cheaply: last echoes only move forward): no gap can close one before
         # ``max_gap_s`` after it
         self._oldest_last = math.inf
+        self._chunk: _Chunk | None = None      # push_many's current chunk
 
     @property
     def open_segments(self) -> int:
@@ -285,12 +372,14 @@ class Segmenter:
             st.echoes += 1
             R = (tof - self._half_count_us) * self._m_per_us
         row = (t, x, y, yaw, tof, sensor)
-        closed, start = self._step(row, R)
+        closed, best = self._step(row, R, self._open, row)
         if self._censor:
             self._remember(row, R)
-        if start:
+        if best is None and R < math.inf:
             dq = self._recent.get(sensor)
-            closed += self._start(row, R, [e for e in dq if e[0] is not row] if dq else [])
+            prev = [(r[0], r[3], r_range, (r[0], r[1], r[2], r[3], math.nan, r[5]))
+                    for r, r_range in dq if r is not row] if dq else []
+            closed += self._start(row, R, prev, row)
         return closed
 
     def push_many(self, t_s: ArrayLike, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
@@ -355,12 +444,16 @@ class Segmenter:
 
     # -- the per-reading decisions (shared by push and push_many) ----------------------
 
-    def _step(self, row: tuple[float, float, float, float, float, int], R: float
-              ) -> tuple[list[Segment], bool]:
+    def _step(self, row: tuple[float, float, float, float, float, int], R: float,
+              segs: list[_Open], ref: _Row) -> tuple[list[Segment], _Open | None]:
         """One accepted reading ``row`` = (t, x, y, yaw wrapped, tof, sensor), ``R`` its
-        range (inf: no echo): closes, misses, censoring and the extension of the best
-        matching segment. Returns the segments closed and whether this echo opens a new
-        segment (left to the caller, which knows the sensor's recent readings).
+        range (inf: no echo), against the open segments ``segs`` (all of them, or those
+        that :meth:`push_many`'s screening says it can concern, in the same order):
+        closes, misses, censoring and the extension of the best matching segment.
+        ``ref`` is what a segment's ``rows`` get for it (the row, or push_many's index;
+        ``~index``: the reading with no echo). Returns the segments closed and the
+        segment extended (None: none; for an echo, the caller opens one, knowing the
+        sensor's recent readings).
 
         The loops over the open segments are written out inline (this runs once per
         reading, over every open segment): the match score and the miss test of
@@ -374,13 +467,15 @@ class Segmenter:
         # time gaps close segments first, then a panning beam that has moved on
         if t - self._oldest_last > self._max_gap:
             max_gap = self._max_gap
-            for s in [s for s in opened if t - s.last[0] > max_gap]:
+            for s in [s for s in segs if t - s.last[0] > max_gap]:
                 closed += self._close(s, "gap")
             self._oldest_last = min((s.last[0] for s in opened), default=math.inf)
         if self._away < math.inf:
-            for s in [s for s in opened if sensor in s.sensors
+            for s in [s for s in segs if sensor in s.sensors
                       and self._off_axis(s, x, y, yaw) > self._away]:
                 closed += self._close(s, "swept")
+        if closed and segs is not opened:
+            segs = [s for s in segs if s in opened]
         cy, sy = math.cos(yaw), math.sin(yaw)
         wide = self._tan_miss_wide
         miss = self._miss
@@ -390,7 +485,7 @@ class Segmenter:
             beam = self._beam
             best, best_score = None, math.inf
             covered: list[tuple[_Open, float]] = []   # landmark within the miss width
-            for s in opened:
+            for s in segs:
                 # the miss test (applied below to all but the best match). Cheap test
                 # first: a landmark well off the axis is neither missed nor censored (the
                 # exact angle is only needed near the miss half-width)
@@ -421,12 +516,14 @@ class Segmenter:
                         arc = s.arc = self._arc_points(s)
                     d_best = math.inf
                     for px, py in arc:
+                        # the closest point within the gate that the new beam covers
+                        # (range first: the cheaper test, and most points fail it)
                         dx, dy = px - x, py - y
-                        a = math.atan2(dy, dx) - yaw
-                        if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) > beam:
-                            continue
                         d = abs(math.hypot(dx, dy) - R)
-                        if d < d_best:
+                        if d >= d_best or d > gate:
+                            continue
+                        a = math.atan2(dy, dx) - yaw
+                        if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) <= beam:
                             d_best = d
                     score = d_best / gate if d_best <= gate else math.inf
                 if score < best_score:
@@ -441,7 +538,8 @@ class Segmenter:
                 # a farther echo won: this landmark was not detected (censor)
                 if (R > last[4] + gate and sensor in s.sensors
                         and s.trailing < self._censor):
-                    s.rows.append((t, x, y, yaw, math.nan, sensor))
+                    s.rows.append(~ref if isinstance(ref, int)
+                                  else (t, x, y, yaw, math.nan, sensor))
                     s.trailing += 1
                 s.misses += 1
                 if self._gone(s, off):
@@ -449,8 +547,8 @@ class Segmenter:
             for s in gone:
                 closed += self._close(s, "misses")
             if best is None:
-                return closed, True
-            best.rows.append(row)
+                return closed, None
+            best.rows.append(ref)
             best.n_echo += 1
             best.last = (t, x, y, yaw, R, sensor)
             best.mid = (x + R * math.cos(yaw + 0.0), y + R * math.sin(yaw + 0.0))
@@ -462,7 +560,8 @@ class Segmenter:
             if len(best.rows) >= self._max_readings:
                 closed += self._close(best, "full")
         else:
-            for s in opened:
+            best = None
+            for s in segs:
                 mx, my = s.mid
                 dx, dy = mx - x, my - y
                 along = dx * cy + dy * sy
@@ -472,14 +571,14 @@ class Segmenter:
                 off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
                 if off <= miss:
                     if sensor in s.sensors and s.trailing < self._censor:
-                        s.rows.append(row)
+                        s.rows.append(ref)
                         s.trailing += 1
                     s.misses += 1
                     if self._gone(s, off):
                         gone.append(s)
             for s in gone:
                 closed += self._close(s, "misses")
-        return closed, False
+        return closed, best
 
     def _push_chunk(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
                     tof: np.ndarray, sensor: np.ndarray, offset: int
@@ -495,58 +594,64 @@ class Segmenter:
                                                        np.where(valid, t, -np.inf))))
         late = valid & (t < latest[:-1])
         keep = np.flatnonzero(valid & ~late)
-        echo_mask = ~np.isnan(tof[keep])
+        echo = ~np.isnan(tof[keep])
         st.readings += n
         st.bad += int(n - np.count_nonzero(valid))
         st.out_of_order += int(np.count_nonzero(late))
-        st.echoes += int(np.count_nonzero(echo_mask))
-        st.no_echo += int(len(keep) - np.count_nonzero(echo_mask))
+        st.echoes += int(np.count_nonzero(echo))
+        st.no_echo += int(len(keep) - np.count_nonzero(echo))
         self._last_t = float(latest[-1])
         if not len(keep):
             return []
-        t, x, y, tof, sensor = t[keep], x[keep], y[keep], tof[keep], sensor[keep]
-        yaw = _wrap_array(yaw[keep])
-        R = np.where(echo_mask, (tof - self._half_count_us) * self._m_per_us, np.inf)
-        chain = self._chain(t, x, y, yaw, R, sensor)
-        m = len(keep)
+        tof = tof[keep]
+        R = np.where(echo, (tof - self._half_count_us) * self._m_per_us, np.inf)
+        ch = self._chunk = _Chunk(t[keep], x[keep], y[keep], _wrap_array(yaw[keep]), tof,
+                                  sensor[keep], R)
+        try:
+            return self._chunk_loop(ch, keep + offset)
+        finally:
+            for s in self._open:    # the chunk's indices become rows of their own
+                s.rows = [ch.row_of(r) if isinstance(r, int) else r for r in s.rows]
+            self._chunk = None
+
+    def _chunk_loop(self, ch: _Chunk, index: np.ndarray) -> list[tuple[int, Segment]]:
+        """The per-reading loop of :meth:`_push_chunk`: each reading through
+        :meth:`_step`, skipping what changes nothing and extending chained runs."""
+        m = ch.m
+        chain = self._chain(ch)
+        pos = np.arange(m)
         # the next echo at or after each reading, and the end of each chained run
-        idx = np.arange(m)
-        next_echo = np.minimum.accumulate(np.where(echo_mask, idx, m)[::-1])[::-1].tolist()
-        run_end = np.minimum.accumulate(np.where(chain, m, idx)[::-1])[::-1].tolist()
-        tl, xl, yl, yawl, tofl, sl, Rl = (a.tolist() for a in (t, x, y, yaw, tof, sensor, R))
-        index = (keep + offset).tolist()
-        recent = _RecentIndex(sensor) if self._censor else None
+        next_echo = np.minimum.accumulate(np.where(ch.echo, pos, m)[::-1])[::-1].tolist()
+        run_end = np.minimum.accumulate(np.where(chain, m, pos)[::-1])[::-1].tolist()
+        tl, xl, yl, yawl, tofl, sl, Rl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.tofl, ch.sl, ch.Rl
+        recent = _RecentIndex(ch.sensor) if self._censor else None
         opened = self._open
         step = self._step
         max_readings = self._max_readings
-        out: list[tuple[int, Segment]] = []
         i = 0
         while i < m:
-            if not opened and not Rl[i] < math.inf:
-                i = next_echo[i]       # nothing open, no echo: nothing to do
+            R = Rl[i]
+            if not opened and not R < math.inf:
+                i = next_echo[i]       # no echo and nothing open: nothing to do
                 continue
             row = (tl[i], xl[i], yl[i], yawl[i], tofl[i], sl[i])
-            R_i = Rl[i]
-            closed, start = step(row, R_i)
-            if start:
-                prev = self._recent_rows(recent, i, sl[i], tl, xl, yl, yawl, tofl, sl, Rl) \
-                    if recent is not None else []
-                closed += self._start(row, R_i, prev)
-            if closed:
-                out += [(index[i], s) for s in closed]
+            ch.at = i        # segments closed now go to ch.closed
+            _, took = step(row, R, opened, i)
+            if took is None and R < math.inf:
+                prev = self._recent_rows(ch, recent, i) if recent is not None else []
+                self._start(row, R, prev, i)
             i += 1
             # a run of echoes, each matching the one before from the same spot, extends
-            # the only open segment (its last echo the reading just handled)
-            if i < m and chain[i] and len(opened) == 1 and opened[0].rows[-1] is row:
+            # the only open segment (whose last echo is the reading just handled)
+            if i < m and chain[i] and len(opened) == 1 and opened[0].rows[-1] == i - 1:
                 s = opened[0]
                 j = min(run_end[i], i + max_readings - 1 - len(s.rows))
                 if j > i:
-                    s.rows += zip(tl[i:j], xl[i:j], yl[i:j], yawl[i:j], tofl[i:j], sl[i:j],
-                                  strict=True)
+                    s.rows += range(i, j)
                     s.n_echo += j - i
                     k = j - 1
-                    lt, lx, ly, lyaw, lR = tl[k], xl[k], yl[k], yawl[k], Rl[k]
-                    s.last = (lt, lx, ly, lyaw, lR, sl[k])
+                    lx, ly, lyaw, lR = xl[k], yl[k], yawl[k], Rl[k]
+                    s.last = (tl[k], lx, ly, lyaw, lR, sl[k])
                     s.mid = (lx + lR * math.cos(lyaw + 0.0), ly + lR * math.sin(lyaw + 0.0))
                     s.arc = None
                     s.misses = 0
@@ -554,32 +659,30 @@ class Segmenter:
                     s.occluded_trail = False
                     i = j
         if recent is not None:
-            self._remember_chunk(recent, tl, xl, yl, yawl, tofl, sl, Rl)
-        return out
+            self._remember_chunk(ch, recent)
+        return ch.segments(index)
 
-    def _chain(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
-               R: np.ndarray, sensor: np.ndarray) -> np.ndarray:
+    def _chain(self, ch: _Chunk) -> np.ndarray:
         """(m,) bool: reading i is an echo that :meth:`_step` surely adds to a segment
-        whose last echo is reading i - 1 (an echo of the same sensor from the same spot,
-        within the gate and the time gap, the beam not swept away): the same-spot
-        branch of the match, in the same float operations, so exactly its outcome."""
-        chain = np.zeros(len(t), dtype=bool)
-        if len(t) < 2:
+        whose last echo is reading i - 1, if no other segment is open: an echo of the same
+        sensor from the same spot, within the gate and the time gap, the beam not swept
+        away. The same-spot branch of the match, in the same float operations, so
+        exactly its outcome."""
+        t, x, y, yaw, R, sensor = ch.t, ch.x, ch.y, ch.yaw, ch.R, ch.sensor
+        chain = np.zeros(ch.m, dtype=bool)
+        if ch.m < 2:
             return chain
         a = yaw[1:] - yaw[:-1]
         with np.errstate(invalid="ignore"):     # inf - inf: no echo on either side
             dR = np.abs(R[1:] - R[:-1])
         c = ((R[1:] < np.inf) & (R[:-1] < np.inf) & (sensor[1:] == sensor[:-1])
              & (x[1:] == x[:-1]) & (y[1:] == y[:-1]) & ~(t[1:] - t[:-1] > self._max_gap)
-             & ~(np.abs(_wrap_array(a)) > 2.0 * self._beam)
-              & (dR <= self._gate_m))
+             & ~(np.abs(_wrap_array(a)) > 2.0 * self._beam) & (dR <= self._gate_m))
         if self._away < math.inf and c.any():
-            # the swept test (off-axis angle of the last echo's landmark) with numpy's
-            # arctan2, which may differ from math.atan2 in the last bits: a margin
+            # the swept test: off-axis angle of the last echo's landmark (exact mid) with
+            # numpy's arctan2, which may differ from math.atan2 in the last bits: a margin
             k = np.flatnonzero(c)
-            lyaw, lR = yaw[k], R[k]
-            mx = x[k] + lR * np.array([math.cos(v + 0.0) for v in lyaw.tolist()])
-            my = y[k] + lR * np.array([math.sin(v + 0.0) for v in lyaw.tolist()])
+            mx, my = _mids(x[k], y[k], yaw[k], R[k])
             off = np.abs(_wrap_array(np.arctan2(my - y[k + 1], mx - x[k + 1]) - yaw[k + 1]))
             c[k[~(off <= self._away - 1e-9)]] = False
         chain[1:] = c
@@ -618,29 +721,30 @@ class Segmenter:
         return (s.misses >= lim and off >= self._miss_angle) or s.misses >= 4 * lim
 
     def _start(self, row: tuple[float, float, float, float, float, int], R: float,
-               prev: Sequence[tuple[tuple[float, float, float, float, float, int], float]]
-               ) -> list[Segment]:
-        """Open a segment with the echo ``row`` (range ``R``); ``prev``: the earlier
-        readings of its sensor, oldest first, with their ranges (inf: no echo), at most
-        ``censor_window - 1`` of them (the sensor's recent readings with this one)."""
+               prev: Sequence[tuple[float, float, float, _Row]], ref: _Row) -> list[Segment]:
+        """Open a segment with the echo ``row`` (range ``R``; ``ref`` the segment's row
+        for it, as in :meth:`_step`). ``prev``: the earlier readings of its sensor,
+        oldest first, as (t, yaw, range (inf: no echo), the segment's row for it without
+        its echo); at most ``censor_window - 1`` of them (the sensor's recent readings
+        with this one)."""
         t, x, y, yaw, _, sensor = row
         closed: list[Segment] = []
         if len(self._open) >= self.config.max_open:
             closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
-        lead: list[tuple[float, float, float, float, float, int]] = []
+        lead: list[_Row] = []
         # earlier readings of this sensor that saw nothing here: no echo, or a farther
         # echo won (the first crossing would have been this landmark's)
-        for r, r_range in prev:
-            if (t - r[0] <= self.config.max_gap_s
-                    and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
+        for r_t, r_yaw, r_range, r_ref in prev:
+            if (t - r_t <= self.config.max_gap_s
+                    and abs(_wrap(r_yaw - yaw)) <= 2.0 * self._beam
                     and r_range > R + self._gate_m):
-                lead.append((r[0], r[1], r[2], r[3], math.nan, r[5]))
-        s = _Open(self._next_id, lead + [row], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
+                lead.append(r_ref)
+        s = _Open(self._next_id, lead + [ref], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
         # the reading of this sensor just before: a nearer echo there hid this landmark
         if prev:
-            r, r_range = prev[-1]
-            s.occluded_lead = (t - r[0] <= self.config.max_gap_s
-                               and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
+            r_t, r_yaw, r_range, _ = prev[-1]
+            s.occluded_lead = (t - r_t <= self.config.max_gap_s
+                               and abs(_wrap(r_yaw - yaw)) <= 2.0 * self._beam
                                and r_range < R - self._gate_m)
         s.mid = self._mid_point(s)
         self._next_id += 1
@@ -648,33 +752,34 @@ class Segmenter:
         self._oldest_last = min(self._oldest_last, t)
         return closed
 
-    def _recent_rows(self, recent: _RecentIndex, i: int, sensor: int, *cols: list[Any]
-                     ) -> list[tuple[tuple[float, float, float, float, float, int], float]]:
-        """The ``prev`` of :meth:`_start` for reading ``i`` of a chunk (``cols``: its
-        columns t, x, y, yaw, tof, sensor, R as lists): the sensor's readings before it
-        in the chunk, and before the chunk those :meth:`_remember` kept."""
+    def _recent_rows(self, ch: _Chunk, recent: _RecentIndex, i: int
+                     ) -> list[tuple[float, float, float, _Row]]:
+        """The ``prev`` of :meth:`_start` for reading ``i`` of the chunk: the sensor's
+        readings before it in the chunk, and before the chunk those
+        :meth:`_remember` kept."""
         want = self._censor - 1
-        tl, xl, yl, yawl, tofl, sl, Rl = cols
+        sensor = ch.sl[i]
         mine = recent.by_sensor[sensor]
         r = recent.rank[i]
-        before = mine[max(0, r - want):r]
-        out = [((tl[j], xl[j], yl[j], yawl[j], tofl[j], sl[j]), Rl[j]) for j in before]
+        tl, yawl, Rl = ch.tl, ch.yawl, ch.Rl
+        out: list[tuple[float, float, float, _Row]] = [
+            (tl[j], yawl[j], Rl[j], ~j) for j in mine[max(0, r - want):r]]
         if len(out) < want:
             dq = self._recent.get(sensor)
             if dq:
-                old = list(dq)[max(0, len(dq) - (want - len(out))):]
+                old = [(row[0], row[3], r_range, (row[0], row[1], row[2], row[3], math.nan,
+                                                  row[5]))
+                       for row, r_range in list(dq)[max(0, len(dq) - (want - len(out))):]]
                 out = old + out
         return out
 
-    def _remember_chunk(self, recent: _RecentIndex, *cols: list[Any]) -> None:
+    def _remember_chunk(self, ch: _Chunk, recent: _RecentIndex) -> None:
         """:meth:`_remember` of a chunk's last ``censor_window`` readings per sensor."""
-        tl, xl, yl, yawl, tofl, sl, Rl = cols
         for sensor, mine in recent.by_sensor.items():
             dq = self._recent.get(sensor)
             if dq is None:
                 dq = self._recent[sensor] = deque(maxlen=self._censor)
-            dq.extend(((tl[j], xl[j], yl[j], yawl[j], tofl[j], sl[j]), Rl[j])
-                      for j in mine[-self._censor:])
+            dq.extend((ch.row_of(j), ch.Rl[j]) for j in mine[-self._censor:])
 
     def _close(self, s: _Open, why: str) -> list[Segment]:
         if s not in self._open:
@@ -683,9 +788,12 @@ class Segmenter:
         if s.n_echo < self.config.min_echoes:
             self.stats.spikes += s.n_echo
             return []
-        rows = s.rows
-        cols = np.array(rows, dtype=float).T.copy()   # (6, n), one conversion
-        readings = ScanReadings(cols[0], cols[1], cols[2], cols[3], cols[4],
-                                np.array([r[5] for r in rows], dtype=np.int64))
         self.stats.segments += 1
+        ch = self._chunk
+        if ch is not None:   # push_many: built with the chunk's others at its end
+            ch.closed.append((ch.at, s, why))
+            return []
+        cols = np.array(s.rows, dtype=float).T.copy()   # (6, n), one conversion
+        readings = ScanReadings(cols[0], cols[1], cols[2], cols[3], cols[4],
+                                cols[5].astype(np.int64))
         return [Segment(readings, s.seg_id, why, (s.occluded_lead, s.occluded_trail))]

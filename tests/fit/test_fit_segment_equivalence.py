@@ -257,3 +257,26 @@ def test_push_many_checks_its_arguments():
     with pytest.raises(ValueError, match="`chunk` must be a positive integer"):
         seg.push_many([0.0], [0.0], [0.0], [0.0], [1.0], chunk=0)
     assert seg.push_many([], [], [], [], []) == [] and seg.stats.readings == 0
+
+
+def test_push_many_keeps_only_open_segments_between_chunks():
+    # a long stream in chunks: between chunks the segmenter holds its open segments
+    # (as row tuples, no reference to the chunk) and at most censor_window recent
+    # readings per sensor, whatever the length of the stream
+    rng = np.random.default_rng(5)
+    n = 20000
+    yaw = np.deg2rad(np.arange(n) * 1.0)
+    scan = simulate_readings(np.arange(n) * 0.01, 0.0, 0.0, yaw,
+                             [Reflector.polar(1.5, 0.0, 0.67), Reflector.polar(2.0, 90, 0.67)],
+                             rng)
+    seg = fast.Segmenter()
+    most_open = 0
+    for lo in range(0, n, 997):
+        part = slice(lo, lo + 997)
+        seg.push_many(scan.t_s[part], scan.x_m[part], scan.y_m[part], scan.yaw_rad[part],
+                      scan.tof_us[part], scan.sensor[part])
+        assert seg._chunk is None
+        assert all(isinstance(r, tuple) for s in seg._open for r in s.rows)
+        assert all(len(d) <= seg.config.censor_window for d in seg._recent.values())
+        most_open = max(most_open, seg.open_segments)
+    assert 0 < most_open <= 3 and seg.stats.segments > 100
