@@ -220,3 +220,48 @@ def test_candidates_searched_together_decide_as_one_at_a_time(rng):
             np.testing.assert_allclose(la.params, lb.params, rtol=1e-9, atol=1e-12)
             np.testing.assert_allclose(la.cov, lb.cov, rtol=1e-6, atol=1e-15)
             assert la.extra.get("pair_basis", "")[:20] == lb.extra.get("pair_basis", "")[:20]
+
+
+def test_screen_runs_two_starts_and_passed_candidates_search_from_all(rng, monkeypatch):
+    # the screen runs each candidate's best grid start and its split single fit; the
+    # other grid starts only of the candidates it passes, whose result is then that of
+    # the search without a screen (all starts, every candidate run to the end)
+    from sonarloc.fit.landmarks import fit_segments
+    from sonarloc.fit.segment import Segmenter
+    segs = []
+    for sep in (20.0, 16.0, 12.0, 10.0, 10.0):
+        refl = [Reflector.polar(1.5, -sep / 2, 0.67), Reflector.polar(1.5005, sep / 2, 0.67)]
+        segs += list(Segmenter().feed(pan_scan(refl, rng, -40, 40, 0.3)))
+    cfg = FitConfig()
+    lms = fit_segments(segs, cfg)
+    n_cand = sum(P.is_candidate(lm, cfg) for lm in lms)
+    assert n_cand >= 3
+    calls: list[int] = []
+    minimise = P._minimise_batch
+
+    def recording(seg, x0, fixed=None, maxiter=60, *args, **kwargs):
+        if x0.shape[1] == 6 and fixed is None and maxiter == P.SCREEN_ITER:
+            calls.append(x0.shape[0])
+        return minimise(seg, x0, fixed, maxiter, *args, **kwargs)
+
+    monkeypatch.setattr(P, "_minimise_batch", recording)
+    screened = P.resolve_pair_groups(segs, lms, cfg)
+    n_screen_rows = sum(calls)
+    n_screened = sum("screened" in str(g[0].extra.get("pair_basis", "")) for g in screened)
+    calls.clear()
+    monkeypatch.setattr(P, "SCREEN_MARGIN", math.inf)       # nothing screened
+    full = P.resolve_pair_groups(segs, fit_segments(segs, cfg), cfg)
+    # every candidate here has four starts (three grid starts and the split single fit):
+    # a screened one ran two of them to the screen, the others all four
+    assert n_screened >= 1 and sum(calls) == 4 * n_cand
+    assert n_screen_rows == 4 * n_cand - 2 * n_screened
+    passed = 0
+    for a, b in zip(screened, full, strict=True):
+        if "screened" in str(a[0].extra.get("pair_basis", "screened")):
+            continue
+        passed += 1
+        assert [lm.status for lm in a] == [lm.status for lm in b]
+        for la, lb in zip(a, b, strict=True):
+            np.testing.assert_allclose(la.params, lb.params, rtol=1e-9, atol=1e-12)
+            assert la.extra["pair_gain"] == pytest.approx(lb.extra["pair_gain"], abs=1e-6)
+    assert passed >= 1 and any(len(g) == 2 for g in screened)
