@@ -601,7 +601,7 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
     """Section 4 of the report."""
     has_before = "before_parse" in csv
     rows = [("parse (`read_scan_csv`)", "parse"),
-            ("segment (`Segmenter`, reading by reading)", "segment"),
+            ("segment (`Segmenter.feed`: `push_many` in chunks)", "segment"),
             ("fit + model selection (`fit_segments`)", "fit"),
             ("overlapping-reflector pair fits and cuts (`_resolve`, as `fit_scan`)",
              "resolve")]

@@ -192,13 +192,19 @@ class _RecentIndex:
     sensor ``c``'s readings in order, ``rank[i]`` the position of reading ``i`` there."""
 
     def __init__(self, sensor: np.ndarray) -> None:
+        self.rank: Sequence[int]
+        self.by_sensor: dict[int, Sequence[int]]
+        if sensor[0] == sensor[-1] and not (sensor != sensor[0]).any():   # one sensor
+            self.rank = range(len(sensor))
+            self.by_sensor = {int(sensor[0]): self.rank}
+            return
         order = np.argsort(sensor, kind="stable")
         starts = np.flatnonzero(np.r_[True, sensor[order][1:] != sensor[order][:-1]])
         ends = np.r_[starts[1:], len(order)]
         rank = np.empty(len(order), dtype=np.int64)
         rank[order] = np.arange(len(order)) - np.repeat(starts, ends - starts)
-        self.rank: list[int] = rank.tolist()
-        self.by_sensor: dict[int, list[int]] = {
+        self.rank = rank.tolist()
+        self.by_sensor = {
             int(sensor[order[a]]): order[a:b].tolist()
             for a, b in zip(starts.tolist(), ends.tolist(), strict=True)}
 
@@ -268,12 +274,12 @@ class _Chunk:
             sensor = np.concatenate([sensor, more[5].astype(np.int64)])
         v = cols[:, i]
         v[4, bare] = np.nan
+        t, x, y, yaw, tof = v
         sens = sensor[i]
         out: list[tuple[int, Segment]] = []
         a = 0
         for (at, s, why), b in zip(self.closed, ends, strict=True):
-            readings = ScanReadings(v[0, a:b], v[1, a:b], v[2, a:b], v[3, a:b], v[4, a:b],
-                                    sens[a:b])
+            readings = ScanReadings(t[a:b], x[a:b], y[a:b], yaw[a:b], tof[a:b], sens[a:b])
             out.append((int(index[at]),
                         Segment(readings, s.seg_id, why, (s.occluded_lead, s.occluded_trail))))
             a = b
@@ -618,11 +624,12 @@ class Segmenter:
         """The per-reading loop of :meth:`_push_chunk`: each reading through
         :meth:`_step`, skipping what changes nothing and extending chained runs."""
         m = ch.m
-        chain = self._chain(ch)
+        chained = self._chain(ch)
         pos = np.arange(m)
         # the next echo at or after each reading, and the end of each chained run
         next_echo = np.minimum.accumulate(np.where(ch.echo, pos, m)[::-1])[::-1].tolist()
-        run_end = np.minimum.accumulate(np.where(chain, m, pos)[::-1])[::-1].tolist()
+        run_end = np.minimum.accumulate(np.where(chained, m, pos)[::-1])[::-1].tolist()
+        chain = chained.tolist()
         tl, xl, yl, yawl, tofl, sl, Rl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.tofl, ch.sl, ch.Rl
         recent = _RecentIndex(ch.sensor) if self._censor else None
         opened = self._open

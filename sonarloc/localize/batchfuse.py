@@ -454,14 +454,13 @@ class BatchFuser:
                                                       self.max_range_m)], axis=1)
         base &= has[:, None]
         tol = 0.05 + 4.0 * np.sqrt(np.maximum(ph[:, 0, 0] + ph[:, 1, 1], 0.0))
-        rng_all = self._ranges(tpose)                                  # (S, F, N)
-        rng_all = np.where(valid[:, None, :], rng_all, np.nan)
-        zmed = _median_valid(np.where(valid, z, np.nan), n_s)[:, None]
-        med_gap = np.abs(_median_valid(rng_all, n_s[:, None]) - zmed)
-        with np.errstate(invalid="ignore"):
-            one_gap = np.nanmin(np.where(valid[:, None, :], np.abs(rng_all - z[:, None, :]),
-                                         np.inf), axis=2)
-        ps, fs = np.nonzero(base & ((med_gap <= tol[:, None]) | (one_gap <= tol[:, None])))
+        bs, bf = np.nonzero(base)                    # the features each segment may see
+        rng_b = np.where(valid[bs], self._ranges(tpose, bs, bf), np.nan)   # (B, N)
+        zmed = _median_valid(np.where(valid, z, np.nan), n_s)
+        gap_med = np.abs(_median_valid(rng_b, n_s[bs]) - zmed[bs])
+        gap_one = np.min(np.where(valid[bs], np.abs(rng_b - z[bs]), np.inf), axis=1)
+        near = (gap_med <= tol[bs]) | (gap_one <= tol[bs])
+        ps, fs = bs[near], bf[near]
         if ps.size == 0:
             return lin
         # --- each pair's readings through the forward model at the predicted belief
@@ -486,7 +485,7 @@ class BatchFuser:
         r[:, idx, idx] += sd_m**2
         with np.errstate(invalid="ignore"):
             ok = vp & np.isfinite(mean) & np.isfinite(slope) & np.isfinite(r[:, idx, idx])
-        lin.pairs = (ps, fs, med_gap[ps, fs], one_gap[ps, fs], theta,
+        lin.pairs = (ps, fs, gap_med[near], gap_one[near], theta,
                      np.where(ok, mean, 0.0), np.where(ok, slope, 0.0), r, ok, kap,
                      np.where(ok, sd_m**2, 0.0), np.where(ok, p_det, 0.0))
         return lin
@@ -747,15 +746,12 @@ class BatchFuser:
                         r_ii[src, col].tolist(), passed[src, col].tolist(), strict=True))
         return [flat[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
 
-    def _ranges(self, tpose: Array) -> Array:
-        """(S, F, N) ranges from transducers ``tpose`` (S, N, 3) to every feature (points
-        then walls; geometry only)."""
-        fm = self.fmap
-        px, py = tpose[:, None, :, 0], tpose[:, None, :, 1]
-        c = fm.point_xy
-        rp = np.hypot(c[None, :, 0, None] - px, c[None, :, 1, None] - py) \
-            - fm.point_radius_m[None, :, None]
-        w = fm.wall_line
-        rw = np.abs(w[None, :, 0, None] - px * np.cos(w[None, :, 1, None])
-                    - py * np.sin(w[None, :, 1, None]))
-        return np.concatenate([rp, rw], axis=1)
+    def _ranges(self, tpose: Array, seg: NDArray[np.intp], feat: NDArray[np.intp]) -> Array:
+        """(B, N) ranges (geometry only) from the transducers ``tpose[seg]`` ((S, N, 3)
+        indexed by ``seg`` (B,)) to the features ``feat`` (B,) (points then walls)."""
+        px, py = tpose[seg, :, 0], tpose[seg, :, 1]
+        is_pt = self._is_point[feat][:, None]
+        par = self._par[feat]
+        a, b = par[:, 0:1], par[:, 1:2]                   # point (x, y) or wall (rho, alpha)
+        return np.where(is_pt, np.hypot(a - px, b - py) - self._radius[feat][:, None],
+                        np.abs(a - px * np.cos(b) - py * np.sin(b)))

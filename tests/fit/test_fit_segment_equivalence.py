@@ -280,3 +280,28 @@ def test_push_many_keeps_only_open_segments_between_chunks():
         assert all(len(d) <= seg.config.censor_window for d in seg._recent.values())
         most_open = max(most_open, seg.open_segments)
     assert 0 < most_open <= 3 and seg.stats.segments > 100
+
+
+@settings(max_examples=60, deadline=None)
+@given(_streams(), st.sampled_from([None, 50.0]), st.sampled_from([0, 2, 8]),
+       st.lists(st.integers(0, 30), min_size=1, max_size=12))
+def test_push_and_push_many_mixed_give_identical_segments(pushes, sweep, censor, cuts):
+    # pieces of one stream alternately through push (one by one) and push_many: the
+    # state carried between them (open segments, recent readings) is the same
+    kwargs = {"sweep_away_deg": sweep, "censor_window": censor, "min_echoes": 2,
+              "max_gap_s": 1.0}
+    want, seg_ref = _run(ref, ref.SegmenterConfig(**kwargs), pushes)
+    seg = fast.Segmenter(fast.SegmenterConfig(**kwargs))
+    got: list = []
+    lo, k = 0, 0
+    while lo < len(pushes):
+        hi = min(len(pushes), lo + cuts[k % len(cuts)] + 1)
+        if k % 2:
+            cols = [np.array(c) for c in zip(*pushes[lo:hi], strict=True)]
+            got += [(lo + i, s) for i, s in seg.push_many(*cols)]
+        else:
+            for i in range(lo, hi):
+                got += [(i, s) for s in seg.push(*pushes[i])]
+        lo, k = hi, k + 1
+    got += [(len(pushes), s) for s in seg.flush()]
+    _compare(got, seg, want, seg_ref)
