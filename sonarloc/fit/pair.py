@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -121,6 +122,20 @@ class PairFit:
     @property
     def gain(self) -> float:
         return self.cost_single - self.cost_pair
+
+
+class _Mixture(NamedTuple):
+    """:meth:`_Segment._mixture`: per echo (S, n) each component's log-likelihood of
+    being the first echo (``parts``) and the robust total ``ll``; with two components
+    also the standardised mean difference ``t``, ``w = Phi(t)`` (A's crossing first)
+    and the detection probabilities ``pa``, ``pb`` (None with one)."""
+
+    parts: list[Array]
+    ll: Array
+    t: Array | None
+    w: Array | None
+    pa: Array | None
+    pb: Array | None
 
 
 @dataclass
@@ -263,30 +278,25 @@ class _Segment:
                 lqn = np.where(ne_mask, lqn, 0.0)
             terms.append((mean, s2, log_p, lnorm, np.broadcast_to(y, mean.shape), lqn.sum(1)))
             parts.append(cg)
-        cost, _, _ = self._combine(terms, comps, mask, False)
+        mix = self._mixture(terms)
+        cost, _, _ = self._combine(terms, comps, mask, False, mix)
         # per echo: d(-2 ll)/d(mean, variance, log P) of each component
         if len(comps) == 1:
             mean, s2 = terms[0][0], terms[0][1]
-            ll = np.logaddexp(terms[0][2] + terms[0][3], -0.5 * self.cap)
-            rho = np.exp(terms[0][2] + terms[0][3] - ll)
+            rho = np.exp(mix.parts[0] - mix.ll)
             res = (y - mean) / s2
             d_m = [rho * res]
             d_s2 = [rho * (0.5 * res * res - 0.5 / s2)]
             d_lp = [rho]
         else:
-            (ma, sa2, lpa, na, _, _), (mb, sb2, lpb, nb, _, _) = terms
-            ss = sa2 + sb2
-            inv_sd = 1.0 / np.sqrt(ss)
-            t = (mb - ma) * inv_sd
-            w = ndtr(t)
-            pa, pb = np.exp(lpa), np.exp(lpb)
+            (ma, sa2, _, _, _, _), (mb, sb2, _, _, _, _) = terms
+            t, w, pa, pb = mix.t, mix.w, mix.pa, mix.pb
+            assert t is not None and w is not None and pa is not None and pb is not None
+            inv_sd = 1.0 / np.sqrt(sa2 + sb2)
             da, db = 1.0 - pb * (1.0 - w), 1.0 - pa * w
             ia = np.where(da > 1e-300, 1.0 / np.maximum(da, 1e-300), 0.0)
             ib = np.where(db > 1e-300, 1.0 / np.maximum(db, 1e-300), 0.0)
-            A = lpa + na + np.log(np.maximum(da, 1e-300))
-            B = lpb + nb + np.log(np.maximum(db, 1e-300))
-            ll = np.logaddexp(np.logaddexp(A, B), -0.5 * self.cap)
-            ra, rb = np.exp(A - ll), np.exp(B - ll)
+            ra, rb = np.exp(mix.parts[0] - mix.ll), np.exp(mix.parts[1] - mix.ll)
             dll_dw = ra * pb * ia - rb * pa * ib
             dw_dm = np.exp(-0.5 * t * t - _LOG_SQRT_2PI) * inv_sd    # d w / d mb
             dw_ds2 = -0.5 * t * dw_dm * inv_sd                      # d w / d sa2 (= sb2)
@@ -348,24 +358,32 @@ class _Segment:
         terms = [self._terms(q, owner) for q in comps]
         return self._combine(terms, comps, self._masks(owner)[0], detail)
 
-    def _combine(self, terms: list[tuple[Array, ...]], comps: list[Array],
-                 mask: NDArray[np.bool_] | None, detail: bool,
-                 probs: list[Array] | None = None) -> tuple[Array, Array, Array]:
-        """The likelihood from the components' terms (:meth:`_terms`); ``probs``:
-        P(echo) of each component if known."""
+    def _mixture(self, terms: list[tuple[Array, ...]]) -> _Mixture:
+        """Per echo (S, n): the log-likelihood of each component being the first echo
+        and the robust total, from the components' terms (:meth:`_terms`)."""
         lnorm = [t[3] for t in terms]
-        if len(comps) == 1:
+        if len(terms) == 1:
             parts = [terms[0][2] + lnorm[0]]
+            w = pa = pb = t = None
         else:
             (ma, sa2, lpa, _, _, _), (mb, sb2, lpb, _, _, _) = terms
             # w = P(A's crossing before B's) when both are detected
-            w = ndtr((mb - ma) / np.sqrt(sa2 + sb2))
-            pa, pb = probs if probs is not None else (np.exp(lpa), np.exp(lpb))
+            t = (mb - ma) / np.sqrt(sa2 + sb2)
+            w = ndtr(t)
+            pa, pb = np.exp(lpa), np.exp(lpb)
             parts = [lpa + lnorm[0] + np.log(np.maximum(1.0 - pb * (1.0 - w), 1e-300)),
                      lpb + lnorm[1] + np.log(np.maximum(1.0 - pa * w, 1e-300))]
         # a uniform floor exp(-cap / 2) per echo: a spike costs at most about `cap`
         ll = np.logaddexp(parts[0] if len(parts) == 1 else np.logaddexp(parts[0], parts[1]),
                           -0.5 * self.cap)
+        return _Mixture(parts, ll, t, w, pa, pb)
+
+    def _combine(self, terms: list[tuple[Array, ...]], comps: list[Array],
+                 mask: NDArray[np.bool_] | None, detail: bool, mix: _Mixture | None = None
+                 ) -> tuple[Array, Array, Array]:
+        """The likelihood from the components' terms (:meth:`_terms`); ``mix``: their
+        :meth:`_mixture` if known."""
+        parts, ll = (mix or self._mixture(terms))[:2]
         per = -2.0 * ll
         if mask is not None:
             per = np.where(mask, per, 0.0)
