@@ -583,9 +583,12 @@ def mean_delay(kappa: ArrayLike, g: ArrayLike, params: ModuleParams,
 
     With a log-normal gain the eq. 3 delay is u / G; its mean is u exp(s^2/2) and, given
     detection (delay <= L, pass the detection margin ``z``), the truncated mean
-    u exp(s^2/2) Phi(-z - s) / Phi(-z). (The ``delay`` fields of :func:`echo_terms`.)
+    u exp(s^2/2) Phi(-z - s) / Phi(-z). (The ``delay`` fields of :func:`echo_terms`,
+    the same numbers, without its detection terms: the waveform tier's delay table holds
+    the truncation at the detection limit already, so it does not need ``z``.)
     """
-    et = echo_terms(kappa, g, z, params, want_info=False, tier=tier)
+    et = echo_terms(kappa, g, None if tier == "waveform" else z, params, want_info=False,
+                    tier=tier)
     return et.delay, et.ddelay_du
 
 

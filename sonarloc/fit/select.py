@@ -194,7 +194,7 @@ def _tier_predictions(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64
                 K, M.beam_delay_factor(ng.theta, beam, mod, derivative=False)[2], mod))
             beams[beam] = (g, z, pr)
         g, z, pr = beams[beam]
-        out[t] = (M.echo_terms(K, g, z, mod, want_info=False, tier=t).delay, pr)
+        out[t] = (M.mean_delay(K, g, mod, z, t)[0], pr)
     return out
 
 
@@ -237,7 +237,7 @@ def score_z(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: s
         g, _, lg = M.beam_delay_factor(geo.theta, tier_b, mod, derivative=False)
         K = p[:, 2:3]
         z = M.detection_z(K, lg, mod) if cfg.detection else None
-        delay_b = M.echo_terms(K, g, z, mod, want_info=False, tier=tier_b).delay
+        delay_b = M.mean_delay(K, g, mod, z, tier_b)[0]
     db = delay_b
     used = sel.used[idx]
     d = np.where(used, (db - da) / sd, 0.0)

@@ -218,3 +218,20 @@ def test_truncation_ratio32_matches_exact_ratio():
     et = M.echo_terms(1.0, g, z[::100], MOD)
     mine = g * np.exp(0.5 * s * s) * r[::100].astype(float)
     np.testing.assert_allclose(mine, et.delay, rtol=3e-6)
+
+
+@pytest.mark.parametrize("tier", ["gauss", "piston", "waveform"])
+def test_mean_delay_is_echo_terms_delay(tier, rng):
+    # the same numbers as echo_terms' delay fields, across the arc edge and beyond it
+    # (the waveform tier's skips the detection terms: its table is truncated already)
+    kap = rng.uniform(0.1, 3.0, (50, 1))
+    g, _, lg = M.beam_delay_factor(rng.uniform(-0.6, 0.6, (50, 30)), tier, MOD,
+                                   derivative=False)
+    z = M.detection_z(kap, lg, MOD)
+    assert z.min() < -7.0 and z.max() > 7.0
+    et = M.echo_terms(kap, g, z, MOD, want_info=False, tier=tier)
+    mean, d = M.mean_delay(kap, g, MOD, z, tier)
+    np.testing.assert_array_equal(mean, et.delay)
+    np.testing.assert_array_equal(d, et.ddelay_du)
+    if tier != "waveform":      # and the truncation matters for the others
+        assert not np.array_equal(mean, M.mean_delay(kap, g, MOD, None, tier)[0])
