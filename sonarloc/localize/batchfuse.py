@@ -37,6 +37,7 @@ candidate keeping the most readings wins if no other comes close in likelihood.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -86,16 +87,23 @@ class SegmentEchoes:
     data: Array
 
     @classmethod
-    def from_segment(cls, seg: object) -> SegmentEchoes | None:
-        """The echoes of a :class:`~sonarloc.fit.segment.Segment` (None without any)."""
-        r = seg.readings  # type: ignore[attr-defined]
-        data = np.array([r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us], dtype=float)
-        data = data[:, np.isfinite(data[4])]
-        if data.shape[1] == 0:
-            return None
-        if np.any(data[0, 1:] < data[0, :-1]):
-            data = data[:, np.argsort(data[0], kind="stable")]
-        return cls(float(data[0, -1]), data)
+    def from_segments(cls, segs: Sequence[object]) -> list[SegmentEchoes]:
+        """The echoes of :class:`~sonarloc.fit.segment.Segment` s, in their order (those
+        without any left out); each segment's readings in time order (a stable sort
+        where they are not), ``data`` views into one array for all."""
+        if not segs:
+            return []
+        rs = [s.readings for s in segs]  # type: ignore[attr-defined]
+        data = np.array([np.concatenate([getattr(r, f) for r in rs]) for f in
+                         ("t_s", "x_m", "y_m", "yaw_rad", "tof_us")], dtype=float)
+        seg = np.repeat(np.arange(len(rs)), [len(r.t_s) for r in rs])
+        echo = np.isfinite(data[4])
+        data, seg = data[:, echo], seg[echo]
+        if np.any((data[0, 1:] < data[0, :-1]) & (seg[1:] == seg[:-1])):
+            data = data[:, np.lexsort((data[0], seg))]     # stable: by segment, then time
+        ends = np.cumsum(np.bincount(seg, minlength=len(rs))).tolist()
+        return [cls(data[0, b - 1].item(), data[:, a:b])
+                for a, b in zip([0, *ends[:-1]], ends, strict=True) if b > a]
 
 
 @dataclass

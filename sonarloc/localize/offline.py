@@ -224,10 +224,7 @@ class OfflinePipeline:
             self._waiting += self._source.segmenter.flush()
         if self.fast and self._waiting:
             self.loc.stats.segments += len(self._waiting)
-            for sg in self._waiting:
-                se = SegmentEchoes.from_segment(sg)
-                if se is not None:
-                    self._segs.append(se)
+            self._segs += SegmentEchoes.from_segments(self._waiting)
             self._waiting = []
 
     def _push_ready(self, t_odom: float, final: bool) -> None:

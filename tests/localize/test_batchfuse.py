@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from sonarloc import se2
+from sonarloc.fit.segment import Segment
 from sonarloc.io.logfile import LogWriter, OdomRecord, TruthRecord, iter_log
+from sonarloc.io.scancsv import ScanReadings
 from sonarloc.localize import batchfuse, echoes, ekf
 from sonarloc.localize.echoes import Compressed
 from sonarloc.localize.ekf import Gaussian, OdomNoise
@@ -156,6 +158,38 @@ def test_rival_pairs_and_screen_rows_equal_their_pairwise_forms(fmap):
                 want += zip(hx[q][sq].tolist(), nu[q][sq].tolist(), r_ii[q][sq].tolist(),
                             passed[q][sq].tolist(), strict=True)
             assert got == want
+
+
+def test_segment_echoes_of_many_segments_are_each_ones_echoes():
+    """SegmentEchoes.from_segments: per segment its echoes (no-echo readings dropped) in
+    time order (a stable sort where readings came out of order), the reference time the
+    last echo's; segments without an echo left out."""
+    rng = np.random.default_rng(3)
+    segs = []
+    for k in range(30):
+        n = int(rng.integers(1, 7))
+        t = np.round(np.sort(rng.random(n)) + k, 2)
+        if k % 5 == 0 and n > 1:
+            t[[0, -1]] = t[[-1, 0]]                        # out of time order
+        tof = np.where(rng.random(n) < 0.7, rng.uniform(500, 9000, n), np.nan)
+        if k % 7 == 0:
+            tof[:] = np.nan                                 # no echo at all
+        r = ScanReadings(t, rng.random(n), rng.random(n), rng.random(n), tof,
+                         np.zeros(n, dtype=np.int64))
+        segs.append(Segment(r, k, "gap"))
+    got = batchfuse.SegmentEchoes.from_segments(segs)
+    want = []
+    for sg in segs:
+        r = sg.readings
+        data = np.array([r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us])[:, np.isfinite(r.tof_us)]
+        if data.shape[1]:
+            data = data[:, np.argsort(data[0], kind="stable")]
+            want.append((float(data[0, -1]), data))
+    assert len(got) == len(want) > 0
+    for g, (t_ref, data) in zip(got, want, strict=True):
+        assert g.t_ref == t_ref
+        assert np.array_equal(g.data, data)
+    assert batchfuse.SegmentEchoes.from_segments([]) == []
 
 
 class Checking(OfflinePipeline):
