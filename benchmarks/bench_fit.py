@@ -53,7 +53,7 @@ from sonarloc.fit.crlb import crlb  # noqa: E402
 from sonarloc.fit.landmarks import conventional, fit_segments  # noqa: E402
 from sonarloc.fit.lsq import FitConfig, fit_batch, pack_segments  # noqa: E402
 from sonarloc.fit.segment import Segment, Segmenter  # noqa: E402
-from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings  # noqa: E402
+from sonarloc.fit.synth import Reflector, pan_scan, rotation_scan, simulate_readings  # noqa: E402
 from sonarloc.io.scancsv import ScanReadings, write_scan_csv  # noqa: E402
 from sonarloc.physics.tof import ModuleParams  # noqa: E402
 
@@ -405,15 +405,6 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 
 # ---------------------------------------------------------------- 4. large CSV
 
-def large_csv_scan(n_readings: int, rng: np.random.Generator) -> ScanReadings:
-    """Continuous rotation at 1 deg per ping, 100 pings/s, over 8 reflectors."""
-    yaw = np.deg2rad(np.arange(n_readings) * 1.0)
-    refl = [Reflector.polar(r, b, k) for r, b, k in (
-        (1.5, 0, 0.67), (2.0, 50, 2.68), (2.5, 100, 0.67), (1.2, 150, 0.15),
-        (3.0, -160, 0.67), (1.8, -100, 2.68), (2.2, -50, 0.67), (2.8, -20, 2.68))]
-    return simulate_readings(np.arange(n_readings) * 0.01, 0.0, 0.0, yaw, refl, rng)
-
-
 BASELINE_REV = "473e0fb"
 """main before session 5's fit-stage work (2026-11-21: re-bracketing of other tiers from
 10 above their bar, the Gaussian stage grid-started in float64): section 4's "before"
@@ -551,7 +542,7 @@ def large_csv(n_readings: int, repeats: int, rng: np.random.Generator
     """Section 4: the stages of `sonarloc fit` on a large scan CSV, now and (same run,
     alternating) at :data:`BASELINE_REV`; each stage in its own process."""
     import json
-    scan = large_csv_scan(n_readings, rng)
+    scan = rotation_scan(n_readings, rng)
     out: dict[str, float] = {"readings": n_readings}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "big.csv"

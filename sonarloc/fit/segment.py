@@ -378,7 +378,7 @@ class Segmenter:
             st.echoes += 1
             R = (tof - self._half_count_us) * self._m_per_us
         row = (t, x, y, yaw, tof, sensor)
-        closed, best = self._step(row, R, self._open, row)
+        closed, best = self._step(row, R, row)
         if self._censor:
             self._remember(row, R)
         if best is None and R < math.inf:
@@ -451,13 +451,12 @@ class Segmenter:
     # -- the per-reading decisions (shared by push and push_many) ----------------------
 
     def _step(self, row: tuple[float, float, float, float, float, int], R: float,
-              segs: list[_Open], ref: _Row) -> tuple[list[Segment], _Open | None]:
+              ref: _Row) -> tuple[list[Segment], _Open | None]:
         """One accepted reading ``row`` = (t, x, y, yaw wrapped, tof, sensor), ``R`` its
-        range (inf: no echo), against the open segments ``segs`` (all of them, or those
-        that :meth:`push_many`'s screening says it can concern, in the same order):
-        closes, misses, censoring and the extension of the best matching segment.
-        ``ref`` is what a segment's ``rows`` get for it (the row, or push_many's index;
-        ``~index``: the reading with no echo). Returns the segments closed and the
+        range (inf: no echo), against the open segments: closes, misses, censoring and
+        the extension of the best matching segment. ``ref`` is what a segment's ``rows``
+        get for it (the row, or push_many's index; ``~index``: the reading with no
+        echo). Returns the segments closed and the
         segment extended (None: none; for an echo, the caller opens one, knowing the
         sensor's recent readings).
 
@@ -473,15 +472,13 @@ class Segmenter:
         # time gaps close segments first, then a panning beam that has moved on
         if t - self._oldest_last > self._max_gap:
             max_gap = self._max_gap
-            for s in [s for s in segs if t - s.last[0] > max_gap]:
+            for s in [s for s in opened if t - s.last[0] > max_gap]:
                 closed += self._close(s, "gap")
             self._oldest_last = min((s.last[0] for s in opened), default=math.inf)
         if self._away < math.inf:
-            for s in [s for s in segs if sensor in s.sensors
+            for s in [s for s in opened if sensor in s.sensors
                       and self._off_axis(s, x, y, yaw) > self._away]:
                 closed += self._close(s, "swept")
-        if closed and segs is not opened:
-            segs = [s for s in segs if s in opened]
         cy, sy = math.cos(yaw), math.sin(yaw)
         wide = self._tan_miss_wide
         miss = self._miss
@@ -491,7 +488,7 @@ class Segmenter:
             beam = self._beam
             best, best_score = None, math.inf
             covered: list[tuple[_Open, float]] = []   # landmark within the miss width
-            for s in segs:
+            for s in opened:
                 # the miss test (applied below to all but the best match). Cheap test
                 # first: a landmark well off the axis is neither missed nor censored (the
                 # exact angle is only needed near the miss half-width)
@@ -567,7 +564,7 @@ class Segmenter:
                 closed += self._close(best, "full")
         else:
             best = None
-            for s in segs:
+            for s in opened:
                 mx, my = s.mid
                 dx, dy = mx - x, my - y
                 along = dx * cy + dy * sy
@@ -643,7 +640,7 @@ class Segmenter:
                 continue
             row = (tl[i], xl[i], yl[i], yawl[i], tofl[i], sl[i])
             ch.at = i        # segments closed now go to ch.closed
-            _, took = step(row, R, opened, i)
+            _, took = step(row, R, i)
             if took is None and R < math.inf:
                 prev = self._recent_rows(ch, recent, i) if recent is not None else []
                 self._start(row, R, prev, i)

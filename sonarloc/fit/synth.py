@@ -112,3 +112,21 @@ def pan_scan(reflectors: Sequence[Reflector], rng: np.random.Generator,
     yaw = np.deg2rad(at[2] + angles)
     t = ping_period_s * np.arange(angles.size)
     return simulate_readings(t, at[0], at[1], yaw, reflectors, rng, params, tier)
+
+
+ROTATION_SCENE = tuple(Reflector.polar(r, b, k) for r, b, k in (
+    (1.5, 0, 0.67), (2.0, 50, 2.68), (2.5, 100, 0.67), (1.2, 150, 0.15),
+    (3.0, -160, 0.67), (1.8, -100, 2.68), (2.2, -50, 0.67), (2.8, -20, 2.68)))
+"""Eight reflectors around a rotating sensor (range m, bearing deg, kappa us): poles, rods
+and a plane at 1.2-3 m, some arcs overlapping a nearer one (benchmarks/bench_fit.py
+section 4, the large scan CSV)."""
+
+
+def rotation_scan(n_readings: int, rng: np.random.Generator, step_deg: float = 1.0,
+                  ping_period_s: float = 0.01,
+                  reflectors: Sequence[Reflector] = ROTATION_SCENE) -> ScanReadings:
+    """A sensor at the origin in continuous rotation, ``step_deg`` per ping, over
+    ``reflectors`` (default :data:`ROTATION_SCENE`): ``n_readings`` readings."""
+    i = np.arange(n_readings)
+    return simulate_readings(ping_period_s * i, 0.0, 0.0, np.deg2rad(i * step_deg),
+                             reflectors, rng)

@@ -22,7 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sonarloc.fit import segment as fast
-from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings
+from sonarloc.fit.synth import Reflector, pan_scan, rotation_scan, simulate_readings
 from sonarloc.io.logfile import LogWriter, SensorMount
 from sonarloc.io.scancsv import ScanReadings
 from sonarloc.localize.features import FeatureMap
@@ -185,13 +185,7 @@ def test_hard_case_scans_give_identical_segments(name, sweep):
 def test_long_rotation_and_feed_give_identical_segments():
     # the large-CSV benchmark's scan (continuous rotation, 1 deg per ping, 8 reflectors,
     # 60 turns), through the reference, push_many in chunks, and feed (as fit_scan)
-    rng = np.random.default_rng(2003)
-    n = 21600
-    refl = [Reflector.polar(r, b, k) for r, b, k in (
-        (1.5, 0, 0.67), (2.0, 50, 2.68), (2.5, 100, 0.67), (1.2, 150, 0.15),
-        (3.0, -160, 0.67), (1.8, -100, 2.68), (2.2, -50, 0.67), (2.8, -20, 2.68))]
-    scan = simulate_readings(np.arange(n) * 0.01, 0.0, 0.0, np.deg2rad(np.arange(n) * 1.0),
-                             refl, rng)
+    scan = rotation_scan(21600, np.random.default_rng(2003))
     pushes = _scan_pushes(scan)
     assert _assert_same(pushes, {}, chunks=(1000, 65536)) > 400
     want, _ = _run(ref, ref.SegmenterConfig(), pushes)

@@ -8,7 +8,7 @@ import pytest
 from sonarloc.fit import select as S
 from sonarloc.fit.landmarks import fit_segments
 from sonarloc.fit.segment import Segmenter
-from sonarloc.fit.synth import Reflector, simulate_readings
+from sonarloc.fit.synth import rotation_scan
 
 
 @pytest.fixture(scope="module")
@@ -16,14 +16,7 @@ def rotation_segments():
     """Segments of a continuous rotation (1 deg per ping) over the scene of
     benchmarks/bench_fit.py section 4: far rods and poles partly hidden by nearer
     reflectors, whose Gaussian fits sit in another basin of the waveform tier."""
-    rng = np.random.default_rng(2003)
-    n = 14400
-    refl = [Reflector.polar(r, b, k) for r, b, k in (
-        (1.5, 0, 0.67), (2.0, 50, 2.68), (2.5, 100, 0.67), (1.2, 150, 0.15),
-        (3.0, -160, 0.67), (1.8, -100, 2.68), (2.2, -50, 0.67), (2.8, -20, 2.68))]
-    scan = simulate_readings(np.arange(n) * 0.01, 0.0, 0.0, np.deg2rad(np.arange(n) * 1.0),
-                             refl, rng)
-    return list(Segmenter().feed(scan))
+    return list(Segmenter().feed(rotation_scan(14400, np.random.default_rng(2003))))
 
 
 def test_rebracketing_only_far_worse_refinements_keeps_the_choices(rotation_segments,
