@@ -172,6 +172,21 @@ class Prepared:
 
 
 Mat3 = list[list[float]]
+Rows3 = tuple[tuple[float, float, float], tuple[float, float, float],
+              tuple[float, float, float]]
+
+
+def _mul3(a: Sequence[Sequence[float]], b: Sequence[Sequence[float]]) -> Rows3:
+    """The product of 3x3 matrices given as nested sequences of floats, written out
+    (:func:`reduced_update_lists` runs once per fused segment: no numpy calls)."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b
+    return ((a00 * b00 + a01 * b10 + a02 * b20, a00 * b01 + a01 * b11 + a02 * b21,
+             a00 * b02 + a01 * b12 + a02 * b22),
+            (a10 * b00 + a11 * b10 + a12 * b20, a10 * b01 + a11 * b11 + a12 * b21,
+             a10 * b02 + a11 * b12 + a12 * b22),
+            (a20 * b00 + a21 * b10 + a22 * b20, a20 * b01 + a21 * b11 + a22 * b21,
+             a20 * b02 + a21 * b12 + a22 * b22))
 
 
 def reduced_update(state: Gaussian, c: Compressed) -> tuple[Gaussian, float] | None:
@@ -208,13 +223,7 @@ def reduced_update_lists(mean: list[float], cov: list[list[float]], c: Compresse
     n2 = qn[2] - (h20 * d0 + h21 * d1 + h22 * d2_)
     # written out (this runs once per fused segment): H P, S = H P Hᵀ + I, S = L Lᵀ, K,
     # the mean, the Joseph form and its symmetrised result
-    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = cov
-    a00, a01, a02 = (h00 * p00 + h01 * p10 + h02 * p20, h00 * p01 + h01 * p11 + h02 * p21,
-                     h00 * p02 + h01 * p12 + h02 * p22)
-    a10, a11, a12 = (h10 * p00 + h11 * p10 + h12 * p20, h10 * p01 + h11 * p11 + h12 * p21,
-                     h10 * p02 + h11 * p12 + h12 * p22)
-    a20, a21, a22 = (h20 * p00 + h21 * p10 + h22 * p20, h20 * p01 + h21 * p11 + h22 * p21,
-                     h20 * p02 + h21 * p12 + h22 * p22)
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = _mul3(h, cov)      # H P
     s00 = a00 * h00 + a01 * h01 + a02 * h02 + 1.0
     if not (s00 > 0.0 and math.isfinite(s00)):
         return None
@@ -257,12 +266,8 @@ def reduced_update_lists(mean: list[float], cov: list[list[float]], c: Compresse
     i20, i21, i22 = (0.0 - (k20 * h00 + k21 * h10 + k22 * h20), 0.0 - (k20 * h01 + k21 * h11
                      + k22 * h21), 1.0 - (k20 * h02 + k21 * h12 + k22 * h22))
     # B = (I - K H) P
-    b00, b01, b02 = (i00 * p00 + i01 * p10 + i02 * p20, i00 * p01 + i01 * p11 + i02 * p21,
-                     i00 * p02 + i01 * p12 + i02 * p22)
-    b10, b11, b12 = (i10 * p00 + i11 * p10 + i12 * p20, i10 * p01 + i11 * p11 + i12 * p21,
-                     i10 * p02 + i11 * p12 + i12 * p22)
-    b20, b21, b22 = (i20 * p00 + i21 * p10 + i22 * p20, i20 * p01 + i21 * p11 + i22 * p21,
-                     i20 * p02 + i21 * p12 + i22 * p22)
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = _mul3(
+        ((i00, i01, i02), (i10, i11, i12), (i20, i21, i22)), cov)
     # B (I - K H)ᵀ + K Kᵀ, symmetrised
     o00 = b00 * i00 + b01 * i01 + b02 * i02 + (k00 * k00 + k01 * k01 + k02 * k02)
     o11 = b10 * i10 + b11 * i11 + b12 * i12 + (k10 * k10 + k11 * k11 + k12 * k12)
