@@ -405,10 +405,9 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 
 # ---------------------------------------------------------------- 4. large CSV
 
-BASELINE_REV = "473e0fb"
-"""main before session 5's fit-stage work (2026-11-21: re-bracketing of other tiers from
-10 above their bar, the Gaussian stage grid-started in float64): section 4's "before"
-column, run from a `git archive` of it."""
+BASELINE_REV = "f7b51e7"
+"""main at the start of session 6 (2026-11-21; session 5's default fit: arc start, float32
+Gaussian passes): section 4's "before" column, run from a `git archive` of it."""
 
 _STAGES = r"""
 import json, sys, time

@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The batch replay before session 4's speed work.
-DEFAULT_BASELINE = "06e309f"
+#: main at the start of session 6 (2026-11-21), before its replay speed work.
+DEFAULT_BASELINE = "f7b51e7"
 SCENARIOS = ("room, ring16", "room, panning transducer", "pole field, ring16")
 WARMUP_S = 5.0
 
