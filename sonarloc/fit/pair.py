@@ -38,6 +38,7 @@ log-variance at zero delay) so a spike cannot buy a component.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -45,7 +46,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import chdtrc, ndtr
+from scipy.special import chdtrc, chdtri, ndtr
 
 from sonarloc.fit import model as M
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _kappa_penalty, pack_segments
@@ -983,21 +984,24 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
     n_first = resp.sum(1)
     gain = c1 - c_pair
     promising = gain > bar
-    cov_s = _inverse(0.5 * H) if promising else H
     pick = np.argmax(resp, axis=0)
-    chi2 = np.array([float((resid[pick == k] ** 2).sum()) for k in range(2)])
-    dof = max(seg.y.size - 6, 1)
-    cov_s = cov_s * max(float(chi2.sum()) / dof, 1.0)
-    T = np.diag(np.tile(_SCALE, 2))
-    cov = T @ cov_s @ T
+    r2 = resid * resid
+    chi2 = np.array([float(r2[pick == 0].sum()), float(r2[pick == 1].sum())])
     local = np.zeros((2, 3))
-    cov_out = np.zeros((2, 3, 3))
     for k in range(2):
         q = comps[k][0]
-        K = math.exp(q[2])
-        local[k] = (q[0], float(M.wrap_angle(q[1])), K)
-        Jk = np.diag([1.0, 1.0, K])               # ln kappa -> kappa
-        cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
+        local[k] = (q[0], _wrap_scalar(float(q[1])), math.exp(q[2]))
+    if promising:
+        dof = max(seg.y.size - 6, 1)
+        cov_s = _inverse(0.5 * H) * max(float(chi2.sum()) / dof, 1.0)
+        T = np.diag(np.tile(_SCALE, 2))
+        cov = T @ cov_s @ T
+        cov_out = np.zeros((2, 3, 3))
+        for k in range(2):
+            Jk = np.diag([1.0, 1.0, local[k, 2]])    # ln kappa -> kappa
+            cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
+    else:     # no Hessian (NaN): not evaluated where the evidence cannot carry the pair
+        cov_out = np.full((2, 3, 3), np.nan)
     ambiguous: dict[int, str] = {}
     if promising:
         assert profile_sd is not None
@@ -1016,16 +1020,6 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
                                         f"likelihood {c - best_c:.1f} apart")
                 cov_out[k, 1, 1] = max(cov_out[k, 1, 1], d * d)
     sep = abs(math.degrees(float(M.wrap_angle(local[1, 1] - local[0, 1]))))
-    # longest contiguous run (in beam-axis order) of each component's first echoes
-    order = np.argsort(M.wrap_angle(seg.yaw - local[:, 1].mean()))
-    seq = pick[order]
-    run_share = np.zeros(2)
-    for k in range(2):
-        mine = (seq == k).astype(int)
-        if mine.sum():
-            edges = np.diff(np.concatenate([[0], mine, [0]]))
-            runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
-            run_share[k] = runs.max() / mine.sum()
     side_lobe = bool(local[:, 2].max() > SIDE_LOBE_KAPPA_US
                      and local[:, 2].min() < SIDE_LOBE_STRONG_US
                      and SIDE_LOBE_DEG[0] <= sep <= SIDE_LOBE_DEG[1])
@@ -1049,7 +1043,7 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
         accepted = False
         basis = (f"one component is the first echo of only {min(n_first):.1f} readings "
                  f"(< {cfg.min_echoes})")
-    elif min(run_share) < MIN_RUN_SHARE:
+    elif min(run_share := _run_shares(seg, local, pick)) < MIN_RUN_SHARE:
         accepted = False
         basis = (f"the readings one component explains are scattered (longest run "
                  f"{min(run_share):.0%} of them): spikes, not a second U")
@@ -1076,6 +1070,27 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
                      else (0.0 if pick[j] == k else math.nan))
     return PairFit(local, cov_out, float(c1), c_pair, support, n_first, price, accepted,
                    basis, chi2, ambiguous, hidden)
+
+
+def _wrap_scalar(a: float) -> float:
+    """:func:`sonarloc.fit.model.wrap_angle` of one angle [rad] (the same float)."""
+    w = (a + math.pi) % (2.0 * math.pi) - math.pi
+    return math.pi if w == -math.pi else w
+
+
+def _run_shares(seg: _Segment, local: Array, pick: NDArray[np.intp]) -> Array:
+    """(2,) share of each component's first echoes (``pick``: the component of each
+    echo) in its longest contiguous run in beam-axis order."""
+    order = np.argsort(M.wrap_angle(seg.yaw - local[:, 1].mean()))
+    seq = pick[order]
+    run_share = np.zeros(2)
+    for k in range(2):
+        mine = (seq == k).astype(int)
+        if mine.sum():
+            edges = np.diff(np.concatenate([[0], mine, [0]]))
+            runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+            run_share[k] = runs.max() / mine.sum()
+    return run_share
 
 
 def _inverse(H: Array) -> Array:
@@ -1116,9 +1131,23 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
         return True
     if lm.status is not FitStatus.OK:
         return False
-    chi2 = float(lm.extra.get("chi2", 0.0))  # type: ignore[arg-type]
-    p = float(chdtrc(max(lm.n_readings - 3, 1), max(chi2, 0.0)))   # scipy.stats.chi2.sf
-    return p < CANDIDATE_P or float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z  # type: ignore[arg-type]
+    if float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z:  # type: ignore[arg-type]
+        return True
+    chi2 = max(float(lm.extra.get("chi2", 0.0)), 0.0)  # type: ignore[arg-type]
+    dof = max(lm.n_readings - 3, 1)
+    lo, hi = _chi2_band(dof)      # p < CANDIDATE_P certainly above hi, certainly not below lo
+    if chi2 < lo or chi2 > hi:
+        return chi2 > hi
+    return float(chdtrc(dof, chi2)) < CANDIDATE_P   # scipy.stats.chi2.sf
+
+
+@functools.lru_cache(maxsize=1024)
+def _chi2_band(dof: int) -> tuple[float, float]:
+    """A band around the chi-square value where the survival function of ``dof``
+    degrees of freedom crosses :data:`CANDIDATE_P` (1 % either side; exactly evaluated
+    only within it)."""
+    x = float(chdtri(dof, CANDIDATE_P))
+    return 0.99 * x, 1.01 * x
 
 
 def pair_landmarks(pf: PairFit, single: Landmark, cfg: FitConfig) -> list[Landmark]:
