@@ -130,7 +130,7 @@ def test_lockstep_bfgs_matches_scipy_per_start_and_holds_fixed_variables(rng):
 
 
 def test_padded_segments_cost_each_row_on_its_own_segment(rng):
-    # rows of a _Segments evaluate their own segment (padding counts nothing), and
+    # rows of a _Segments evaluate their own segment (only its readings), and
     # cost_grad's cost is cost()'s exactly
     cfg = FitConfig()
     scans = [pan_scan([Reflector.polar(r, b, k)], rng, -30, 30, step)
