@@ -774,7 +774,7 @@ def _start_grid(seg: _Segment, single: Array) -> _Grid | None:
     return _start_grids([seg], [single])[0]
 
 
-GRID_CHUNK = 400_000
+GRID_CHUNK = 150_000
 """Elements (segments x bearing pairs x echoes) of one step of :func:`_start_grids`."""
 
 
@@ -924,15 +924,15 @@ def _grid_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_], Jc: NDArray[np.intp
         A.append(head[cc[:, None], ja[None, :], n_a])
         B.append(tail[cc[:, None], jb[None, :], n_a])
     bad = np.flatnonzero(~split.all(1))
-    for c in bad.tolist():                            # not a split: the direct sums
-        m = to_a[c]
-        for out, mask, j in ((A, m, ja), (B, ~m & oks[c][None, :], jb)):
+    if bad.size:                                      # not a split: the direct sums
+        m = to_a[bad]
+        for out, mask, j in ((A, m, ja), (B, ~m & oks[bad][:, None, :], jb)):
             w = mask.astype(float)
-            gg, yv = gs[c][j], ys[c][j]
+            gg, yv = gs[bad][:, j], ys[bad][:, j]
             wg, wy = w * gg, w * yv
-            for q, val in enumerate((mask.sum(1).astype(float), wg.sum(1), (wg * gg).sum(1),
-                                     wy.sum(1), (wg * yv).sum(1), (wy * yv).sum(1))):
-                out[q][c] = val
+            for q, val in enumerate((mask.sum(2).astype(float), wg.sum(2), (wg * gg).sum(2),
+                                     wy.sum(2), (wg * yv).sum(2), (wy * yv).sum(2))):
+                out[q][bad] = val
     return tuple(A), tuple(B)  # type: ignore[return-value]
 
 
