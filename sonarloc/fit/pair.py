@@ -319,7 +319,9 @@ class _Segment:
                           _rowsum(lqn, rd.nrows, rd.S)))
             parts.append(cg)
         mix = self._mixture(terms)
-        cost, _, _ = self._combine(terms, comps, mask, False, mix, rd)
+        pens = [_kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)
+                for q in comps]
+        cost, _, _ = self._combine(terms, comps, mask, False, mix, rd, [p[0] for p in pens])
         # per echo: d(-2 ll)/d(mean, variance, log P) of each component
         if len(comps) == 1:
             mean, s2 = terms[0][0], terms[0][1]
@@ -375,8 +377,7 @@ class _Segment:
                 d_lk = d_lk + _rowsum(gn_v, nrows, S)
             lk = q[:, 2]
             K = np.exp(np.clip(lk, _LNK_LO, _LNK_HI))
-            d_lk = (d_lk + _kappa_penalty(K, self.cfg)[1] * K) * ((lk > _LNK_LO)
-                                                                   & (lk < _LNK_HI))
+            d_lk = (d_lk + pens[k][1] * K) * ((lk > _LNK_LO) & (lk < _LNK_HI))
             grad[:, 3 * k:3 * k + 3] = np.stack([d_r, d_phi, d_lk], axis=1) * _SCALE
         grad[cost >= 1e12] = 0.0
         return cost, grad
@@ -423,9 +424,9 @@ class _Segment:
 
     def _combine(self, terms: list[tuple[Array, ...]], comps: list[Array],
                  mask: NDArray[np.bool_] | None, detail: bool, mix: _Mixture | None,
-                 rd: _Rd) -> tuple[Array, Array, Array]:
+                 rd: _Rd, pens: list[Array] | None = None) -> tuple[Array, Array, Array]:
         """The likelihood from the components' terms (:meth:`_terms`); ``mix``: their
-        :meth:`_mixture` if known."""
+        :meth:`_mixture` if known; ``pens``: the components' kappa prior terms if known."""
         parts, ll = (mix or self._mixture(terms))[:2]
         per = -2.0 * ll
         if mask is not None:
@@ -433,8 +434,9 @@ class _Segment:
         c = _rowsum(per, rd.rows, rd.S)
         for t in terms:
             c = c - 2.0 * t[5]
-        for q in comps:
-            c = c + _kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)[0]
+        for k, q in enumerate(comps):
+            c = c + (pens[k] if pens is not None else
+                     _kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)[0])
         c = np.where(np.isfinite(c), c, 1e12)   # off the cliffs: the optimiser backs off
         if not detail:
             return c, np.zeros(0), np.zeros(0)
