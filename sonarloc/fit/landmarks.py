@@ -179,9 +179,9 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     parts = [_arrays(s) for s in segments]
     lengths = np.array([p[0].size for p in parts], dtype=np.int64)
     seg = np.repeat(np.arange(n), lengths)
-    t, x, y, yaw, tof = (np.concatenate([np.asarray(p[k], dtype=float) for p in parts])
+    t, x, y, yaw, tof = (np.concatenate([p[k] for p in parts], dtype=float)
                          for k in range(5))
-    sensor = np.concatenate([np.asarray(p[5], dtype=np.int64) for p in parts])
+    sensor = np.concatenate([p[5] for p in parts], dtype=np.int64, casting="unsafe")
     ok, _ = _clean(t, x, y, yaw, tof)
     n_bad = np.bincount(seg[~ok], minlength=n)
     seg, t, x, y, tof, sensor = seg[ok], t[ok], x[ok], y[ok], tof[ok], sensor[ok]

@@ -158,15 +158,18 @@ def choose_kind(sel: Selection, line: BatchFit | None, moving: NDArray[np.int64]
         if pick.size:
             rows = np.searchsorted(moving, pick)
             sel.put(pick, line.take(rows))
-    for b, ex in enumerate(sel.extra):
-        ex["kind_basis"] = basis[b]
-        if np.isfinite(d[b]):
-            ex["kind_dcost"] = float(d[b])
-        if basis[b] == "strength":
-            ex["kind_note"] = ("motion too small to tell point from line" if np.isfinite(d[b])
+    fin = np.isfinite(d)
+    # one viewpoint: the same fit, read as a wall
+    sel.kind[(basis == "strength") & (sel.kind == "point") & (by_strength == "line") & ~fin] = (
+        "line")
+    for ex, bs, f, dv in zip(sel.extra, basis.tolist(), fin.tolist(), d.tolist(),
+                             strict=True):
+        ex["kind_basis"] = bs
+        if f:
+            ex["kind_dcost"] = dv
+        if bs == "strength":
+            ex["kind_note"] = ("motion too small to tell point from line" if f
                                else "one viewpoint: point and line give the same readings")
-            if sel.kind[b] == "point" and by_strength[b] == "line" and not np.isfinite(d[b]):
-                sel.kind[b] = "line"   # one viewpoint: the same fit, read as a wall
 
 
 @dataclass(frozen=True)
@@ -490,13 +493,16 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                 if win.any():
                     sel.put(rows2[win], alt.take(np.flatnonzero(win)))
                     basis[rows2[win]] = "waveform fits the data better (after piston)"
-    for b, ex in enumerate(sel.extra):
-        ex["tier_basis"] = basis[b]
-        for t, d in dcost.items():
-            if np.isfinite(d[b]):
-                ex[f"dcost_{t}"] = float(d[b])
-        if np.isfinite(kappa_alt[b]) and sel.tier[b] == "gauss":
-            ex["kappa_waveform_us"] = float(kappa_alt[b])
+    # (Python values per segment: the loop runs once per segment)
+    dc = [(f"dcost_{t}", d.tolist(), np.isfinite(d).tolist()) for t, d in dcost.items()]
+    ka = np.where(sel.tier == "gauss", kappa_alt, np.nan)
+    for b, (ex, bs) in enumerate(zip(sel.extra, basis.tolist(), strict=True)):
+        ex["tier_basis"] = bs
+        for key, dv, f in dc:
+            if f[b]:
+                ex[key] = dv[b]
+    for b in np.flatnonzero(np.isfinite(ka)).tolist():
+        sel.extra[b]["kappa_waveform_us"] = float(ka[b])
 
 
 def runs_z(signs: NDArray[np.bool_], n: NDArray[np.int64]) -> Array:
@@ -532,12 +538,12 @@ def overlap_check(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         z = runs_z(signs, n)
         ratio = sel.chi2[idx] / np.maximum(n - 3, 1)
         flag = (z < runs_z_max) & (ratio > chi2_ratio_min)
-        for j, b in enumerate(idx.tolist()):
-            sel.extra[b]["runs_z"] = float(z[j])
-            if flag[j]:
-                sel.extra[b]["overlap"] = (f"residuals run in blocks (runs z = {z[j]:.1f}, "
-                                           f"chi2/dof = {ratio[j]:.1f}): two reflectors "
-                                           "merged?")
+        for b, zj in zip(idx.tolist(), z.tolist(), strict=True):
+            sel.extra[b]["runs_z"] = zj
+        for j in np.flatnonzero(flag).tolist():
+            sel.extra[int(idx[j])]["overlap"] = (
+                f"residuals run in blocks (runs z = {z[j]:.1f}, chi2/dof = {ratio[j]:.1f}): "
+                "two reflectors merged?")
 
 
 def select_models(batch: SegmentBatch, cfg: FitConfig) -> Selection:
