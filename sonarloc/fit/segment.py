@@ -38,6 +38,7 @@ where a decision is open.
 from __future__ import annotations
 
 import math
+from array import array
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -203,10 +204,23 @@ class _RecentIndex:
         ends = np.r_[starts[1:], len(order)]
         rank = np.empty(len(order), dtype=np.int64)
         rank[order] = np.arange(len(order)) - np.repeat(starts, ends - starts)
-        self.rank = rank.tolist()
+        self.rank = _ints(rank)
         self.by_sensor = {
-            int(sensor[order[a]]): order[a:b].tolist()
+            int(sensor[order[a]]): _ints(order[a:b])
             for a, b in zip(starts.tolist(), ends.tolist(), strict=True)}
+
+
+def _floats(a: np.ndarray) -> array[float]:
+    """The values of ``a`` (float64) as an ``array.array``: indexed like a list of
+    Python floats (the same values), but one block of memory that the garbage
+    collector does not traverse (lists of a chunk's 65536 floats cost milliseconds at
+    each collection that sees them)."""
+    return array("d", np.ascontiguousarray(a, dtype=np.float64).tobytes())
+
+
+def _ints(a: np.ndarray) -> array[int]:
+    """:func:`_floats` of integers (int64 values; bools as 0 / 1)."""
+    return array("q", np.ascontiguousarray(a, dtype=np.int64).tobytes())
 
 
 def _mids(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, R: np.ndarray
@@ -230,8 +244,8 @@ class _Chunk:
         self.echo = R < np.inf
         self.cols = np.stack([t, x, y, yaw, tof])          # (5, m)
         self.tl, self.xl, self.yl, self.yawl, self.tofl, self.Rl = (
-            a.tolist() for a in (t, x, y, yaw, tof, R))
-        self.sl: list[int] = sensor.tolist()
+            _floats(a) for a in (t, x, y, yaw, tof, R))
+        self.sl = _ints(sensor)
         self.at = 0      # the reading being handled
         self.closed: list[tuple[int, _Open, str]] = []    # (at, segment, closed_by)
 
@@ -624,23 +638,34 @@ class Segmenter:
         chained = self._chain(ch)
         pos = np.arange(m)
         # the next echo at or after each reading, and the end of each chained run
-        next_echo = np.minimum.accumulate(np.where(ch.echo, pos, m)[::-1])[::-1].tolist()
-        run_end = np.minimum.accumulate(np.where(chained, m, pos)[::-1])[::-1].tolist()
-        chain = chained.tolist()
+        next_echo = _ints(np.minimum.accumulate(np.where(ch.echo, pos, m)[::-1])[::-1])
+        run_end = _ints(np.minimum.accumulate(np.where(chained, m, pos)[::-1])[::-1])
+        chain = _ints(chained)
         tl, xl, yl, yawl, tofl, sl, Rl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.tofl, ch.sl, ch.Rl
         recent = _RecentIndex(ch.sensor) if self._censor else None
         opened = self._open
         step = self._step
         max_readings = self._max_readings
+        miss_run = self._miss_run
         i = 0
         while i < m:
             R = Rl[i]
-            if not opened and not R < math.inf:
-                i = next_echo[i]       # no echo and nothing open: nothing to do
-                continue
+            if not R < math.inf:
+                if not opened:
+                    i = next_echo[i]       # no echo and nothing open: nothing to do
+                    continue
+                if len(opened) == 1:       # misses of the only open segment
+                    i = miss_run(ch, i, next_echo[i])
+                    continue
             row = (tl[i], xl[i], yl[i], yawl[i], tofl[i], sl[i])
             ch.at = i        # segments closed now go to ch.closed
-            _, took = step(row, R, i)
+            if opened:
+                _, took = step(row, R, i)
+            else:
+                # an echo with nothing open: _step would change nothing (no segment to
+                # close, miss or extend), so it opens one; the earliest last echo is its
+                took = None
+                self._oldest_last = math.inf
             if took is None and R < math.inf:
                 prev = self._recent_rows(ch, recent, i) if recent is not None else []
                 self._start(row, R, prev, i)
@@ -665,6 +690,49 @@ class Segmenter:
         if recent is not None:
             self._remember_chunk(ch, recent)
         return ch.segments(index)
+
+    def _miss_run(self, ch: _Chunk, i: int, e: int) -> int:
+        """:meth:`_step` of the no-echo readings ``i`` to ``e - 1`` of the chunk while
+        exactly one segment is open (a transducer turning or moving away from the
+        landmark it last saw): the same closes, misses and censoring, for one segment,
+        in the same float operations. Stops where the segment closes (the rest of the
+        run then changes nothing). Returns the next reading to handle (``e``)."""
+        s = self._open[0]
+        tl, xl, yl, yawl, sl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.sl
+        last_t = s.last[0]
+        mx, my = s.mid
+        sensors = s.sensors
+        max_gap, away, miss = self._max_gap, self._away, self._miss
+        censor, lim, miss_angle = self._censor, self.config.miss_limit, self._miss_angle
+        atan2, floor, pi = math.atan2, math.floor, math.pi
+        for j in range(i, e):
+            t = tl[j]
+            if t - self._oldest_last > max_gap:    # the gap test of _step
+                if t - last_t > max_gap:
+                    ch.at = j
+                    self._close(s, "gap")
+                    self._oldest_last = math.inf
+                    return e
+                self._oldest_last = last_t
+            yaw, sensor = yawl[j], sl[j]
+            # the off-axis angle of _off_axis (the swept test) and of the miss test (whose
+            # cheap pre-test only skips landmarks beyond the miss width: not needed here)
+            a = atan2(my - yl[j], mx - xl[j]) - yaw
+            off = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
+            if off > away and sensor in sensors:
+                ch.at = j
+                self._close(s, "swept")
+                return e
+            if off <= miss:
+                if sensor in sensors and s.trailing < censor:
+                    s.rows.append(j)
+                    s.trailing += 1
+                s.misses += 1
+                if (s.misses >= lim and off >= miss_angle) or s.misses >= 4 * lim:
+                    ch.at = j
+                    self._close(s, "misses")
+                    return e
+        return e
 
     def _chain(self, ch: _Chunk) -> np.ndarray:
         """(m,) bool: reading i is an echo that :meth:`_step` surely adds to a segment
