@@ -195,9 +195,15 @@ class _RecentIndex:
     def __init__(self, sensor: np.ndarray) -> None:
         self.rank: Sequence[int]
         self.by_sensor: dict[int, Sequence[int]]
+        # numpy forms: rank, and the k-th earlier reading of the same sensor of reading
+        # i is ``order[place[i] - k]`` (None for one sensor: it is i - k)
+        self.rank_np: np.ndarray
+        self.order: np.ndarray | None = None
+        self.place: np.ndarray | None = None
         if sensor[0] == sensor[-1] and not (sensor != sensor[0]).any():   # one sensor
             self.rank = range(len(sensor))
             self.by_sensor = {int(sensor[0]): self.rank}
+            self.rank_np = np.arange(len(sensor))
             return
         order = np.argsort(sensor, kind="stable")
         starts = np.flatnonzero(np.r_[True, sensor[order][1:] != sensor[order][:-1]])
@@ -205,6 +211,9 @@ class _RecentIndex:
         rank = np.empty(len(order), dtype=np.int64)
         rank[order] = np.arange(len(order)) - np.repeat(starts, ends - starts)
         self.rank = _ints(rank)
+        self.rank_np, self.order = rank, order
+        self.place = np.empty(len(order), dtype=np.int64)
+        self.place[order] = np.arange(len(order))
         self.by_sensor = {
             int(sensor[order[a]]): _ints(order[a:b])
             for a, b in zip(starts.tolist(), ends.tolist(), strict=True)}
@@ -643,6 +652,12 @@ class Segmenter:
         chain = _ints(chained)
         tl, xl, yl, yawl, tofl, sl, Rl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.tofl, ch.sl, ch.Rl
         recent = _RecentIndex(ch.sensor) if self._censor else None
+        # _start's lead rows and occluded_lead, worked out in advance for the echoes
+        # that may open a segment (bits; -1: not worked out, _start's own loop does it)
+        bits = self._lead_bits(ch, recent, ~chained) if recent is not None else None
+        lags: dict[int, tuple[int, ...]] = {}
+        one = recent is not None and recent.order is None
+        want = self._censor - 1
         opened = self._open
         step = self._step
         max_readings = self._max_readings
@@ -667,8 +682,21 @@ class Segmenter:
                 took = None
                 self._oldest_last = math.inf
             if took is None and R < math.inf:
-                prev = self._recent_rows(ch, recent, i) if recent is not None else []
-                self._start(row, R, prev, i)
+                b = bits[i] if bits is not None else -1
+                if b >= 0:
+                    ks = lags.get(b)
+                    if ks is None:   # the lags of its lead rows, oldest first
+                        ks = lags[b] = tuple(k for k in range(want, 0, -1) if b >> k & 1)
+                    if one:
+                        lead: list[_Row] = [~i + k for k in ks]     # ~(i - k)
+                    else:
+                        assert recent is not None
+                        mine, r = recent.by_sensor[sl[i]], recent.rank[i]
+                        lead = [~mine[r - k] for k in ks]
+                    self._open_new(row, R, lead, b & 1 == 1, i)
+                else:
+                    prev = self._recent_rows(ch, recent, i) if recent is not None else []
+                    self._start(row, R, prev, i)
             i += 1
             # a run of echoes, each matching the one before from the same spot, extends
             # the only open segment (whose last echo is the reading just handled)
@@ -690,6 +718,36 @@ class Segmenter:
         if recent is not None:
             self._remember_chunk(ch, recent)
         return ch.segments(index)
+
+    def _lead_bits(self, ch: _Chunk, recent: _RecentIndex, cand: np.ndarray
+                   ) -> Sequence[int] | None:
+        """What :meth:`_start` would find in its ``prev`` for each echo at ``cand`` ((m,)
+        bool) whose sensor has ``censor_window - 1`` readings before it in the chunk:
+        bit k (1 ...) set if its k-th earlier reading is a lead row, bit 0 if the one
+        just before hid it (``occluded_lead``). -1 elsewhere. The tests of _start, in
+        the same float operations, so exactly its outcome. None if no echo
+        qualifies, or for few readings (little to gain)."""
+        want = self._censor - 1
+        if not 1 <= want <= 60 or ch.m < 64:
+            return None
+        c = np.flatnonzero(cand & ch.echo & (recent.rank_np >= want))
+        if not len(c):
+            return None
+        t, yaw, R = ch.t, ch.yaw, ch.R
+        tc, yawc, Rc = t[c], yaw[c], R[c]
+        farther, nearer = Rc + self._gate_m, Rc - self._gate_m
+        max_gap, two_beam = self.config.max_gap_s, 2.0 * self._beam
+        b = np.zeros(len(c), dtype=np.int64)
+        for k in range(1, want + 1):
+            j = c - k if recent.order is None or recent.place is None else \
+                recent.order[recent.place[c] - k]
+            near = (tc - t[j] <= max_gap) & (np.abs(_wrap_array(yaw[j] - yawc)) <= two_beam)
+            b |= (near & (R[j] > farther)).astype(np.int64) << k
+            if k == 1:
+                b |= near & (R[j] < nearer)
+        bits = np.full(ch.m, -1, dtype=np.int64)
+        bits[c] = b
+        return _ints(bits)
 
     def _miss_run(self, ch: _Chunk, i: int, e: int) -> int:
         """:meth:`_step` of the no-echo readings ``i`` to ``e - 1`` of the chunk while
@@ -773,12 +831,6 @@ class Segmenter:
         _, lx, ly, lyaw, lR, _ = s.last
         return [(lx + lR * math.cos(lyaw + a), ly + lR * math.sin(lyaw + a)) for a in self._arc]
 
-    @staticmethod
-    def _mid_point(s: _Open) -> tuple[float, float]:
-        """The middle of :meth:`_arc_points` (the landmark on the last echo's beam axis)."""
-        _, lx, ly, lyaw, lR, _ = s.last
-        return lx + lR * math.cos(lyaw + 0.0), ly + lR * math.sin(lyaw + 0.0)
-
     def _off_axis(self, s: _Open, x: float, y: float, yaw: float) -> float:
         """Off-axis angle [rad] of ``s``'s last seen landmark for a reading at (x, y, yaw)."""
         px, py = s.mid   # the arc's middle point: the beam axis of the last echo
@@ -800,9 +852,6 @@ class Segmenter:
         its echo); at most ``censor_window - 1`` of them (the sensor's recent readings
         with this one)."""
         t, x, y, yaw, _, sensor = row
-        closed: list[Segment] = []
-        if len(self._open) >= self.config.max_open:
-            closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
         lead: list[_Row] = []
         # earlier readings of this sensor that saw nothing here: no echo, or a farther
         # echo won (the first crossing would have been this landmark's)
@@ -811,14 +860,29 @@ class Segmenter:
                     and abs(_wrap(r_yaw - yaw)) <= 2.0 * self._beam
                     and r_range > R + self._gate_m):
                 lead.append(r_ref)
-        s = _Open(self._next_id, lead + [ref], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
         # the reading of this sensor just before: a nearer echo there hid this landmark
+        occluded = False
         if prev:
             r_t, r_yaw, r_range, _ = prev[-1]
-            s.occluded_lead = (t - r_t <= self.config.max_gap_s
-                               and abs(_wrap(r_yaw - yaw)) <= 2.0 * self._beam
-                               and r_range < R - self._gate_m)
-        s.mid = self._mid_point(s)
+            occluded = (t - r_t <= self.config.max_gap_s
+                        and abs(_wrap(r_yaw - yaw)) <= 2.0 * self._beam
+                        and r_range < R - self._gate_m)
+        return self._open_new(row, R, lead, occluded, ref)
+
+    def _open_new(self, row: tuple[float, float, float, float, float, int], R: float,
+                  lead: list[_Row], occluded: bool, ref: _Row) -> list[Segment]:
+        """The rest of :meth:`_start`, given the lead rows (``lead``, appended to) and
+        ``occluded_lead``: closes the oldest segment if ``max_open`` are open, opens
+        this one."""
+        t, x, y, yaw, _, sensor = row
+        closed: list[Segment] = []
+        if len(self._open) >= self.config.max_open:
+            closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
+        lead.append(ref)
+        # its mid: the middle of :meth:`_arc_points` (the landmark on the echo's axis)
+        s = _Open(self._next_id, lead, 1, (t, x, y, yaw, R, sensor), sensors={sensor},
+                  mid=(x + R * math.cos(yaw + 0.0), y + R * math.sin(yaw + 0.0)),
+                  occluded_lead=occluded)
         self._next_id += 1
         self._open.append(s)
         self._oldest_last = min(self._oldest_last, t)
