@@ -20,13 +20,23 @@ from __future__ import annotations
 import csv
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Literal
 
 from sonarloc.errors import LogFormatError
-from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, TofRecord, iter_log
+from sonarloc.io.logfile import (
+    InitRecord,
+    LogStats,
+    OdomRecord,
+    Record,
+    RigRecord,
+    TofRecord,
+    TofRun,
+    iter_log,
+    iter_log_runs,
+)
 from sonarloc.io.posescsv import COLUMNS
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import Localizer, LocalizerConfig, PoseEstimate
@@ -115,7 +125,20 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
     t0, c0 = time.perf_counter(), time.process_time()
     first_t, last_t = math.nan, -math.inf
     have_prior = False
-    for rec in iter_log(source, stats):
+    # batch: runs of tof records as columns (no record objects)
+    items: Iterator[Record | TofRun] = iter_log_runs(source, stats) if pipe is not None \
+        else iter_log(source, stats)
+    for rec in items:
+        if type(rec) is TofRun:
+            assert pipe is not None
+            t_run = max(rec.t_s)
+            if t_run > last_t:
+                last_t = t_run
+            if math.isnan(first_t):
+                first_t = rec.t_s[0]
+            pipe.tofs(rec)
+            continue
+        assert not isinstance(rec, TofRun)
         t_s = rec.t_s
         if t_s > last_t:
             last_t = t_s
