@@ -614,7 +614,8 @@ class Localizer:
         noise = self.config.odom_noise
         for tk, pk in zip(t_s, odom, strict=True):
             tk = float(tk)
-            x, y, yaw = (float(v) for v in pk)
+            x, y, yaw = pk
+            x, y, yaw = float(x), float(y), float(yaw)
             if not (math.isfinite(tk) and math.isfinite(x) and math.isfinite(y)
                     and math.isfinite(yaw)):
                 raise ValueError("`t_s` and `odom` must be finite")
@@ -627,7 +628,7 @@ class Localizer:
             mean, cov = ekf.predict_lists(last.state.mean.tolist(), last.state.cov.tolist(), u,
                                           noise)
             self._append(_Entry(tk, np.array([x, y, yaw]),
-                                Gaussian(np.array(mean), np.array(cov))))
+                                Gaussian.of_lists(mean, cov)))
             self._last_odom_t = tk
 
     def trim_history(self) -> None:

@@ -496,10 +496,10 @@ class OfflinePipeline:
                     return "reduced"
                 obs = EchoObservation(*_NO_READINGS, math.nan, p.feature, p.t_ref,
                                       loc._c_mps, p.kind, compressed=p.reduced)
-                self._append_fused(p, ekf.Gaussian(np.array(new_mean), np.array(new_cov)),
+                self._append_fused(p, ekf.Gaussian.of_lists(new_mean, new_cov),
                                    obs, p.n_kept)
                 return "reduced"
-        state_ref = ekf.Gaussian(np.array(mean_ref), np.array(cov_ref))
+        state_ref = ekf.Gaussian.of_lists(mean_ref, cov_ref)
         # the per-segment path: associate and update (iterated) at the true belief
         assert p.chain is not None
         found = loc._associate_echoes(p.chain, math.nan, state_ref)
