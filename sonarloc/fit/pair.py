@@ -38,6 +38,7 @@ log-variance at zero delay) so a spike cannot buy a component.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -45,7 +46,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import chdtrc, ndtr
+from scipy.special import chdtrc, chdtri, ndtr
 
 from sonarloc.fit import model as M
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _kappa_penalty, pack_segments
@@ -693,34 +694,87 @@ def _starts(seg: _Segment, single: Array, n_starts: int) -> list[Array]:
 def _start_grid(seg: _Segment, single: Array) -> _Grid | None:
     """The :data:`N_CANDIDATES` best nodes of :func:`_starts`'s grid by the linear solves:
     scaled points (k, 6) and their node indices (a, b); None if none is bracketed."""
-    mod = seg.cfg.module
+    return _start_grids([seg], [single])[0]
+
+
+GRID_CHUNK = 400_000
+"""Elements (segments x bearing pairs x echoes) of one step of :func:`_start_grids`."""
+
+
+def _start_grids(segs: Sequence[_Segment], singles: Sequence[Array]) -> list[_Grid | None]:
+    """:func:`_start_grid` of several segments of one tier (all moving or all still),
+    the linear solves of all of them at once: their bearing nodes (J per segment) and
+    echoes padded into (C, J, n) arrays, in chunks of about :data:`GRID_CHUNK` (the
+    work of one segment's grid is mostly per-call overhead). Each segment's result is
+    the one it would get alone up to the rounding of the sums (padding adds zeros)."""
+    C = len(segs)
+    if C == 0:
+        return []
+    first = segs[0]
+    mod = first.cfg.module
     tau = M.us_per_m(mod)
-    r0 = float(single[0])
-    rel = M.wrap_angle(seg.yaw - single[1])          # echo axes relative to the fit
-    lo, hi = float(rel.min()) - math.radians(3.0), float(rel.max()) + math.radians(3.0)
-    nodes = single[1] + np.arange(lo, hi + 1e-9, math.radians(GRID_STEP_DEG))
-    J = nodes.size
-    R, theta, _ = _geometry(np.full((J, 1), r0), nodes[:, None], seg.px, seg.py, seg.yaw,
-                            seg.moving)
-    g, _, _ = M.beam_delay_factor(theta, seg.tier, mod, derivative=False)
-    g = np.minimum(g, 1e6) * math.exp(0.5 * M.sigma_a(mod) ** 2)
-    ja, jb = np.triu_indices(J, k=2)
-    g_ab = g[ja], g[jb]                               # (P, n) each
-    to_a = g_ab[0] <= g_ab[1]                         # (P, n): echo assigned to A
-    if seg.moving:
-        yy = seg.y[None, :] - tau * (R - r0)          # (J, n): To + kappa g
-        y_ab = yy[ja], yy[jb]
+    step = math.radians(GRID_STEP_DEG)
+    margin = math.radians(3.0)
+    nodes_l = []
+    for seg, single in zip(segs, singles, strict=True):
+        rel = M.wrap_angle(seg.yaw - single[1])      # echo axes relative to the fit
+        lo, hi = float(rel.min()) - margin, float(rel.max()) + margin
+        nodes_l.append(single[1] + np.arange(lo, hi + 1e-9, step))
+    Jc = np.array([v.size for v in nodes_l])
+    nc = np.array([seg.y.size for seg in segs])
+    out: list[_Grid | None] = [None] * C
+    # chunks of segments of similar size (sorted by J n) so the padding stays small
+    order = np.argsort(Jc * Jc * nc, kind="stable")
+    start = 0
+    while start < C:
+        stop = start + 1
+        while (stop < C and (stop + 1 - start) * int(Jc[order[stop]]) ** 2 // 2
+               * int(nc[order[start:stop + 1]].max()) <= GRID_CHUNK):
+            stop += 1
+        idx = order[start:stop].tolist()
+        for c, grid in zip(idx, _grid_chunk([segs[c] for c in idx],
+                                            [singles[c] for c in idx],
+                                            [nodes_l[c] for c in idx], tau), strict=True):
+            out[c] = grid
+        start = stop
+    return out
+
+
+def _grid_chunk(segs: Sequence[_Segment], singles: Sequence[Array], nodes_l: list[Array],
+                tau: float) -> list[_Grid | None]:
+    """The linear solves of :func:`_start_grids` for one chunk of segments."""
+    first = segs[0]
+    mod = first.cfg.module
+    C = len(segs)
+    J = max(v.size for v in nodes_l)
+    n = max(seg.y.size for seg in segs)
+    Jc = np.array([v.size for v in nodes_l])
+    nodes = np.zeros((C, J))
+    px, py, yaw, y = (np.zeros((C, n)) for _ in range(4))
+    ok_e = np.zeros((C, n), dtype=bool)
+    for c, (seg, v) in enumerate(zip(segs, nodes_l, strict=True)):
+        nodes[c, :v.size] = v
+        nodes[c, v.size:] = v[-1]
+        m = seg.y.size
+        px[c, :m], py[c, :m], yaw[c, :m], y[c, :m] = seg.px, seg.py, seg.yaw, seg.y
+        ok_e[c, :m] = True
+    r0 = np.array([float(s[0]) for s in singles])
+    R, theta, _ = _geometry(r0[:, None, None], nodes[:, :, None], px[:, None, :],
+                            py[:, None, :], yaw[:, None, :], first.moving)
+    g, _, _ = M.beam_delay_factor(theta, first.tier, mod, derivative=False)
+    g = np.minimum(g, 1e6) * math.exp(0.5 * M.sigma_a(mod) ** 2)      # (C, J, n)
+    if first.moving:
+        yy = y[:, None, :] - tau * (R - r0[:, None, None])            # (C, J, n): To + kappa g
     else:                                             # R = r0: the readings themselves
-        y_ab = seg.y[None, :], seg.y[None, :]
-    cost = np.zeros(ja.size)
-    sols = np.zeros((ja.size, 4))
-    n_a = to_a.sum(1)
-    for k, (gg, ys, mask) in enumerate(((g_ab[0], y_ab[0], to_a), (g_ab[1], y_ab[1], ~to_a))):
-        w = mask.astype(float)
-        wg, wy = w * gg, w * ys
-        S0 = (n_a if k == 0 else seg.y.size - n_a).astype(float)   # echoes assigned
-        S1, S2 = wg.sum(1), (wg * gg).sum(1)
-        Sy, Sgy, Syy = wy.sum(1), (wg * ys).sum(1), (wy * ys).sum(1)
+        yy = np.broadcast_to(y[:, None, :], g.shape)
+    ja, jb = np.triu_indices(J, k=2)
+    # centred readings: the sums of y are then small (the solves better conditioned)
+    y0 = np.array([float(seg.y.mean()) for seg in segs])
+    yy = yy - y0[:, None, None]
+    sums = _grid_sums(g, yy, ok_e, Jc, ja, jb)
+    cost = np.zeros((C, ja.size))
+    sols = np.zeros((C, ja.size, 4))
+    for k, (S0, S1, S2, Sy, Sgy, Syy) in enumerate(sums):
         det = S0 * S2 - S1 * S1
         ok = (det > 1e-12 * np.maximum(S0 * S2, 1e-300)) & (S0 >= 3)
         det = np.where(ok, det, 1.0)
@@ -728,18 +782,81 @@ def _start_grid(seg: _Segment, single: Array) -> _Grid | None:
         kap = (S0 * Sgy - S1 * Sy) / det
         ssr = Syy - to * Sy - kap * Sgy
         cost = cost + np.where(ok & (kap > 0), ssr, np.inf)
-        sols[:, 2 * k] = to
-        sols[:, 2 * k + 1] = np.where(kap > 0, kap, 1.0)
-    order = np.argsort(cost)[:N_CANDIDATES]
-    order = order[np.isfinite(cost[order])]
-    if order.size == 0:
-        return None
-    a, b = ja[order], jb[order]
-    xs = np.stack([sols[order, 0] / tau / _SCALE[0], nodes[a] / _SCALE[1],
-                   np.log(np.maximum(sols[order, 1], seg.cfg.kappa_min_us)),
-                   sols[order, 2] / tau / _SCALE[0], nodes[b] / _SCALE[1],
-                   np.log(np.maximum(sols[order, 3], seg.cfg.kappa_min_us))], axis=1)
-    return xs, a, b
+        sols[:, :, 2 * k] = to + y0[:, None]
+        sols[:, :, 2 * k + 1] = np.where(kap > 0, kap, 1.0)
+    cost[jb[None, :] >= Jc[:, None]] = np.inf         # pairs beyond a segment's nodes
+    kmin = first.cfg.kappa_min_us
+    out: list[_Grid | None] = []
+    for c in range(C):
+        order = np.argsort(cost[c])[:N_CANDIDATES]
+        order = order[np.isfinite(cost[c, order])]
+        if order.size == 0:
+            out.append(None)
+            continue
+        a, b = ja[order], jb[order]
+        so = sols[c, order]
+        xs = np.stack([so[:, 0] / tau / _SCALE[0], nodes[c, a] / _SCALE[1],
+                       np.log(np.maximum(so[:, 1], kmin)),
+                       so[:, 2] / tau / _SCALE[0], nodes[c, b] / _SCALE[1],
+                       np.log(np.maximum(so[:, 3], kmin))], axis=1)
+        out.append((xs, a, b))
+    return out
+
+
+_Sums = tuple[Array, Array, Array, Array, Array, Array]
+
+
+def _grid_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_], Jc: NDArray[np.intp],
+               ja: NDArray[np.intp], jb: NDArray[np.intp]) -> tuple[_Sums, _Sums]:
+    """Sums of the grid's 2x2 linear solves for bearing pairs (ja, jb) (P,) of C
+    segments: each echo is assigned to the component with the smaller delay factor (A
+    on a tie); per component (count, sum g, sum g^2, sum y, sum g y, sum y^2) over its
+    echoes, each (C, P). ``g``, ``yy``: (C, J, n) delay factors and To + kappa g
+    readings per bearing node; ``ok_e``: (C, n) real echoes; ``Jc``: (C,) real nodes.
+
+    Where every pair's assignment splits the echoes at one place of one order (A's
+    echoes first: the order of g at the first node minus g at the last, e.g. a pan over
+    a beam that falls off with the angle) the sums are cumulative sums, O(C J n)
+    instead of O(C P n); the split is checked on the assignment itself, and segments
+    where it fails get the direct masked sums. Same sums up to the order of the
+    additions."""
+    C, J, n = g.shape
+    cc = np.arange(C)
+    key = np.where(ok_e, g[:, 0, :] - g[cc, Jc - 1, :], np.inf)   # padding last
+    order = np.argsort(key, axis=1, kind="stable")
+    gs = np.take_along_axis(g, order[:, None, :], axis=2)
+    ys = np.take_along_axis(yy, order[:, None, :], axis=2)
+    oks = np.take_along_axis(ok_e, order, axis=1)
+    gs = np.where(oks[:, None, :], gs, 0.0)
+    ys = np.where(oks[:, None, :], ys, 0.0)
+    to_a = gs[:, ja] <= gs[:, jb]                     # (C, P, n) the assignment
+    to_a &= oks[:, None, :]
+    real = jb[None, :] < Jc[:, None]                  # (C, P)
+    split = ~(to_a[:, :, 1:] & ~to_a[:, :, :-1]).any(2) | ~real
+    n_a = to_a.sum(2)                                 # A's echoes: the first n_a
+    nc = oks.sum(1)
+    vals = [gs, gs * gs, ys, gs * ys, ys * ys]
+    A: list[Array] = [n_a.astype(float)]
+    B: list[Array] = [(nc[:, None] - n_a).astype(float)]
+    for v in vals:
+        head = np.zeros((C, J, n + 1))
+        np.cumsum(v, axis=2, out=head[:, :, 1:])
+        tail = np.zeros((C, J, n + 1))               # sums from k to the end
+        np.cumsum(v[:, :, ::-1], axis=2, out=tail[:, :, 1:])
+        tail = tail[:, :, ::-1]
+        A.append(head[cc[:, None], ja[None, :], n_a])
+        B.append(tail[cc[:, None], jb[None, :], n_a])
+    bad = np.flatnonzero(~split.all(1))
+    for c in bad.tolist():                            # not a split: the direct sums
+        m = to_a[c]
+        for out, mask, j in ((A, m, ja), (B, ~m & oks[c][None, :], jb)):
+            w = mask.astype(float)
+            gg, yv = gs[c][j], ys[c][j]
+            wg, wy = w * gg, w * yv
+            for q, val in enumerate((mask.sum(1).astype(float), wg.sum(1), (wg * gg).sum(1),
+                                     wy.sum(1), (wg * yv).sum(1), (wy * yv).sum(1))):
+                out[q][c] = val
+    return tuple(A), tuple(B)  # type: ignore[return-value]
 
 
 def _pick_starts(full: Array, grid: _Grid, n_starts: int) -> list[Array]:
@@ -777,7 +894,7 @@ def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
     x1, c1 = _minimise_batch(ev, s0, owner=own(every))
     c1 = np.minimum(c1, np.asarray(ev.cost(_unscale(s0), own(every))))
     # grid starts of every segment, ranked by the full likelihood in one call
-    grids = [_start_grid(seg, single) for seg, single in zip(segs, singles, strict=True)]
+    grids = _start_grids(segs, singles)
     have = [c for c in range(C) if grids[c] is not None]
     starts: list[list[Array]] = [[] for _ in range(C)]
     if have:
@@ -867,21 +984,24 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
     n_first = resp.sum(1)
     gain = c1 - c_pair
     promising = gain > bar
-    cov_s = _inverse(0.5 * H) if promising else H
     pick = np.argmax(resp, axis=0)
-    chi2 = np.array([float((resid[pick == k] ** 2).sum()) for k in range(2)])
-    dof = max(seg.y.size - 6, 1)
-    cov_s = cov_s * max(float(chi2.sum()) / dof, 1.0)
-    T = np.diag(np.tile(_SCALE, 2))
-    cov = T @ cov_s @ T
+    r2 = resid * resid
+    chi2 = np.array([float(r2[pick == 0].sum()), float(r2[pick == 1].sum())])
     local = np.zeros((2, 3))
-    cov_out = np.zeros((2, 3, 3))
     for k in range(2):
         q = comps[k][0]
-        K = math.exp(q[2])
-        local[k] = (q[0], float(M.wrap_angle(q[1])), K)
-        Jk = np.diag([1.0, 1.0, K])               # ln kappa -> kappa
-        cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
+        local[k] = (q[0], _wrap_scalar(float(q[1])), math.exp(q[2]))
+    if promising:
+        dof = max(seg.y.size - 6, 1)
+        cov_s = _inverse(0.5 * H) * max(float(chi2.sum()) / dof, 1.0)
+        T = np.diag(np.tile(_SCALE, 2))
+        cov = T @ cov_s @ T
+        cov_out = np.zeros((2, 3, 3))
+        for k in range(2):
+            Jk = np.diag([1.0, 1.0, local[k, 2]])    # ln kappa -> kappa
+            cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
+    else:     # no Hessian (NaN): not evaluated where the evidence cannot carry the pair
+        cov_out = np.full((2, 3, 3), np.nan)
     ambiguous: dict[int, str] = {}
     if promising:
         assert profile_sd is not None
@@ -900,16 +1020,6 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
                                         f"likelihood {c - best_c:.1f} apart")
                 cov_out[k, 1, 1] = max(cov_out[k, 1, 1], d * d)
     sep = abs(math.degrees(float(M.wrap_angle(local[1, 1] - local[0, 1]))))
-    # longest contiguous run (in beam-axis order) of each component's first echoes
-    order = np.argsort(M.wrap_angle(seg.yaw - local[:, 1].mean()))
-    seq = pick[order]
-    run_share = np.zeros(2)
-    for k in range(2):
-        mine = (seq == k).astype(int)
-        if mine.sum():
-            edges = np.diff(np.concatenate([[0], mine, [0]]))
-            runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
-            run_share[k] = runs.max() / mine.sum()
     side_lobe = bool(local[:, 2].max() > SIDE_LOBE_KAPPA_US
                      and local[:, 2].min() < SIDE_LOBE_STRONG_US
                      and SIDE_LOBE_DEG[0] <= sep <= SIDE_LOBE_DEG[1])
@@ -933,7 +1043,7 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
         accepted = False
         basis = (f"one component is the first echo of only {min(n_first):.1f} readings "
                  f"(< {cfg.min_echoes})")
-    elif min(run_share) < MIN_RUN_SHARE:
+    elif min(run_share := _run_shares(seg, local, pick)) < MIN_RUN_SHARE:
         accepted = False
         basis = (f"the readings one component explains are scattered (longest run "
                  f"{min(run_share):.0%} of them): spikes, not a second U")
@@ -960,6 +1070,27 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
                      else (0.0 if pick[j] == k else math.nan))
     return PairFit(local, cov_out, float(c1), c_pair, support, n_first, price, accepted,
                    basis, chi2, ambiguous, hidden)
+
+
+def _wrap_scalar(a: float) -> float:
+    """:func:`sonarloc.fit.model.wrap_angle` of one angle [rad] (the same float)."""
+    w = (a + math.pi) % (2.0 * math.pi) - math.pi
+    return math.pi if w == -math.pi else w
+
+
+def _run_shares(seg: _Segment, local: Array, pick: NDArray[np.intp]) -> Array:
+    """(2,) share of each component's first echoes (``pick``: the component of each
+    echo) in its longest contiguous run in beam-axis order."""
+    order = np.argsort(M.wrap_angle(seg.yaw - local[:, 1].mean()))
+    seq = pick[order]
+    run_share = np.zeros(2)
+    for k in range(2):
+        mine = (seq == k).astype(int)
+        if mine.sum():
+            edges = np.diff(np.concatenate([[0], mine, [0]]))
+            runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+            run_share[k] = runs.max() / mine.sum()
+    return run_share
 
 
 def _inverse(H: Array) -> Array:
@@ -1000,9 +1131,23 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
         return True
     if lm.status is not FitStatus.OK:
         return False
-    chi2 = float(lm.extra.get("chi2", 0.0))  # type: ignore[arg-type]
-    p = float(chdtrc(max(lm.n_readings - 3, 1), max(chi2, 0.0)))   # scipy.stats.chi2.sf
-    return p < CANDIDATE_P or float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z  # type: ignore[arg-type]
+    if float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z:  # type: ignore[arg-type]
+        return True
+    chi2 = max(float(lm.extra.get("chi2", 0.0)), 0.0)  # type: ignore[arg-type]
+    dof = max(lm.n_readings - 3, 1)
+    lo, hi = _chi2_band(dof)      # p < CANDIDATE_P certainly above hi, certainly not below lo
+    if chi2 < lo or chi2 > hi:
+        return chi2 > hi
+    return float(chdtrc(dof, chi2)) < CANDIDATE_P   # scipy.stats.chi2.sf
+
+
+@functools.lru_cache(maxsize=1024)
+def _chi2_band(dof: int) -> tuple[float, float]:
+    """A band around the chi-square value where the survival function of ``dof``
+    degrees of freedom crosses :data:`CANDIDATE_P` (1 % either side; exactly evaluated
+    only within it)."""
+    x = float(chdtri(dof, CANDIDATE_P))
+    return 0.99 * x, 1.01 * x
 
 
 def pair_landmarks(pf: PairFit, single: Landmark, cfg: FitConfig) -> list[Landmark]:
