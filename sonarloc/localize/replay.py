@@ -34,6 +34,7 @@ from sonarloc.io.logfile import (
     RigRecord,
     TofRecord,
     TofRun,
+    TruthRecord,
     iter_log,
     iter_log_runs,
 )
@@ -129,7 +130,8 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
     items: Iterator[Record | TofRun] = iter_log_runs(source, stats) if pipe is not None \
         else iter_log(source, stats)
     for rec in items:
-        if type(rec) is TofRun:
+        kind = type(rec)
+        if isinstance(rec, TofRun):
             assert pipe is not None
             t_run = max(rec.t_s)
             if t_run > last_t:
@@ -138,13 +140,19 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
                 first_t = rec.t_s[0]
             pipe.tofs(rec)
             continue
-        assert not isinstance(rec, TofRun)
         t_s = rec.t_s
         if t_s > last_t:
             last_t = t_s
-        if type(rec) is TofRecord and pipe is not None and not math.isnan(first_t):
-            pipe.tof(rec)   # the most frequent record, first
-            continue
+        if pipe is not None and not math.isnan(first_t):
+            # the frequent records first (batch)
+            if kind is OdomRecord and have_prior:
+                pipe.odom(rec)  # type: ignore[arg-type]
+                continue
+            if kind is TruthRecord:
+                continue
+            if kind is TofRecord:
+                pipe.tof(rec)  # type: ignore[arg-type]
+                continue
         if math.isnan(first_t):
             first_t = t_s
         if isinstance(rec, InitRecord):
