@@ -156,11 +156,37 @@ class _CompGrad:
     ng: M.Geometry | None
 
 
+class _Rd(NamedTuple):
+    """The readings of the evaluated rows (:meth:`_Segment._readings`): echo (px, py,
+    yaw, y) and no-echo (px, py, yaw) arrays, (n,) / (S, n) with parameters per row
+    (``rows`` None), or flat (N,) over all rows' readings with ``rows`` (N,) / ``nrows``
+    (N_ne,) the row of each entry (:class:`_Segments`); ``S`` rows."""
+
+    px: Array
+    py: Array
+    yaw: Array
+    y: Array
+    npx: Array
+    npy: Array
+    nyaw: Array
+    rows: NDArray[np.intp] | None
+    nrows: NDArray[np.intp] | None
+    S: int
+
+
+def _rowsum(v: Array, rows: NDArray[np.intp] | None, S: int) -> Array:
+    """Per-row sums (S,) of per-reading values: (S, n) summed along the readings, or
+    flat (N,) with the row of each entry."""
+    if rows is None:
+        return np.asarray(v.sum(1), dtype=float)
+    return np.bincount(rows, weights=v, minlength=S).astype(float, copy=False)
+
+
 class _Segment:
     """One segment's readings relative to its reference pose (row ``b`` of a batch).
 
     :meth:`cost` and :meth:`detail` evaluate several parameter rows at once; with
-    :class:`_Segments` (several segments padded into one set of arrays) each row names
+    :class:`_Segments` (several segments' readings end to end) each row names
     its segment (``owner``), so the pair search of a whole scan runs in one call per
     step instead of one per segment (the cost of a call is mostly per-call overhead).
     """
@@ -185,24 +211,34 @@ class _Segment:
     def n(self) -> int:
         return int(self.y.size + self.npx.size)
 
-    def _readings(self, owner: NDArray[np.intp] | None) -> tuple[Array, ...]:
-        """Echo (px, py, yaw, y) and no-echo (px, py, yaw) arrays for the rows."""
-        return self.px, self.py, self.yaw, self.y, self.npx, self.npy, self.nyaw
+    def _readings(self, owner: NDArray[np.intp] | None, S: int) -> _Rd:
+        """The readings of ``S`` rows (of segments ``owner``, :class:`_Segments`)."""
+        return _Rd(self.px, self.py, self.yaw, self.y, self.npx, self.npy, self.nyaw,
+                   None, None, S)
 
     def _masks(self, owner: NDArray[np.intp] | None
                ) -> tuple[NDArray[np.bool_] | None, NDArray[np.bool_] | None]:
         """Which (echo, no-echo) entries of each row are real (None: all of them)."""
         return None, None
 
-    def _component(self, q: Array, rd: tuple[Array, ...], grad: bool = False
+    def _pad_detail(self, terms: list[tuple[Array, ...]], parts: list[Array], ll: Array,
+                    rd: _Rd) -> tuple[Array, Array]:
+        """:meth:`detail` of flat readings (:class:`_Segments` only)."""
+        raise NotImplementedError("flat readings: _Segments")
+
+    def _component(self, q: Array, rd: _Rd, grad: bool = False
                    ) -> tuple[tuple[Array, Array, Array, Array], _CompGrad | None]:
         """Per-reading terms of components q (S, 3) local (r, phi, ln kappa):
         echo mean (S, n), variance, log P(echo); no-echo log P(no echo) (S, n_ne); with
         ``grad``, also what the analytic gradient needs (every echo term but the range's
         depends on the parameters through v = ln(kappa g) only), else None."""
         mod = self.cfg.module
-        px, py, yaw, _, npx, npy, nyaw = rd
-        r, phi, K = q[:, 0:1], q[:, 1:2], np.exp(np.clip(q[:, 2:3], _LNK_LO, _LNK_HI))
+        px, py, yaw, npx, npy, nyaw = rd.px, rd.py, rd.yaw, rd.npx, rd.npy, rd.nyaw
+        r_, phi_, K_ = q[:, 0:1], q[:, 1:2], np.exp(np.clip(q[:, 2:3], _LNK_LO, _LNK_HI))
+        if rd.rows is None:
+            r, phi, K = r_, phi_, K_
+        else:                                        # flat: each reading its row's values
+            r, phi, K = r_[rd.rows, 0], phi_[rd.rows, 0], K_[rd.rows, 0]
         R, theta, geo = _geometry(r, phi, px, py, yaw, self.moving)
         g, dg, lg = M.beam_delay_factor(theta, self.tier, mod, derivative=grad)
         z = M.detection_z(K, lg, mod)
@@ -213,12 +249,14 @@ class _Segment:
         ng = None
         has_ne = bool(npx.shape[-1])
         if has_ne:
-            _, theta_n, ng = _geometry(r, phi, npx, npy, nyaw, self.ne_moving)
+            rn, phin, Kn = ((r, phi, K) if rd.nrows is None else
+                            (r_[rd.nrows, 0], phi_[rd.nrows, 0], K_[rd.nrows, 0]))
+            _, theta_n, ng = _geometry(rn, phin, npx, npy, nyaw, self.ne_moving)
             gn, dgn, lgn = M.beam_delay_factor(theta_n, self.tier, mod, derivative=grad)
-            ne = M.noecho_terms(M.detection_z(K, lgn, mod), want_info=False)
+            ne = M.noecho_terms(M.detection_z(Kn, lgn, mod), want_info=False)
             lqn = ne[0]
         else:
-            lqn = np.zeros((q.shape[0], 0))
+            lqn = np.zeros((q.shape[0], 0) if rd.nrows is None else (0,))
         if not grad:
             return (mean, s2, et.log_p, lqn), None
         sa = M.sigma_a(mod)
@@ -266,9 +304,9 @@ class _Segment:
         """
         x = np.atleast_2d(np.asarray(x, dtype=float))
         comps = _unscale(x)
-        rd = self._readings(owner)
+        rd = self._readings(owner, x.shape[0])
         mask, ne_mask = self._masks(owner)
-        y = rd[3] if rd[3].ndim == 2 else rd[3][None, :]
+        y = rd.y if rd.y.ndim == 2 or rd.rows is not None else rd.y[None, :]
         parts: list[_CompGrad] = []
         terms: list[tuple[Array, ...]] = []
         for q in comps:
@@ -277,10 +315,11 @@ class _Segment:
             lnorm = -0.5 * (y - mean) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
             if ne_mask is not None:
                 lqn = np.where(ne_mask, lqn, 0.0)
-            terms.append((mean, s2, log_p, lnorm, np.broadcast_to(y, mean.shape), lqn.sum(1)))
+            terms.append((mean, s2, log_p, lnorm, np.broadcast_to(y, mean.shape),
+                          _rowsum(lqn, rd.nrows, rd.S)))
             parts.append(cg)
         mix = self._mixture(terms)
-        cost, _, _ = self._combine(terms, comps, mask, False, mix)
+        cost, _, _ = self._combine(terms, comps, mask, False, mix, rd)
         # per echo: d(-2 ll)/d(mean, variance, log P) of each component
         if len(comps) == 1:
             mean, s2 = terms[0][0], terms[0][1]
@@ -316,23 +355,24 @@ class _Segment:
             if mask is not None:
                 g_r, g_v = np.where(mask, g_r, 0.0), np.where(mask, g_v, 0.0)
             g_t = g_v * cg.dlng                                     # ... / d theta
+            rows, nrows = rd.rows, rd.nrows
             if geo is not None:
-                d_r = (g_r * geo.dR_dr + g_t * geo.dtheta_dr).sum(1)
-                d_phi = (g_r * geo.dR_dphi + g_t * geo.dtheta_dphi).sum(1)
+                d_r = _rowsum(g_r * geo.dR_dr + g_t * geo.dtheta_dr, rows, S)
+                d_phi = _rowsum(g_r * geo.dR_dphi + g_t * geo.dtheta_dphi, rows, S)
             else:                  # seen from the reference position: R = r, theta = phi - yaw
-                d_r, d_phi = g_r.sum(1), g_t.sum(1)
-            d_lk = g_v.sum(1)
+                d_r, d_phi = _rowsum(g_r, rows, S), _rowsum(g_t, rows, S)
+            d_lk = _rowsum(g_v, rows, S)
             if cg.lqn_v.shape[-1]:
                 gn_v = -2.0 * cg.lqn_v
                 if ne_mask is not None:
                     gn_v = np.where(ne_mask, gn_v, 0.0)
                 gn_t = gn_v * cg.dlngn
                 if ng is not None:
-                    d_phi = d_phi + (gn_t * ng.dtheta_dphi).sum(1)
-                    d_r = d_r + (gn_t * ng.dtheta_dr).sum(1)
+                    d_phi = d_phi + _rowsum(gn_t * ng.dtheta_dphi, nrows, S)
+                    d_r = d_r + _rowsum(gn_t * ng.dtheta_dr, nrows, S)
                 else:
-                    d_phi = d_phi + gn_t.sum(1)
-                d_lk = d_lk + gn_v.sum(1)
+                    d_phi = d_phi + _rowsum(gn_t, nrows, S)
+                d_lk = d_lk + _rowsum(gn_v, nrows, S)
             lk = q[:, 2]
             K = np.exp(np.clip(lk, _LNK_LO, _LNK_HI))
             d_lk = (d_lk + _kappa_penalty(K, self.cfg)[1] * K) * ((lk > _LNK_LO)
@@ -341,23 +381,25 @@ class _Segment:
         grad[cost >= 1e12] = 0.0
         return cost, grad
 
-    def _terms(self, q: Array, owner: NDArray[np.intp] | None) -> tuple[Array, ...]:
+    def _terms(self, q: Array, owner: NDArray[np.intp] | None, rd: _Rd
+               ) -> tuple[Array, ...]:
         """Per-reading terms of components q (S, 3) for the likelihood: echo mean (S, n),
         variance, log P(echo), log normal density of the reading; the readings (S, n);
         and the sum of log P(no echo) over the no-echo readings (S,)."""
-        rd = self._readings(owner)
         (mean, s2, log_p, lqn), _ = self._component(q, rd)
-        y = rd[3] if rd[3].ndim == 2 else rd[3][None, :]
+        y = rd.y if rd.y.ndim == 2 or rd.rows is not None else rd.y[None, :]
         lnorm = -0.5 * (y - mean) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
         ne_mask = self._masks(owner)[1]
         if ne_mask is not None:
             lqn = np.where(ne_mask, lqn, 0.0)
-        return mean, s2, log_p, lnorm, np.broadcast_to(y, mean.shape), lqn.sum(1)
+        return (mean, s2, log_p, lnorm, np.broadcast_to(y, mean.shape),
+                _rowsum(lqn, rd.nrows, rd.S))
 
     def _eval(self, comps: list[Array], detail: bool, owner: NDArray[np.intp] | None
               ) -> tuple[Array, Array, Array]:
-        terms = [self._terms(q, owner) for q in comps]
-        return self._combine(terms, comps, self._masks(owner)[0], detail)
+        rd = self._readings(owner, comps[0].shape[0])
+        terms = [self._terms(q, owner, rd) for q in comps]
+        return self._combine(terms, comps, self._masks(owner)[0], detail, None, rd)
 
     def _mixture(self, terms: list[tuple[Array, ...]]) -> _Mixture:
         """Per echo (S, n): the log-likelihood of each component being the first echo
@@ -380,15 +422,15 @@ class _Segment:
         return _Mixture(parts, ll, t, w, pa, pb)
 
     def _combine(self, terms: list[tuple[Array, ...]], comps: list[Array],
-                 mask: NDArray[np.bool_] | None, detail: bool, mix: _Mixture | None = None
-                 ) -> tuple[Array, Array, Array]:
+                 mask: NDArray[np.bool_] | None, detail: bool, mix: _Mixture | None,
+                 rd: _Rd) -> tuple[Array, Array, Array]:
         """The likelihood from the components' terms (:meth:`_terms`); ``mix``: their
         :meth:`_mixture` if known."""
         parts, ll = (mix or self._mixture(terms))[:2]
         per = -2.0 * ll
         if mask is not None:
             per = np.where(mask, per, 0.0)
-        c = per.sum(1)
+        c = _rowsum(per, rd.rows, rd.S)
         for t in terms:
             c = c - 2.0 * t[5]
         for q in comps:
@@ -396,6 +438,10 @@ class _Segment:
         c = np.where(np.isfinite(c), c, 1e12)   # off the cliffs: the optimiser backs off
         if not detail:
             return c, np.zeros(0), np.zeros(0)
+        if rd.rows is not None:
+            # flat readings: responsibilities and residuals padded into (S, m, n) rows
+            resp_p, resid_p = self._pad_detail(terms, parts, ll, rd)
+            return c, resp_p, resid_p
         resp = np.exp(np.stack(parts, axis=1) - ll[:, None, :])
         pick = np.argmax(resp, axis=1)
         m_all = np.stack([t[0] for t in terms], axis=1)
@@ -406,9 +452,11 @@ class _Segment:
 
 
 class _Segments(_Segment):
-    """Several segments (one tier, all moving or all still) padded into (C, n) arrays;
-    every evaluated row says its segment (``owner``). A row's cost is that of its
-    segment alone (padding entries count zero)."""
+    """Several segments (one tier, all moving or all still) with their readings end to
+    end in flat arrays; every evaluated row says its segment (``owner``) and is
+    evaluated on that segment's readings only (gathered per call: no padding, so
+    segments of any sizes share every call). A row's cost is that of its segment alone
+    (up to the order of the additions)."""
 
     def __init__(self, segs: Sequence[_Segment]) -> None:
         first = segs[0]
@@ -418,37 +466,66 @@ class _Segments(_Segment):
                                                           self.ne_moving, self.cfg)
                for s in segs):
             raise ValueError("`segs` must share tier, motion and config")
-
-        def pad(arrs: list[Array]) -> tuple[Array, NDArray[np.bool_]]:
-            width = max(a.size for a in arrs)
-            out = np.zeros((len(arrs), width))
-            ok = np.zeros((len(arrs), width), dtype=bool)
-            for k, a in enumerate(arrs):
-                out[k, :a.size] = a
-                ok[k, :a.size] = True
-            return out, ok
-
-        self.px, self.valid = pad([s.px for s in segs])
-        self.py, self.yaw, self.y = (pad([getattr(s, f) for s in segs])[0]
-                                     for f in ("py", "yaw", "y"))
-        self.npx, self.ne_valid = pad([s.npx for s in segs])
-        self.npy, self.nyaw = (pad([getattr(s, f) for s in segs])[0] for f in ("npy", "nyaw"))
-        self.sizes = np.array([s.n for s in segs])
+        self.px, self.py, self.yaw, self.y = (np.concatenate([getattr(s, f) for s in segs])
+                                              for f in ("px", "py", "yaw", "y"))
+        self.npx, self.npy, self.nyaw = (np.concatenate([getattr(s, f) for s in segs])
+                                         for f in ("npx", "npy", "nyaw"))
+        self.n_echo = np.array([s.y.size for s in segs])
+        self.n_ne = np.array([s.npx.size for s in segs])
+        self.off = np.concatenate([[0], np.cumsum(self.n_echo)[:-1]])
+        self.ne_off = np.concatenate([[0], np.cumsum(self.n_ne)[:-1]])
+        self.sizes = self.n_echo + self.n_ne
 
     @property
     def n(self) -> int:
         raise AttributeError("_Segments: use `sizes` (readings per segment)")
 
-    def _readings(self, owner: NDArray[np.intp] | None) -> tuple[Array, ...]:
+    @staticmethod
+    def _gather(off: NDArray[np.intp], size: NDArray[np.intp], owner: NDArray[np.intp]
+                ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+        """Indices of the readings of rows ``owner`` (N,), the row of each and its
+        position within the row."""
+        length = size[owner]
+        rows = np.repeat(np.arange(owner.size), length)
+        ends = np.cumsum(length)
+        pos = np.arange(int(ends[-1]) if ends.size else 0) - np.repeat(ends - length, length)
+        return np.repeat(off[owner], length) + pos, rows, pos
+
+    def _readings(self, owner: NDArray[np.intp] | None, S: int) -> _Rd:
         if owner is None:
             raise ValueError("_Segments needs the `owner` of every row")
-        return tuple(a[owner] for a in (self.px, self.py, self.yaw, self.y, self.npx,
-                                        self.npy, self.nyaw))
+        owner = np.asarray(owner, dtype=np.intp)
+        ie, rows, _ = self._gather(self.off, self.n_echo, owner)
+        inn, nrows, _ = self._gather(self.ne_off, self.n_ne, owner)
+        return _Rd(self.px[ie], self.py[ie], self.yaw[ie], self.y[ie], self.npx[inn],
+                   self.npy[inn], self.nyaw[inn], rows, nrows, S)
+
+    def _pad_detail(self, terms: list[tuple[Array, ...]], parts: list[Array], ll: Array,
+                    rd: _Rd) -> tuple[Array, Array]:
+        """:meth:`detail`'s responsibilities (S, m, n) and residuals (S, n) of flat
+        readings, padded (zeros) to the longest row."""
+        assert rd.rows is not None
+        rows = rd.rows
+        ends = np.cumsum(np.bincount(rows, minlength=rd.S))
+        pos = np.arange(rows.size) - np.repeat(ends - np.bincount(rows, minlength=rd.S),
+                                               np.bincount(rows, minlength=rd.S))
+        width = int(pos.max()) + 1 if pos.size else 0
+        resp_f = np.exp(np.stack(parts, axis=0) - ll[None, :])      # (m, N)
+        pick = np.argmax(resp_f, axis=0)
+        m_all = np.stack([t[0] for t in terms], axis=0)
+        s_all = np.stack([t[1] for t in terms], axis=0)
+        idx = np.arange(rows.size)
+        resid_f = (terms[0][4] - m_all[pick, idx]) / np.sqrt(s_all[pick, idx])
+        resp = np.zeros((rd.S, len(parts), width))
+        resid = np.zeros((rd.S, width))
+        for k in range(len(parts)):
+            resp[rows, k, pos] = resp_f[k]
+        resid[rows, pos] = resid_f
+        return resp, resid
 
     def _masks(self, owner: NDArray[np.intp] | None
                ) -> tuple[NDArray[np.bool_] | None, NDArray[np.bool_] | None]:
-        assert owner is not None
-        return self.valid[owner], self.ne_valid[owner]
+        return None, None
 
 
 def _geometry(r: Array, phi: Array, px: Array, py: Array, yaw: Array, moving: bool
@@ -697,7 +774,7 @@ def _start_grid(seg: _Segment, single: Array) -> _Grid | None:
     return _start_grids([seg], [single])[0]
 
 
-GRID_CHUNK = 400_000
+GRID_CHUNK = 150_000
 """Elements (segments x bearing pairs x echoes) of one step of :func:`_start_grids`."""
 
 
@@ -847,15 +924,15 @@ def _grid_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_], Jc: NDArray[np.intp
         A.append(head[cc[:, None], ja[None, :], n_a])
         B.append(tail[cc[:, None], jb[None, :], n_a])
     bad = np.flatnonzero(~split.all(1))
-    for c in bad.tolist():                            # not a split: the direct sums
-        m = to_a[c]
-        for out, mask, j in ((A, m, ja), (B, ~m & oks[c][None, :], jb)):
+    if bad.size:                                      # not a split: the direct sums
+        m = to_a[bad]
+        for out, mask, j in ((A, m, ja), (B, ~m & oks[bad][:, None, :], jb)):
             w = mask.astype(float)
-            gg, yv = gs[c][j], ys[c][j]
+            gg, yv = gs[bad][:, j], ys[bad][:, j]
             wg, wy = w * gg, w * yv
-            for q, val in enumerate((mask.sum(1).astype(float), wg.sum(1), (wg * gg).sum(1),
-                                     wy.sum(1), (wg * yv).sum(1), (wy * yv).sum(1))):
-                out[q][c] = val
+            for q, val in enumerate((mask.sum(2).astype(float), wg.sum(2), (wg * gg).sum(2),
+                                     wy.sum(2), (wg * yv).sum(2), (wy * yv).sum(2))):
+                out[q][bad] = val
     return tuple(A), tuple(B)  # type: ignore[return-value]
 
 
@@ -874,6 +951,10 @@ def _pick_starts(full: Array, grid: _Grid, n_starts: int) -> list[Array]:
         if len(best) >= n_starts:
             break
     return best
+
+
+COST_CHUNK = 1024
+"""Rows of one cost call when ranking the grid starts (arrays that stay in cache)."""
 
 
 def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
@@ -900,7 +981,9 @@ def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
     if have:
         gx = np.concatenate([grids[c][0] for c in have])  # type: ignore[index]
         go = np.concatenate([np.full(len(grids[c][0]), c) for c in have])  # type: ignore[index]
-        full = np.asarray(ev.cost(_unscale(gx), own(go)))
+        full = np.concatenate([np.asarray(ev.cost(_unscale(gx[k:k + COST_CHUNK]),
+                                                  own(go[k:k + COST_CHUNK])))
+                               for k in range(0, go.size, COST_CHUNK)])
         for c in have:
             grid = grids[c]
             assert grid is not None
@@ -1221,20 +1304,15 @@ def resolve_pairs(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     return [lm for g in resolve_pair_groups(segments, landmarks, config) for lm in g]
 
 
-PAIR_BUCKET_WIDTH = 1.25
-"""Candidates searched in one batch have echo counts within this factor (padding to
-the longest costs evaluations that count for nothing)."""
-
-
 def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                         config: FitConfig | None = None) -> list[list[Landmark]]:
     """:func:`resolve_pairs`, the result of each segment in its own list (two landmarks
     where the pair is accepted, else the single one).
 
     The candidates of one tier and kind of motion are searched in lockstep (every
-    quasi-Newton step of all of them in one cost call, :class:`_Segments`), in buckets
-    of similar size; each candidate's search is the one it would have alone (up to
-    floating-point rounding of sums over padded arrays).
+    quasi-Newton step of all of them in one cost call, :class:`_Segments`: their
+    readings end to end, whatever their sizes); each candidate's search is the one it
+    would have alone (up to floating-point rounding of the sums).
     """
     cfg = config or FitConfig()
     out: list[list[Landmark]] = [[lm] for lm in landmarks]
@@ -1264,18 +1342,9 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
         groups.setdefault((lm.tier, seg.moving, seg.ne_moving), []).append((i, seg, local))
     fits: dict[int, PairFit] = {}
     for members in groups.values():
-        members.sort(key=lambda m: m[1].y.size)
-        start = 0
-        while start < len(members):
-            stop = start + 1
-            lim = PAIR_BUCKET_WIDTH * members[start][1].y.size
-            while stop < len(members) and members[stop][1].y.size <= lim:
-                stop += 1
-            chunk = members[start:stop]
-            for (i, _, _), pf in zip(chunk, _fit_pairs([m[1] for m in chunk],
-                                                       [m[2] for m in chunk]), strict=True):
-                fits[i] = pf
-            start = stop
+        for (i, _, _), pf in zip(members, _fit_pairs([m[1] for m in members],
+                                                     [m[2] for m in members]), strict=True):
+            fits[i] = pf
     for i, pf in fits.items():
         lm = landmarks[i]
         if pf.accepted:

@@ -130,7 +130,7 @@ def test_lockstep_bfgs_matches_scipy_per_start_and_holds_fixed_variables(rng):
 
 
 def test_padded_segments_cost_each_row_on_its_own_segment(rng):
-    # rows of a _Segments evaluate their own segment (padding counts nothing), and
+    # rows of a _Segments evaluate their own segment (only its readings), and
     # cost_grad's cost is cost()'s exactly
     cfg = FitConfig()
     scans = [pan_scan([Reflector.polar(r, b, k)], rng, -30, 30, step)
@@ -375,3 +375,29 @@ def test_candidate_chi2_band_decides_as_the_tail_probability():
     for dof in (1, 2, 5, 17, 60, 300, 3000):
         lo, hi = P._chi2_band(dof)
         assert chdtrc(dof, lo) >= P.CANDIDATE_P > chdtrc(dof, hi)
+
+
+def test_flat_segments_detail_is_each_segments_own(rng):
+    # responsibilities and residuals of rows of several segments (readings end to end)
+    # are those of each segment alone, padded with zeros to the longest row
+    cfg = FitConfig()
+    scans = [pan_scan([Reflector.polar(1.5, -s / 2, 0.67), Reflector.polar(1.5005, s / 2, 0.67)],
+                      rng, -30, 30, step) for s, step in ((10.0, 0.3), (16.0, 1.0), (6.0, 2.0))]
+    batch = pack_segments([(s.t_s, s.x_m, s.y_m, s.yaw_rad, s.tof_us) for s in scans])
+    singles = [P._Segment(batch, b, cfg, "gauss") for b in range(3)]
+    group = P._Segments(singles)
+    owner = np.array([2, 0, 1, 0])
+    x = np.array([[1500.0, -4.0, math.log(0.6), 1500.5, 5.0, math.log(0.7)],
+                  [1500.0, -5.0, math.log(0.67), 1500.5, 5.0, math.log(0.67)],
+                  [1499.0, -8.0, math.log(0.5), 1501.0, 8.0, math.log(0.8)],
+                  [1500.0, 0.0, math.log(0.67), 1500.5, 1.0, math.log(0.67)]])
+    c, resp, resid = group.detail(P._unscale(x), owner)
+    width = max(s.y.size for s in singles)
+    assert resp.shape == (4, 2, width) and resid.shape == (4, width)
+    for j, o in enumerate(owner.tolist()):
+        cj, rj, ej = singles[o].detail(P._unscale(x[j:j + 1]))
+        n = singles[o].y.size
+        assert c[j] == pytest.approx(float(cj[0]), rel=1e-12)
+        np.testing.assert_allclose(resp[j, :, :n], rj[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(resid[j, :n], ej[0], rtol=1e-9, atol=1e-9)
+        assert not resp[j, :, n:].any() and not resid[j, n:].any()
