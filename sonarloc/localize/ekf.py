@@ -101,7 +101,8 @@ class Gaussian:
         np.array(cov))`` without the shape checks (the lists have those shapes)."""
         g = object.__new__(cls)
         g.__dict__["mean"] = np.array(mean, dtype=float)
-        g.__dict__["cov"] = np.array(cov, dtype=float)
+        c0, c1, c2 = cov
+        g.__dict__["cov"] = np.array([*c0, *c1, *c2], dtype=float).reshape(3, 3)
         return g
 
     @classmethod
