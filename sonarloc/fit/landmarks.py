@@ -179,9 +179,9 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     parts = [_arrays(s) for s in segments]
     lengths = np.array([p[0].size for p in parts], dtype=np.int64)
     seg = np.repeat(np.arange(n), lengths)
-    t, x, y, yaw, tof = (np.concatenate([np.asarray(p[k], dtype=float) for p in parts])
+    t, x, y, yaw, tof = (np.concatenate([p[k] for p in parts], dtype=float)
                          for k in range(5))
-    sensor = np.concatenate([np.asarray(p[5], dtype=np.int64) for p in parts])
+    sensor = np.concatenate([p[5] for p in parts], dtype=np.int64, casting="unsafe")
     ok, _ = _clean(t, x, y, yaw, tof)
     n_bad = np.bincount(seg[~ok], minlength=n)
     seg, t, x, y, tof, sensor = seg[ok], t[ok], x[ok], y[ok], tof[ok], sensor[ok]
@@ -280,17 +280,29 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     kind_l, tier_l = sel.kind.tolist(), sel.tier.tolist()
     ref_t_l, ref_xy_l, ref_yaw_l = (batch.ref_t_s.tolist(), batch.ref_xy.tolist(),
                                     batch.ref_yaw.tolist())
+    # segments that may fail a test below (a superset of each, NaN failing as there):
+    # the rest are OK without going through them one by one
+    kap = local[:, 2]
+    occluded = np.array(["occluded" in m for m in meta], dtype=bool)
+    overlap = np.array(["overlap" in ex for ex in sel.extra], dtype=bool)
+    check_l = (~finite | (n_used < cfg.min_echoes) | overlap | occluded
+               | ~((0.5 * cfg.kappa_lo_us <= kap) & (kap <= 2.0 * cfg.kappa_hi_us))
+               | ((sel.kind == "line") & (kap > 3.0 * KAPPA_WALL_US))
+               | (p_fit < cfg.min_fit_p) | ((outside > math.radians(1.0)) & (span > 3.0))
+               | (kap < 1.5 * cfg.kappa_lo_us) | (sd[:, 1] > flat_sd)).tolist()
     out = []
     for j in range(B):
-        extra: dict[str, object] = dict(meta[j])
-        extra.update(sel.extra[j])
-        extra.update(
-            bearing_sd_deg=math.degrees(sd_l[j][1]), range_sd_m=sd_l[j][0],
-            kappa_sd_us=sd_l[j][2], strength_db=strength_l[j],
-            n_noecho=n_noecho_l[j], n_spikes=n_echo_l[j] - n_used_l[j],
-            chi2=chi2_l[j], cost=cost_l[j])
+        sd_j = sd_l[j]
+        extra: dict[str, object] = {
+            **meta[j], **sel.extra[j],
+            "bearing_sd_deg": math.degrees(sd_j[1]), "range_sd_m": sd_j[0],
+            "kappa_sd_us": sd_j[2], "strength_db": strength_l[j],
+            "n_noecho": n_noecho_l[j], "n_spikes": n_echo_l[j] - n_used_l[j],
+            "chi2": chi2_l[j], "cost": cost_l[j]}
         status, reason = FitStatus.OK, ""
-        if not finite_l[j]:
+        if not check_l[j]:
+            pass                  # passes every test below
+        elif not finite_l[j]:
             status, reason = FitStatus.BAD_INPUT, "non-finite fit (bad input)"
         elif n_used_l[j] < cfg.min_echoes:
             status = FitStatus.TOO_FEW_POINTS
@@ -348,13 +360,13 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             status = FitStatus.FLAT
             reason = (f"curve too flat for its bearing (SD {math.degrees(sd_l[j][1]):.1f} deg "
                       f"> {cfg.flat_bearing_sd_deg:g} deg)")
-        out.append(Landmark(
-            kind="point" if kind_l[j] == "point" else "line", params=params[j],
-            cov=cov[j], range_m=local_l[j][0], bearing_rad=local_l[j][1],
-            n_readings=int(n_used_l[j]), ref_t_s=ref_t_l[j],
-            ref_pose=(ref_xy_l[j][0], ref_xy_l[j][1], ref_yaw_l[j]),
-            status=status, reason=reason, tier=str(tier_l[j]), rms_us=rms_l[j],
-            sensors=sensors[j], extra=extra))
+        out.append(Landmark._from_fields({   # every field, in order
+            "kind": "point" if kind_l[j] == "point" else "line", "params": params[j],
+            "cov": cov[j], "range_m": local_l[j][0], "bearing_rad": local_l[j][1],
+            "n_readings": int(n_used_l[j]), "ref_t_s": ref_t_l[j],
+            "ref_pose": (ref_xy_l[j][0], ref_xy_l[j][1], ref_yaw_l[j]),
+            "status": status, "reason": reason, "tier": str(tier_l[j]),
+            "rms_us": rms_l[j], "sensors": sensors[j], "extra": extra}))
     return out
 
 

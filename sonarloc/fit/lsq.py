@@ -509,7 +509,7 @@ def _evaluate_core(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array
     """:func:`_evaluate_s2` preceded by the objective with the variances ``s2_other``
     instead (the same as the objective without them), from the same model pass."""
     if _use_float32(kind, tier, batch, cfg):
-        return _evaluate_pan32(p, batch, y, use, s2, cfg, want_derivs, s2_other)
+        return _evaluate_pan32(p, batch, y, use, s2, cfg, want_derivs, s2_other, tier)
     mod = cfg.module
     tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
@@ -620,15 +620,52 @@ def _truncation_ratio32(z: FloatArray, m: FloatArray, dm: FloatArray, s: float
 
 def _use_float32(kind: str, tier: str, batch: SegmentBatch, cfg: FitConfig) -> bool:
     """Whether :func:`_evaluate_pan32` does the model passes (``cfg.float32``, a
-    stationary batch, the gauss tier with the detection model)."""
-    return cfg.float32 and tier == "gauss" and cfg.detection and not batch.moving
+    stationary batch, the detection model; every tier since session 6)."""
+    return cfg.float32 and cfg.detection and not batch.moving
+
+
+def _off_axis32(tier: str, mod: ModuleParams, phi: Array, yaw32: NDArray[np.float32],
+                yaw: Array, bounds: tuple[float, float], derivative: bool,
+                ddiv: float = 1.0
+                ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+    """ln g (B, N) and d ln g / d theta / ``ddiv`` (None without ``derivative``) in
+    float32 of a stationary batch's readings (theta = phi - yaw): the gauss beam's closed
+    form (capped as :func:`sonarloc.fit.model.beam_log_factor`), the piston table's
+    cubic (:meth:`sonarloc.fit.model._HermiteTable.lookup_log32`) for the other tiers."""
+    f32 = np.float32
+    if M.BEAMS[tier] == "piston":
+        # theta in float64: next to the piston beam's nulls ln g changes by ~1e5 per
+        # rad, so the rounding of yaw (1e-7 rad) would show
+        table = M._piston_table(mod.diameter_m, mod.carrier_hz, mod.c_mps)
+        lng_p, dlng_p, _ = table.lookup_log32(_angle_diff(phi, yaw, bounds), derivative,
+                                              ddiv)
+        return lng_p, dlng_p
+    lo, hi = bounds
+    if yaw.size and phi.max() - lo <= np.pi and phi.min() - hi >= -np.pi:
+        th = phi.astype(f32) - yaw32
+    else:
+        th = M._wrap_fast(phi - yaw).astype(f32)
+    inv_s2 = 1.0 / np.deg2rad(mod.sigma_deg) ** 2
+    cap = np.log(M._G_MAX)
+    q = th * th
+    q *= f32(0.5 * inv_s2)
+    capped = bool(q.size) and float(q.max()) >= cap
+    if capped:
+        np.minimum(q, f32(cap), out=q)
+    if not derivative:
+        return q, None
+    dlng = th
+    dlng *= f32(inv_s2 / ddiv)
+    if capped:
+        dlng[q >= f32(cap)] = 0.0
+    return q, dlng
 
 
 def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
                     s2: Array | None, cfg: FitConfig, want_derivs: bool = True,
-                    s2_other: Array | None = None
+                    s2_other: Array | None = None, tier: str = "gauss"
                     ) -> tuple[Array, Array, Array, Array, Array, Array]:
-    """:func:`_evaluate_core` of a stationary batch, gauss tier, detection model, in
+    """:func:`_evaluate_core` of a stationary batch with the detection model, in
     float32 (``FitConfig.float32``).
 
     The readings enter relative to each segment's model range (``y - tau r`` formed in
@@ -636,54 +673,50 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     probabilities come from :func:`sonarloc.fit.model.log_sf32` (branch-free), the
     objective is summed in float64, the rest of the sums in float32 (relative error
     ~1e-6); returns float64 ``F``, gradient and Fisher matrix, float32 residuals and
-    variances. Same model and return values as :func:`_evaluate_core` otherwise.
+    variances. Same model and return values as :func:`_evaluate_core` otherwise:
+    ``gauss`` and ``piston`` with the truncated mean delay (:func:`_truncation_ratio32`),
+    ``waveform`` with the delay table's moments at ``ln u = ln kappa + ln g``
+    (:meth:`sonarloc.fit.model._DelayTable.lookup_log32`).
     """
     f32 = np.float32
     mod = cfg.module
     tau = M.us_per_m(mod)
     sa = M.sigma_a(mod)
-    inv_s2 = 1.0 / np.deg2rad(mod.sigma_deg) ** 2
-    cap = np.log(M._G_MAX)
     ln_sqrt_2pi = f32(M._LOG_SQRT_2PI)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
     B = p.shape[0]
     lnk = np.log(np.maximum(K, 1e-300))
     zc = ((lnk - np.log(mod.detection_limit_us)) / sa).astype(f32)      # (B, 1)
-
-    def off_axis(yaw32: NDArray[np.float32], yaw: Array, bounds: tuple[float, float]
-                 ) -> tuple[NDArray[np.float32], NDArray[np.float32], bool]:
-        """theta, ln g = theta^2 / 2 sigma^2 (capped) and whether any is capped."""
-        lo, hi = bounds
-        if yaw.size and phi.max() - lo <= np.pi and phi.min() - hi >= -np.pi:
-            th = phi.astype(f32) - yaw32
-        else:
-            th = M._wrap_fast(phi - yaw).astype(f32)
-        q = th * th
-        q *= f32(0.5 * inv_s2)
-        capped = bool(q.size) and float(q.max()) >= cap
-        if capped:
-            np.minimum(q, f32(cap), out=q)
-        return th, q, capped
+    waveform = tier == "waveform"
 
     # echoes
-    th, lng, capped = off_axis(batch.yaw32, batch.yaw, batch.yaw_bounds[:2])
-    g = np.exp(lng)
+    lng, dlng = _off_axis32(tier, mod, phi, batch.yaw32, batch.yaw, batch.yaw_bounds[:2],
+                            want_derivs)
     z = lng * f32(1.0 / sa)
     z += zc
     l0 = M.log_sf32(z)                                  # log P(echo) = log Phi(-z)
     m0 = np.exp(f32(-0.5) * z * z - ln_sqrt_2pi - l0)   # phi(z) / Phi(-z)
     curv = m0 - z
     curv *= m0                                          # d m0 / dz = m0 (m0 - z)
-    ratio = _truncation_ratio32(z, m0, curv, sa)        # Phi(-z-s) / Phi(-z)
-    m1 = np.exp(z * f32(-sa) - f32(0.5 * sa * sa))      # phi(z+s) / Phi(-z)
-    m1 *= m0
-    scale = float(np.exp(0.5 * sa * sa))
-    delay = g * ratio
-    delay *= (K * scale).astype(f32)
-    if s2 is None:
-        s2 = delay * delay
-        s2 *= f32(mod.amplitude_fluctuation ** 2)
-        s2 += f32(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
+    if waveform:
+        # the module's delay moments at x = ln u (u = kappa g, the eq. 3 delay)
+        x = lng + lnk.astype(f32)
+        delay, dm_dx, var = M.waveform_delay_table(mod).lookup_log32(x, want_derivs)
+        if s2 is None:
+            var += f32(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
+            s2 = var   # type: ignore[assignment]   # float32 (see Returns)
+    else:
+        g = np.exp(lng)
+        ratio = _truncation_ratio32(z, m0, curv, sa)    # Phi(-z-s) / Phi(-z)
+        scale = float(np.exp(0.5 * sa * sa))
+        delay = g * ratio
+        delay *= (K * scale).astype(f32)
+        if s2 is None:
+            v = delay * delay
+            v *= f32(mod.amplitude_fluctuation ** 2)
+            v += f32(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
+            s2 = v     # type: ignore[assignment]   # float32 (see Returns)
+    assert s2 is not None
     usef = use.astype(f32)
     w = usef / np.sqrt(s2)                              # 1/s, 0 where unused
     res = (y - tau * r).astype(f32)
@@ -699,18 +732,25 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     H = np.zeros((B, 3, 3))
     ik = 1.0 / (K[:, 0] * sa)                           # d z / d kappa
     if want_derivs:
-        dlng = th * f32(inv_s2)
-        if capped:
-            dlng[lng >= f32(cap)] = 0.0
-        # d mean / d kappa: scale (ratio + (ratio m0 - m1) / s) g
-        jk = ratio * m0
-        jk -= m1
-        jk *= f32(1.0 / sa)
-        jk += ratio
-        jk *= g
-        jk *= f32(scale)
-        a = jk * dlng
-        a *= K.astype(f32)                              # d mean / d theta
+        assert dlng is not None
+        if waveform:
+            assert dm_dx is not None
+            # d mean / d kappa = (d mean / d ln u) / kappa, d mean / d theta = (d mean /
+            # d ln u) d ln g / d theta
+            jk = dm_dx * (1.0 / K).astype(f32)
+            a = dm_dx * dlng
+        else:
+            # d mean / d kappa: scale (ratio + (ratio m0 - m1) / s) g
+            m1 = np.exp(z * f32(-sa) - f32(0.5 * sa * sa))      # phi(z+s) / Phi(-z)
+            m1 *= m0
+            jk = ratio * m0
+            jk -= m1
+            jk *= f32(1.0 / sa)
+            jk += ratio
+            jk *= g
+            jk *= f32(scale)
+            a = jk * dlng
+            a *= K.astype(f32)                          # d mean / d theta
         W = w * w
         Gw = w * e
         Wa, Wj = W * a, W * jk
@@ -740,7 +780,8 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     F_other = F_other + prior if s2_other is not None else F
     nv = batch.ne_valid
     if nv.shape[1] and nv.any():
-        thn, lgn, cappedn = off_axis(batch.ne_yaw32, batch.ne_yaw, batch.yaw_bounds[2:])
+        lgn, dzn = _off_axis32(tier, mod, phi, batch.ne_yaw32, batch.ne_yaw,
+                               batch.yaw_bounds[2:], want_derivs, sa)   # d zn / d theta
         zn = lgn * f32(1.0 / sa)
         zn += zc
         lpn = M.log_sf32(-zn)                           # log P(no echo) = log Phi(z)
@@ -749,10 +790,8 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         F = F - dFn
         F_other = F_other - dFn if s2_other is not None else F
         if want_derivs:
+            assert dzn is not None
             mn = np.exp(f32(-0.5) * zn * zn - ln_sqrt_2pi - lpn)    # phi(z) / Phi(z)
-            dzn = thn * f32(inv_s2 / sa)
-            if cappedn:
-                dzn[lgn >= f32(cap)] = 0.0
             Wn = zn + mn
             Wn *= mn
             Wn *= nvf                                   # curvature of -log Phi(z)
@@ -928,8 +967,8 @@ def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Ar
     """
     mod = cfg.module
     tau = M.us_per_m(mod)
-    # float32 (FitConfig.float32): the (B, G, Nd) arrays of a stationary gauss batch
-    single = cfg.float32 and not moving and tier == "gauss"
+    # float32 (FitConfig.float32): the (B, G, Nd) arrays of a stationary batch
+    single = cfg.float32 and not moving
     dt: type[np.floating[Any]] = np.float32 if single else np.float64
     g: FloatArray
     lg: FloatArray
@@ -943,7 +982,7 @@ def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Ar
     else:
         theta = _angle_diff(phis[:, :, None], batch.yaw[:, None, :], batch.yaw_bounds[:2])
     if single:
-        lg = _gauss_log_factor32(theta, mod)
+        lg = _log_factor32(theta, tier, mod)
         g = np.exp(lg)
     else:
         g, _, lg = M.beam_log_factor(theta, tier, mod, derivative=False)
@@ -998,7 +1037,7 @@ def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Ar
                 thn = _angle_diff(phis[:, :, None], batch.ne_yaw[:, None, :],
                                   batch.yaw_bounds[2:])
             if single:
-                lgn = _gauss_log_factor32(thn, mod)
+                lgn = _log_factor32(thn, tier, mod)
             else:
                 lgn = M.beam_log_factor(thn, tier, mod, derivative=False, want_g=False)[2]
             # (1.4 - z) sa = (ln L + 1.4 sa - ln kappa) - ln g, formed in place
@@ -1010,9 +1049,13 @@ def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Ar
     return T, K, cost
 
 
-def _gauss_log_factor32(theta: FloatArray, mod: ModuleParams) -> FloatArray:
-    """ln g of the gauss beam, theta^2 / 2 sigma^2 capped as in
-    :func:`sonarloc.fit.model.beam_log_factor`, in float32."""
+def _log_factor32(theta: FloatArray, tier: str, mod: ModuleParams) -> FloatArray:
+    """ln g of the tier's beam in float32: the gauss beam's theta^2 / 2 sigma^2 capped as
+    in :func:`sonarloc.fit.model.beam_log_factor`, the piston table's cubic
+    (:meth:`sonarloc.fit.model._HermiteTable.lookup_log32`)."""
+    if M.BEAMS[tier] == "piston":
+        table = M._piston_table(mod.diameter_m, mod.carrier_hz, mod.c_mps)
+        return table.lookup_log32(theta, derivative=False)[0]
     q = theta * theta
     q *= np.float32(0.5 / np.deg2rad(mod.sigma_deg) ** 2)
     np.minimum(q, np.float32(np.log(M._G_MAX)), out=q)
@@ -1188,6 +1231,12 @@ _ARC_EDGE_GAP = np.deg2rad(5.0)
 
 _EARLY_TOLERANCE = 100.0
 
+STOP_CHECK_ITER = 4
+"""Steps of a refinement from another tier's fit before it may be given up as hopeless
+(``stop_above`` of :func:`fit_batch`). Measured on the 200,000-reading rotation of
+benchmarks/bench_fit.py section 4: from the 4th step on, refinements still more than
+200 above their bar came down by at most 158 more (all ended 186 or more above it)."""
+
 _LAMBDA0 = 1e-1
 """Initial Levenberg-Marquardt damping (a fraction of the Fisher matrix's diagonal)."""
 
@@ -1229,25 +1278,31 @@ class _State:
 
 
 def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
-            cfg: FitConfig, rounds: int) -> _State:
+            cfg: FitConfig, rounds: int, stop_above: Array | None = None) -> _State:
     """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective.
 
     A segment stops when its Newton decrement g^T H^-1 g (the expected decrease of the
     objective) falls below ``cfg.tolerance``; stopped segments are frozen for the rest
     of the round (so no result depends on the other segments of the batch) and left
-    out of the remaining iterations. Returns the state at the result (variances of the
-    last round's start: the weights a round's steps were taken with).
+    out of the remaining iterations. ``stop_above`` (B,): a segment whose -2 log-
+    likelihood (with the round's variances) still exceeds this after
+    :data:`STOP_CHECK_ITER` steps (or at any later step) is given up (frozen for good,
+    not converged; see :func:`fit_batch`). Returns the state at the result (variances
+    of the last round's start: the weights a round's steps were taken with).
     """
     B = p.shape[0]
     p = p.copy()
     lam = np.full(B, _LAMBDA0)
     done = np.zeros(B, dtype=bool)
+    given_up = np.zeros(B, dtype=bool)
     for rnd in range(rounds):
         # variances from the current delays, fixed for this round
         F, grad, H, E, s2 = _evaluate_s2(kind, tier, p, batch, y, use, None, cfg)
         # rounds before the last stop early: the next round moves the weights anyway
         tol = cfg.tolerance * (1.0 if rnd == rounds - 1 else _EARLY_TOLERANCE)
-        done = np.zeros(B, dtype=bool)
+        done = given_up.copy()
+        if stop_above is not None:      # the objective less the full cost
+            stop_F = stop_above - np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
         act = np.arange(B)
         sub, ys, us, s2s = batch, y, use, s2
         for it in range(cfg.iterations):
@@ -1274,6 +1329,10 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             delta = np.where(np.isfinite(delta), delta, 0.0)
             # converged where the expected decrease (Newton decrement) is negligible
             done[act[-np.einsum("bk,bk->b", ga, delta) < tol]] = True
+            if stop_above is not None and (rnd > 0 or it >= STOP_CHECK_ITER):
+                hopeless = act[F[act] > stop_F[act]]
+                done[hopeless] = True
+                given_up[hopeless] = True
             keep = np.flatnonzero(~done[act])
             if keep.size == 0:
                 break
@@ -1326,15 +1385,17 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             small = -np.einsum("bk,bk->b", grad[open_], step) < cfg.tolerance
             done[open_[small]] = True
             pending[open_[~small]] = step[~small]
-    return _State(p, done, F, H, E, s2, pending)
+    return _State(p, done & ~given_up, F, H, E, s2, pending)
 
 
 def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
-           start_fit: BatchFit | None = None) -> tuple[_State, Array]:
+           start_fit: BatchFit | None = None, stop_above: Array | None = None
+           ) -> tuple[_State, Array]:
     """Grid bracket + refinement (from a second start where the grid is ambiguous), or
-    refinement from another model's fit of the same segments (``start_fit``)."""
+    refinement from another model's fit of the same segments (``start_fit``); given up
+    above ``stop_above`` (see :func:`_refine`)."""
     if start_fit is not None:
-        st = _refine_any(kind, tier, start_fit.local.copy(), batch, y, use, cfg)
+        st = _refine_any(kind, tier, start_fit.local.copy(), batch, y, use, cfg, stop_above)
         return st, start_fit.arc.copy()
     if cfg.start == "arc":
         start, start2, second, arc, whole = _arc_start(kind, tier, batch, y, use, cfg)
@@ -1343,14 +1404,17 @@ def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cf
         whole = np.zeros(batch.size, dtype=bool)
     cfg_arc = cfg if cfg.arc_iterations is None else replace(cfg,
                                                               iterations=cfg.arc_iterations)
+    sa = stop_above
     if cfg_arc is cfg or not whole.any():
-        st = _refine_any(kind, tier, start, batch, y, use, cfg)
+        st = _refine_any(kind, tier, start, batch, y, use, cfg, sa)
     elif whole.all():
-        st = _refine_any(kind, tier, start, batch, y, use, cfg_arc)
+        st = _refine_any(kind, tier, start, batch, y, use, cfg_arc, sa)
     else:       # the arc's starts and the grid's take their own numbers of steps
         iw, ig = np.flatnonzero(whole), np.flatnonzero(~whole)
-        st_w = _refine_any(kind, tier, start[iw], _take(batch, iw), y[iw], use[iw], cfg_arc)
-        st_g = _refine_any(kind, tier, start[ig], _take(batch, ig), y[ig], use[ig], cfg)
+        st_w = _refine_any(kind, tier, start[iw], _take(batch, iw), y[iw], use[iw], cfg_arc,
+                           None if sa is None else sa[iw])
+        st_g = _refine_any(kind, tier, start[ig], _take(batch, ig), y[ig], use[ig], cfg,
+                           None if sa is None else sa[ig])
         st = _State(*(np.empty((batch.size, *getattr(st_w, f).shape[1:]),
                                dtype=getattr(st_w, f).dtype) for f in _STATE_FIELDS))
         st.put(iw, st_w)
@@ -1358,7 +1422,8 @@ def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cf
     idx = np.flatnonzero(second)
     if idx.size:
         sub = _take(batch, idx)
-        st2 = _refine_any(kind, tier, start2[idx], sub, y[idx], use[idx], cfg)
+        st2 = _refine_any(kind, tier, start2[idx], sub, y[idx], use[idx], cfg,
+                          None if sa is None else sa[idx])
         f1 = st.take(idx).full_cost(use[idx])
         f2 = st2.full_cost(use[idx])
         better = np.flatnonzero(f2 < f1)
@@ -1368,10 +1433,11 @@ def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cf
 
 
 def _refine_any(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
-                cfg: FitConfig) -> _State:
-    """The refinement ``cfg.method`` asks for (see :class:`FitConfig`)."""
+                cfg: FitConfig, stop_above: Array | None = None) -> _State:
+    """The refinement ``cfg.method`` asks for (see :class:`FitConfig`); ``stop_above``:
+    see :func:`_refine` (the full method only)."""
     if cfg.method == "full":
-        return _refine(kind, tier, p, batch, y, use, cfg, cfg.rounds)
+        return _refine(kind, tier, p, batch, y, use, cfg, cfg.rounds, stop_above)
     nodet = replace(cfg, detection=False)
     if tier == "waveform":          # not linear in kappa: the full method, echoes only
         return _refine(kind, tier, p, batch, y, use, nodet, nodet.rounds)
@@ -1495,7 +1561,8 @@ def _covariance(H: Array) -> Array:
 def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
               config: FitConfig | None = None, offsets_us: Array | None = None,
               use: NDArray[np.bool_] | None = None, start: BatchFit | None = None,
-              rows: NDArray[np.int64] | None = None) -> BatchFit:
+              rows: NDArray[np.int64] | None = None, stop_above: Array | None = None
+              ) -> BatchFit:
     """Fit one landmark model to each of ``B`` segments.
 
     Parameters
@@ -1511,6 +1578,11 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
     rows : fit only these segments of ``batch`` (the result has one row per entry, as
         ``fit_batch(_take(batch, rows), ...)``, without copying them out first; the
         other arguments then refer to the selected segments).
+    stop_above : (B,) -2 log-likelihood above which a segment's refinement is given up
+        after :data:`STOP_CHECK_ITER` steps: another tier that far above the bar it is
+        to beat is hopeless (:func:`sonarloc.fit.select.choose_tier`); its result is
+        where it stopped, ``converged`` False. Spikes found there are dropped and the
+        segment refitted (then to the end) as usual.
 
     Returns
     -------
@@ -1550,7 +1622,8 @@ def fit_batch(batch: SegmentBatch, kind: str = "point", tier: str = "gauss",
             sub, kind, tier, cfg,
             None if offsets_us is None else offsets_us[idx][:, :wd],
             None if use is None else use[idx][:, :wd],
-            None if start is None else _trim_fit(start.take(idx), wd))
+            None if start is None else _trim_fit(start.take(idx), wd),
+            None if stop_above is None else stop_above[idx])
         out_local[idx], out_cov[idx] = part.local, part.cov
         for name in out_vec:
             out_vec[name][idx] = getattr(part, name)
@@ -1632,7 +1705,7 @@ def _trim_fit(fit: BatchFit, wd: int) -> BatchFit:
 
 def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
                 offsets_us: Array | None, use: NDArray[np.bool_] | None,
-                start: BatchFit | None) -> BatchFit:
+                start: BatchFit | None, stop_above: Array | None = None) -> BatchFit:
     """:func:`fit_batch` on one chunk."""
     mod = cfg.module
     y = batch.tof_us - 0.5 * mod.count_period_us
@@ -1643,7 +1716,7 @@ def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
         use0 = use0 & use
     n_avail = use0.sum(1)
     y = np.where(use0, y, 0.0)
-    st, arc = _solve(kind, tier, batch, y, use0, cfg, start)
+    st, arc = _solve(kind, tier, batch, y, use0, cfg, start, stop_above)
     # spikes: drop the worst echoes beyond outlier_sigma, then fit those segments again
     bad = use0 & (np.abs(st.e) > cfg.outlier_sigma)
     if bad.any():

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -255,6 +256,62 @@ class _HermiteTable:
             return g, lng, lng
         dlng = (c1 + s * (2.0 * c2 + 3.0 * s * c3)) * (1.0 / self.step)
         return g, np.where(beyond, 0.0, dlng * np.sign(theta)), lng
+
+    @functools.cached_property
+    def coef32(self) -> NDArray[np.float32]:
+        """:attr:`coef` in float32 (the float32 passes; rows are gathered whole: one
+        row gather costs less than one gather of a column)."""
+        out = self.coef.astype(np.float32)
+        out.setflags(write=False)
+        return out
+
+    def lookup_log32(self, theta: NDArray[np.floating[Any]], derivative: bool = True,
+                     ddiv: float = 1.0
+                     ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None, bool]:
+        """ln g and d ln g / d theta / ``ddiv`` (None without ``derivative``) in float32
+        (the fitter's float32 passes), and whether any angle lies beyond the table (ln g
+        capped there, slope 0). The same cubic as :meth:`lookup_log`. Float64 angles
+        are placed in their intervals in float64 (ln g then within float32 rounding of
+        the float64 one, also next to the nulls, where ln g changes by ~1e5 per rad);
+        float32 angles in float32 (the position in the interval rounded to ~1e-7 of the
+        table index: a bracket's precision)."""
+        f32 = np.float32
+        coef = self.coef32
+        n = coef.shape[0]
+        u = np.abs(theta)
+        u *= u.dtype.type(1.0 / self.step)
+        i = u.astype(np.intp)
+        beyond = bool(i.size) and int(i.max()) >= n
+        far = None
+        if beyond:
+            far = i >= n
+            np.minimum(i, n - 1, out=i)
+        if u.dtype == f32:
+            s = u
+            s -= i.astype(f32)                         # position in the interval
+        else:
+            u -= i
+            s = u.astype(f32)
+        c = np.take(coef, i, axis=0)
+        a1, a2, a3 = c[..., 1], c[..., 2], c[..., 3]
+        lng = a3 * s
+        lng += a2
+        lng *= s
+        lng += a1
+        lng *= s
+        lng += c[..., 0]
+        dlng = None
+        if derivative:
+            dlng = a3 * (f32(3.0) * s)
+            dlng += f32(2.0) * a2
+            dlng *= s
+            dlng += a1
+            dlng *= np.copysign(f32(1.0 / (self.step * ddiv)), theta)
+        if far is not None:
+            lng[far] = f32(np.log(_G_MAX))
+            if dlng is not None:
+                dlng[far] = 0.0
+        return lng, dlng, beyond
 
 
 def _hermite_coef(f: Array, d: Array) -> Array:
@@ -494,6 +551,61 @@ class _DelayTable:
         else:
             dm_du = dm_dx / np.maximum(u, 1e-300)
         return m, dm_du, var
+
+    @functools.cached_property
+    def coef32(self) -> NDArray[np.float32]:
+        """:attr:`coef` in float32 (the float32 passes; rows are gathered whole)."""
+        out = self.coef.astype(np.float32)
+        out.setflags(write=False)
+        return out
+
+    def lookup_log32(self, x: NDArray[np.float32], derivative: bool = True
+                     ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None,
+                                NDArray[np.float32]]:
+        """Mean delay, its derivative by x = ln u (None without ``derivative``) and the
+        delay variance at float32 ``x`` (the fitter's float32 passes: ``ln u = ln kappa +
+        ln g`` needs no logarithm there), in float32; the same curves as :meth:`lookup`
+        (d mean / d u = (d mean / d x) / u)."""
+        f32 = np.float32
+        coef = self.coef32
+        n = coef.shape[0]
+        t = x - f32(self.x0)
+        t *= f32(1.0 / self.dx)
+        below = bool(t.size) and float(t.min()) < 0.0
+        above = bool(t.size) and float(t.max()) > n
+        tc = np.clip(t, f32(0.0), f32(n)) if below or above else t.copy()
+        i = tc.astype(np.intp)
+        np.minimum(i, n - 1, out=i)
+        s = tc
+        s -= i.astype(f32)
+        c = np.take(coef, i, axis=0)
+        a1, a2, a3 = c[..., 1], c[..., 2], c[..., 3]
+        dm = None
+        if derivative:
+            dm = a3 * (f32(3.0) * s)
+            dm += f32(2.0) * a2
+            dm *= s
+            dm += a1
+            dm *= f32(1.0 / self.dx)
+            if above:
+                dm[t > n] = 0.0
+        m = a3 * s
+        m += a2
+        m *= s
+        m += a1
+        m *= s
+        m += c[..., 0]
+        var = c[..., 5] * s
+        var += c[..., 4]
+        # below the table (u < 1e-3 us) the module is eq. 3 with a log-normal gain
+        if below:
+            lo = t < 0.0
+            u = np.exp(x[lo])
+            m[lo] = u * f32(self.small_scale)
+            var[lo] = (f32(0.25) * u) ** 2
+            if dm is not None:
+                dm[lo] = m[lo]                         # d (u c) / d ln u = u c
+        return m, dm, var
 
 
 @functools.lru_cache(maxsize=8)

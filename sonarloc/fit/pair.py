@@ -319,7 +319,9 @@ class _Segment:
                           _rowsum(lqn, rd.nrows, rd.S)))
             parts.append(cg)
         mix = self._mixture(terms)
-        cost, _, _ = self._combine(terms, comps, mask, False, mix, rd)
+        pens = [_kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)
+                for q in comps]
+        cost, _, _ = self._combine(terms, comps, mask, False, mix, rd, [p[0] for p in pens])
         # per echo: d(-2 ll)/d(mean, variance, log P) of each component
         if len(comps) == 1:
             mean, s2 = terms[0][0], terms[0][1]
@@ -375,8 +377,7 @@ class _Segment:
                 d_lk = d_lk + _rowsum(gn_v, nrows, S)
             lk = q[:, 2]
             K = np.exp(np.clip(lk, _LNK_LO, _LNK_HI))
-            d_lk = (d_lk + _kappa_penalty(K, self.cfg)[1] * K) * ((lk > _LNK_LO)
-                                                                   & (lk < _LNK_HI))
+            d_lk = (d_lk + pens[k][1] * K) * ((lk > _LNK_LO) & (lk < _LNK_HI))
             grad[:, 3 * k:3 * k + 3] = np.stack([d_r, d_phi, d_lk], axis=1) * _SCALE
         grad[cost >= 1e12] = 0.0
         return cost, grad
@@ -423,9 +424,9 @@ class _Segment:
 
     def _combine(self, terms: list[tuple[Array, ...]], comps: list[Array],
                  mask: NDArray[np.bool_] | None, detail: bool, mix: _Mixture | None,
-                 rd: _Rd) -> tuple[Array, Array, Array]:
+                 rd: _Rd, pens: list[Array] | None = None) -> tuple[Array, Array, Array]:
         """The likelihood from the components' terms (:meth:`_terms`); ``mix``: their
-        :meth:`_mixture` if known."""
+        :meth:`_mixture` if known; ``pens``: the components' kappa prior terms if known."""
         parts, ll = (mix or self._mixture(terms))[:2]
         per = -2.0 * ll
         if mask is not None:
@@ -433,8 +434,9 @@ class _Segment:
         c = _rowsum(per, rd.rows, rd.S)
         for t in terms:
             c = c - 2.0 * t[5]
-        for q in comps:
-            c = c + _kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)[0]
+        for k, q in enumerate(comps):
+            c = c + (pens[k] if pens is not None else
+                     _kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)[0])
         c = np.where(np.isfinite(c), c, 1e12)   # off the cliffs: the optimiser backs off
         if not detail:
             return c, np.zeros(0), np.zeros(0)
@@ -792,12 +794,25 @@ def _start_grids(segs: Sequence[_Segment], singles: Sequence[Array]) -> list[_Gr
     tau = M.us_per_m(mod)
     step = math.radians(GRID_STEP_DEG)
     margin = math.radians(3.0)
-    nodes_l = []
-    for seg, single in zip(segs, singles, strict=True):
-        rel = M.wrap_angle(seg.yaw - single[1])      # echo axes relative to the fit
-        lo, hi = float(rel.min()) - margin, float(rel.max()) + margin
-        nodes_l.append(single[1] + np.arange(lo, hi + 1e-9, step))
-    Jc = np.array([v.size for v in nodes_l])
+    sizes = np.array([seg.yaw.size for seg in segs])
+    if sizes.min() == 0:
+        raise ValueError("every segment of _start_grids needs echoes")
+    phi = np.array([float(sg[1]) for sg in singles])
+    own = np.repeat(np.arange(C), sizes)
+    rel = M.wrap_angle(np.concatenate([seg.yaw for seg in segs]) - phi[own])   # echo axes
+    first_e = np.concatenate([[0], np.cumsum(sizes)[:-1]])                    # relative
+    lo = np.minimum.reduceat(rel, first_e) - margin
+    hi = np.maximum.reduceat(rel, first_e) + margin
+    # np.arange(lo, hi + 1e-9, step) of every segment (its length and its values:
+    # start, start + step, then start + i * ((start + step) - start))
+    Jc = np.ceil((hi + 1e-9 - lo) / step).astype(np.intp)
+    i = np.arange(int(Jc.max()), dtype=float)
+    steps = lo[:, None] + i[None, :] * ((lo + step) - lo)[:, None]
+    if steps.shape[1] > 1:
+        steps[:, 1] = lo + step
+    steps[:, 0] = lo
+    nodes_all = phi[:, None] + steps
+    nodes_l = [nodes_all[c, :Jc[c]] for c in range(C)]
     nc = np.array([seg.y.size for seg in segs])
     out: list[_Grid | None] = [None] * C
     # chunks of segments of similar size (sorted by J n) so the padding stays small
@@ -839,16 +854,17 @@ def _grid_chunk(segs: Sequence[_Segment], singles: Sequence[Array], nodes_l: lis
     R, theta, _ = _geometry(r0[:, None, None], nodes[:, :, None], px[:, None, :],
                             py[:, None, :], yaw[:, None, :], first.moving)
     g, _, _ = M.beam_delay_factor(theta, first.tier, mod, derivative=False)
+    g_cap = 1e6 * math.exp(0.5 * M.sigma_a(mod) ** 2)
     g = np.minimum(g, 1e6) * math.exp(0.5 * M.sigma_a(mod) ** 2)      # (C, J, n)
     if first.moving:
         yy = y[:, None, :] - tau * (R - r0[:, None, None])            # (C, J, n): To + kappa g
     else:                                             # R = r0: the readings themselves
-        yy = np.broadcast_to(y[:, None, :], g.shape)
+        yy = y[:, None, :]                            # (C, 1, n): the same at every node
     ja, jb = np.triu_indices(J, k=2)
     # centred readings: the sums of y are then small (the solves better conditioned)
     y0 = np.array([float(seg.y.mean()) for seg in segs])
     yy = yy - y0[:, None, None]
-    sums = _grid_sums(g, yy, ok_e, Jc, ja, jb)
+    sums = _grid_sums(g, yy, ok_e, Jc, ja, jb, g_cap)
     cost = np.zeros((C, ja.size))
     sols = np.zeros((C, ja.size, 4))
     for k, (S0, S1, S2, Sy, Sgy, Syy) in enumerate(sums):
@@ -863,77 +879,88 @@ def _grid_chunk(segs: Sequence[_Segment], singles: Sequence[Array], nodes_l: lis
         sols[:, :, 2 * k + 1] = np.where(kap > 0, kap, 1.0)
     cost[jb[None, :] >= Jc[:, None]] = np.inf         # pairs beyond a segment's nodes
     kmin = first.cfg.kappa_min_us
-    out: list[_Grid | None] = []
-    for c in range(C):
-        order = np.argsort(cost[c])[:N_CANDIDATES]
-        order = order[np.isfinite(cost[c, order])]
-        if order.size == 0:
-            out.append(None)
-            continue
-        a, b = ja[order], jb[order]
-        so = sols[c, order]
-        xs = np.stack([so[:, 0] / tau / _SCALE[0], nodes[c, a] / _SCALE[1],
-                       np.log(np.maximum(so[:, 1], kmin)),
-                       so[:, 2] / tau / _SCALE[0], nodes[c, b] / _SCALE[1],
-                       np.log(np.maximum(so[:, 3], kmin))], axis=1)
-        out.append((xs, a, b))
-    return out
+    order = np.argsort(cost, axis=1)[:, :N_CANDIDATES]          # (C, k) best first
+    n_fin = np.isfinite(np.take_along_axis(cost, order, axis=1)).sum(1)
+    a, b = ja[order], jb[order]
+    so = np.take_along_axis(sols, order[:, :, None], axis=1)    # (C, k, 4)
+    cc = np.arange(C)[:, None]
+    xs = np.stack([so[..., 0] / tau / _SCALE[0], nodes[cc, a] / _SCALE[1],
+                   np.log(np.maximum(so[..., 1], kmin)),
+                   so[..., 2] / tau / _SCALE[0], nodes[cc, b] / _SCALE[1],
+                   np.log(np.maximum(so[..., 3], kmin))], axis=2)
+    return [(xs[c, :k], a[c, :k], b[c, :k]) if k else None
+            for c, k in enumerate(n_fin.tolist())]
 
 
 _Sums = tuple[Array, Array, Array, Array, Array, Array]
 
 
 def _grid_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_], Jc: NDArray[np.intp],
-               ja: NDArray[np.intp], jb: NDArray[np.intp]) -> tuple[_Sums, _Sums]:
+               ja: NDArray[np.intp], jb: NDArray[np.intp], g_cap: float = math.inf
+               ) -> tuple[_Sums, _Sums]:
     """Sums of the grid's 2x2 linear solves for bearing pairs (ja, jb) (P,) of C
     segments: each echo is assigned to the component with the smaller delay factor (A
     on a tie); per component (count, sum g, sum g^2, sum y, sum g y, sum y^2) over its
     echoes, each (C, P). ``g``, ``yy``: (C, J, n) delay factors and To + kappa g
-    readings per bearing node; ``ok_e``: (C, n) real echoes; ``Jc``: (C,) real nodes.
+    readings per bearing node ((C, 1, n) where they are the same at every node); ``ok_e``:
+    (C, n) real echoes; ``Jc``: (C,) real nodes.
 
     Where every pair's assignment splits the echoes at one place of one order (A's
     echoes first: the order of g at the first node minus g at the last, e.g. a pan over
     a beam that falls off with the angle) the sums are cumulative sums, O(C J n)
     instead of O(C P n); the split is checked on the assignment itself, and segments
-    where it fails get the direct masked sums. Same sums up to the order of the
-    additions."""
+    where it fails get the direct masked sums, as do those where some delay factor
+    reaches ``g_cap`` (the grid's cap: echoes far from both nodes tie there and go to
+    A whichever side they are on, so that assignment is no split). Same sums up to
+    the order of the additions."""
     C, J, n = g.shape
-    cc = np.arange(C)
-    key = np.where(ok_e, g[:, 0, :] - g[cc, Jc - 1, :], np.inf)   # padding last
-    order = np.argsort(key, axis=1, kind="stable")
-    gs = np.take_along_axis(g, order[:, None, :], axis=2)
-    ys = np.take_along_axis(yy, order[:, None, :], axis=2)
-    oks = np.take_along_axis(ok_e, order, axis=1)
-    gs = np.where(oks[:, None, :], gs, 0.0)
-    ys = np.where(oks[:, None, :], ys, 0.0)
-    to_a = gs[:, ja] <= gs[:, jb]                     # (C, P, n) the assignment
-    to_a &= oks[:, None, :]
-    real = jb[None, :] < Jc[:, None]                  # (C, P)
-    split = ~(to_a[:, :, 1:] & ~to_a[:, :, :-1]).any(2) | ~real
-    n_a = to_a.sum(2)                                 # A's echoes: the first n_a
-    nc = oks.sum(1)
-    vals = [gs, gs * gs, ys, gs * ys, ys * ys]
-    A: list[Array] = [n_a.astype(float)]
-    B: list[Array] = [(nc[:, None] - n_a).astype(float)]
-    for v in vals:
-        head = np.zeros((C, J, n + 1))
-        np.cumsum(v, axis=2, out=head[:, :, 1:])
-        tail = np.zeros((C, J, n + 1))               # sums from k to the end
-        np.cumsum(v[:, :, ::-1], axis=2, out=tail[:, :, 1:])
-        tail = tail[:, :, ::-1]
-        A.append(head[cc[:, None], ja[None, :], n_a])
-        B.append(tail[cc[:, None], jb[None, :], n_a])
-    bad = np.flatnonzero(~split.all(1))
-    if bad.size:                                      # not a split: the direct sums
-        m = to_a[bad]
-        for out, mask, j in ((A, m, ja), (B, ~m & oks[bad][:, None, :], jb)):
+    P_ = ja.size
+    A = [np.zeros((C, P_)) for _ in range(6)]
+    B = [np.zeros((C, P_)) for _ in range(6)]
+    # delay factors at the cap tie (A takes both): such assignments are no split
+    capped = ((g >= g_cap) & ok_e[:, None, :]).any(axis=(1, 2))
+    direct = np.flatnonzero(capped)
+    tr = np.flatnonzero(~capped)
+    if tr.size:
+        Ct = tr.size
+        gt, yt, okt = g[tr], yy[tr], ok_e[tr]
+        cc = np.arange(Ct)
+        key = np.where(okt, gt[:, 0, :] - gt[cc, Jc[tr] - 1, :], np.inf)  # padding last
+        order = np.argsort(key, axis=1, kind="stable")
+        gs = np.take_along_axis(gt, order[:, None, :], axis=2)
+        ys = np.take_along_axis(yt, order[:, None, :], axis=2)
+        oks = np.take_along_axis(okt, order, axis=1)
+        gs = np.where(oks[:, None, :], gs, 0.0)
+        ys = np.where(oks[:, None, :], ys, 0.0)
+        to_a = gs[:, ja] <= gs[:, jb]                 # (Ct, P, n) the assignment
+        to_a &= oks[:, None, :]
+        real = jb[None, :] < Jc[tr][:, None]          # (Ct, P)
+        split = (~(to_a[:, :, 1:] & ~to_a[:, :, :-1]).any(2) | ~real).all(1)
+        n_a = to_a.sum(2)                             # A's echoes: the first n_a
+        nc = oks.sum(1)
+        A[0][tr] = n_a
+        B[0][tr] = nc[:, None] - n_a
+        for q, v in enumerate((gs, gs * gs, ys, gs * ys, ys * ys), start=1):
+            head = np.zeros((Ct, J, n + 1))
+            np.cumsum(v, axis=2, out=head[:, :, 1:])
+            tail = np.zeros((Ct, J, n + 1))           # sums from k to the end
+            np.cumsum(v[:, :, ::-1], axis=2, out=tail[:, :, 1:])
+            tail = tail[:, :, ::-1]
+            per_node = v.shape[1] > 1                 # else the readings alone (a pan)
+            A[q][tr] = head[cc[:, None], ja[None, :] if per_node else 0, n_a]
+            B[q][tr] = tail[cc[:, None], jb[None, :] if per_node else 0, n_a]
+        direct = np.concatenate([direct, tr[~split]])
+    if direct.size:                                   # not a split: the direct sums
+        gd, yd, okd = g[direct], yy[direct], ok_e[direct]
+        m = (gd[:, ja] <= gd[:, jb]) & okd[:, None, :]
+        for out, mask, j in ((A, m, ja), (B, ~m & okd[:, None, :], jb)):
             w = mask.astype(float)
-            gg, yv = gs[bad][:, j], ys[bad][:, j]
+            gg, yv = gd[:, j], (yd[:, j] if yd.shape[1] > 1 else yd)
             wg, wy = w * gg, w * yv
-            for q, val in enumerate((mask.sum(2).astype(float), wg.sum(2), (wg * gg).sum(2),
+            for q, val in enumerate((mask.sum(2), wg.sum(2), (wg * gg).sum(2),
                                      wy.sum(2), (wg * yv).sum(2), (wy * yv).sum(2))):
-                out[q][bad] = val
-    return tuple(A), tuple(B)  # type: ignore[return-value]
+                out[q][direct] = val
+    return (A[0], A[1], A[2], A[3], A[4], A[5]), (B[0], B[1], B[2], B[3], B[4], B[5])
 
 
 def _pick_starts(full: Array, grid: _Grid, n_starts: int) -> list[Array]:

@@ -59,6 +59,16 @@ class Landmark:
     def ok(self) -> bool:
         return self.status is FitStatus.OK
 
+    @classmethod
+    def _from_fields(cls, fields: dict[str, object]) -> Landmark:
+        """A landmark from a dict of *all* its fields, as unpickling builds one: the
+        frozen dataclass's ``__init__`` sets the 14 fields one by one through
+        ``object.__setattr__`` (~5-10 us a landmark; the fitter makes thousands per
+        scan). For the fitter's own use; ``fields`` is taken over, not copied."""
+        obj = object.__new__(cls)
+        obj.__dict__.update(fields)
+        return obj
+
     def transformed(self, pose: ArrayLike) -> Landmark:
         """This landmark moved into the parent frame of ``pose`` (x_m, y_m, yaw_rad).
 

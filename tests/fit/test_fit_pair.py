@@ -345,17 +345,21 @@ def test_start_grids_of_many_segments_match_the_per_pair_solves(rng, tier, movin
         assert (int(grid[1][0]), int(grid[2][0])) == (ref[0][1], ref[0][2])
 
 
-def test_grid_sums_fall_back_where_the_assignment_is_not_a_split(rng):
+@pytest.mark.parametrize("g_cap,same_y", [(math.inf, False), (4.0, False), (math.inf, True)])
+def test_grid_sums_fall_back_where_the_assignment_is_not_a_split(rng, g_cap, same_y):
     # a beam whose delay factor is not monotone in the angle (here: made up) does not
-    # split the echoes at one place: those segments get the direct masked sums
-    C, J, n = 3, 6, 9
+    # split the echoes at one place, nor does one with capped factors: those segments
+    # get the direct masked sums; a split one (sorted factors) the cumulative sums
+    C, J, n = 4, 6, 9
     g = rng.uniform(1.0, 5.0, (C, J, n))
-    yy = rng.normal(0.0, 10.0, (C, J, n))
+    g[3] = np.abs(np.arange(J)[:, None] - np.linspace(-0.5, J - 0.5, n)[None, :]) + 1.0
+    yy = rng.normal(0.0, 10.0, (C, 1 if same_y else J, n))
     ok = np.ones((C, n), dtype=bool)
     ok[1, 7:] = False
-    Jc = np.array([6, 5, 6])
+    Jc = np.array([6, 5, 6, 6])
     ja, jb = np.triu_indices(J, k=2)
-    A, B = P._grid_sums(g, yy, ok, Jc, ja, jb)
+    A, B = P._grid_sums(g, yy, ok, Jc, ja, jb, g_cap)
+    yy = np.broadcast_to(yy, g.shape)
     for c in range(C):
         for p, (a, b) in enumerate(zip(ja, jb, strict=True)):
             if b >= Jc[c]:
