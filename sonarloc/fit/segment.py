@@ -50,6 +50,7 @@ from sonarloc.io.scancsv import ScanReadings
 from sonarloc.physics.tof import ModuleParams
 
 _TWO_PI = 2.0 * math.pi
+_LIST_MAX = 4096    # push_many's columns as lists up to this many readings (_floats)
 
 
 def _wrap(a: float) -> float:
@@ -219,16 +220,20 @@ class _RecentIndex:
             for a, b in zip(starts.tolist(), ends.tolist(), strict=True)}
 
 
-def _floats(a: np.ndarray) -> array[float]:
-    """The values of ``a`` (float64) as an ``array.array``: indexed like a list of
-    Python floats (the same values), but one block of memory that the garbage
-    collector does not traverse (lists of a chunk's 65536 floats cost milliseconds at
-    each collection that sees them)."""
+def _floats(a: np.ndarray) -> Sequence[float]:
+    """The values of ``a`` (float64) as Python floats, indexed like a list: a list for a
+    few readings (the fastest to index), an ``array.array`` for more: one block of
+    memory that the garbage collector does not traverse (lists of a chunk's 65536
+    floats cost milliseconds at each collection that sees them)."""
+    if len(a) <= _LIST_MAX:
+        return a.tolist()
     return array("d", np.ascontiguousarray(a, dtype=np.float64).tobytes())
 
 
-def _ints(a: np.ndarray) -> array[int]:
+def _ints(a: np.ndarray) -> Sequence[int]:
     """:func:`_floats` of integers (int64 values; bools as 0 / 1)."""
+    if len(a) <= _LIST_MAX:
+        return np.asarray(a, dtype=np.int64).tolist()
     return array("q", np.ascontiguousarray(a, dtype=np.int64).tobytes())
 
 
