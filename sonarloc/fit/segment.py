@@ -437,9 +437,11 @@ class Segmenter:
         The checks, counters, wrapped axes and ranges of all readings are computed in
         numpy; the per-reading decisions run through the same :meth:`_step` as
         :meth:`push`, except where the outcome is known in advance: readings without an
-        echo while no segment is open change nothing, and a run of echoes from the same
+        echo while no segment is open change nothing, a run of echoes from the same
         spot each matching the previous one extends the only open segment (a panning
-        transducer crossing a landmark) in one go.
+        transducer crossing a landmark) in one go, a run of no-echo readings while one
+        segment is open takes a loop for that segment alone (its misses), and a new
+        segment's lead readings come from numpy tests of the chunk's candidate echoes.
         """
         cols = [np.asarray(a, dtype=float).ravel() for a in (t_s, x_m, y_m, yaw_rad, tof_us)]
         n = len(cols[0])
@@ -657,7 +659,8 @@ class Segmenter:
 
     def _chunk_loop(self, ch: _Chunk, index: np.ndarray) -> list[tuple[int, Segment]]:
         """The per-reading loop of :meth:`_push_chunk`: each reading through
-        :meth:`_step`, skipping what changes nothing and extending chained runs."""
+        :meth:`_step`, skipping what changes nothing, extending chained runs and taking
+        runs of misses of the only open segment through :meth:`_miss_run`."""
         m = ch.m
         chained = self._chain(ch)
         pos = np.arange(m)
