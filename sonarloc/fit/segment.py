@@ -481,11 +481,13 @@ class Segmenter:
                 closed += self._close(s, "swept")
         cy, sy = math.cos(yaw), math.sin(yaw)
         wide = self._tan_miss_wide
+        cheap = wide < math.inf       # the cheap miss pre-test applies
         miss = self._miss
         gone: list[_Open] = []
         if R < math.inf:
             gate = self._gate_m
             beam = self._beam
+            two_beam = 2.0 * beam
             best, best_score = None, math.inf
             covered: list[tuple[_Open, float]] = []   # landmark within the miss width
             for s in opened:
@@ -495,8 +497,7 @@ class Segmenter:
                 mx, my = s.mid
                 dx, dy = mx - x, my - y
                 along = dx * cy + dy * sy
-                if not (wide < math.inf and (along <= 0.0
-                                             or abs(dy * cy - dx * sy) > wide * along)):
+                if not (cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along)):
                     a = math.atan2(dy, dx) - yaw
                     off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
                     if off <= miss:
@@ -511,8 +512,17 @@ class Segmenter:
                     d = abs(R - lR)
                     score = d / gate if d <= gate else math.inf
                 else:
-                    if abs(R - lR) > math.hypot(x - lx, y - ly) + gate + \
-                            1e-9 * (1.0 + lR + R):
+                    d = math.hypot(x - lx, y - ly)
+                    if abs(R - lR) > d + gate + 1e-9 * (1.0 + lR + R):
+                        continue
+                    # no arc point within the new beam: the arc spans +-beam about the
+                    # last axis as seen from its transducer, and from here each point's
+                    # direction differs by at most asin(d / lR) (the triangle's angle at
+                    # the point, acute while d < lR)
+                    a = lyaw - yaw
+                    a = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
+                    if a > two_beam and d <= 0.99 * lR and \
+                            a > two_beam + math.asin(d / lR) + 1e-9:
                         continue
                     arc = s.arc
                     if arc is None:
@@ -568,7 +578,7 @@ class Segmenter:
                 mx, my = s.mid
                 dx, dy = mx - x, my - y
                 along = dx * cy + dy * sy
-                if wide < math.inf and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
+                if cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
                 a = math.atan2(dy, dx) - yaw
                 off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
@@ -737,12 +747,14 @@ class Segmenter:
             closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
         lead: list[_Row] = []
         # earlier readings of this sensor that saw nothing here: no echo, or a farther
-        # echo won (the first crossing would have been this landmark's)
+        # echo won (the first crossing would have been this landmark's); the cheap tests
+        # first, :func:`_wrap` written out
+        farther, max_gap, two_beam = R + self._gate_m, self._max_gap, 2.0 * self._beam
         for r_t, r_yaw, r_range, r_ref in prev:
-            if (t - r_t <= self.config.max_gap_s
-                    and abs(_wrap(r_yaw - yaw)) <= 2.0 * self._beam
-                    and r_range > R + self._gate_m):
-                lead.append(r_ref)
+            if r_range > farther and t - r_t <= max_gap:
+                a = r_yaw - yaw
+                if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) <= two_beam:
+                    lead.append(r_ref)
         s = _Open(self._next_id, lead + [ref], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
         # the reading of this sensor just before: a nearer echo there hid this landmark
         if prev:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -205,6 +206,44 @@ class LogStats:
         return "; ".join(parts)
 
 
+#: The canonical form of the common records (as :class:`LogWriter` writes them), read by
+#: a regular expression instead of the JSON decoder: numbers in JSON's grammar (the same
+#: ``float`` / ``int`` json gives them), sensor ids of at most 18 digits. Any other
+#: line, and any such line with a value the record refuses (e.g. ``1e999``), takes the
+#: general path (the same records, the same messages).
+_NUM = r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][-+]?[0-9]+)?"
+_TOF_LINE = re.compile(
+    r'\{"type":"tof","t_s":(' + _NUM + r'),"sensor":(-?(?:0|[1-9][0-9]{0,17})),'
+    r'"tof_us":(?:(' + _NUM + r')|null)(?:,"pan_deg":(' + _NUM + r'))?\}\n?')
+_POSE_LINE = re.compile(
+    r'\{"type":"(odom|truth)","t_s":(' + _NUM + r'),"x_m":(' + _NUM + r'),"y_m":('
+    + _NUM + r'),"yaw_deg":(' + _NUM + r')\}\n?')
+#: Most tof records in one :class:`TofRun`.
+_RUN_MAX = 4096
+
+
+@dataclass(frozen=True)
+class TofRun:
+    """Consecutive ``tof`` records of a log as columns (:func:`iter_log_runs`).
+
+    ``t_s`` [s], ``sensor``, ``tof_us`` [us] (NaN: no echo; a record's None) and
+    ``pan_deg`` (None where the record has none), one entry per record, in log order.
+    """
+
+    t_s: list[float]
+    sensor: list[int]
+    tof_us: list[float]
+    pan_deg: list[float | None]
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    def records(self) -> list[TofRecord]:
+        """The :class:`TofRecord` s of the run, in order."""
+        return [TofRecord(t, s, None if v != v else v, p) for t, s, v, p in
+                zip(self.t_s, self.sensor, self.tof_us, self.pan_deg, strict=True)]
+
+
 def iter_log(
     source: str | Path | IO[str], stats: LogStats | None = None, strict: bool = False
 ) -> Iterator[Record]:
@@ -212,6 +251,21 @@ def iter_log(
 
     Memory stays flat whatever the length of the log. Problems go to ``stats``
     (or raise :class:`LogFormatError` naming the line when ``strict``).
+    """
+    for item in iter_log_runs(source, stats, strict):
+        if type(item) is TofRun:
+            yield from item.records()
+        else:
+            yield item  # type: ignore[misc]
+
+
+def iter_log_runs(
+    source: str | Path | IO[str], stats: LogStats | None = None, strict: bool = False
+) -> Iterator[Record | TofRun]:
+    """:func:`iter_log` with each run of consecutive ``tof`` records (at most 4096)
+    yielded as one :class:`TofRun` (columns, no record objects): the same records in
+    the same order, the same ``stats`` and errors (a run is yielded before the error of
+    the line after it). For readers of whole logs (the batch replay).
     """
     stats = stats if stats is not None else LogStats()
     if isinstance(source, (str, Path)):
@@ -224,44 +278,98 @@ def iter_log(
         handle, close = source, False
     last_t = -math.inf
     raw_decode = _DECODER.raw_decode
+    tof_line, pose_line = _TOF_LINE.fullmatch, _POSE_LINE.fullmatch
+    nan = math.nan
+    run_t: list[float] = []
+    run_s: list[int] = []
+    run_v: list[float] = []
+    run_p: list[float | None] = []
     try:
         for lineno, line in enumerate(handle, start=1):
-            if not line.strip():
-                continue
-            try:
-                try:  # one object from the line's start to its end: json.loads without
-                    obj, end = raw_decode(line)     # its wrapper (same object)
-                    if end != len(line) and line[end:] != "\n":
-                        obj = json.loads(line)
-                except ValueError:
-                    obj = json.loads(line)  # the same object, or json's own message
-                if not isinstance(obj, dict):
-                    raise ValueError("not a JSON object")
-                rec = record_from_dict(obj)
-            except ValueError as err:  # json.JSONDecodeError is a ValueError
-                msg = str(err).splitlines()[0][:200]
-                if strict:
-                    raise LogFormatError(f"line {lineno}: {msg}") from err
-                stats.malformed_count += 1
-                if len(stats.malformed) < stats.MAX_KEPT:
-                    stats.malformed.append((lineno, msg))
-                continue
+            rec: Record | None = None
+            m = tof_line(line)
+            if m is not None:
+                ts, ss, vs, ps = m.groups()
+                t = float(ts)
+                v = nan if vs is None else float(vs)
+                p = None if ps is None else float(ps)
+                # finite (a huge exponent reads as inf: the general path names it)
+                if t - t == 0.0 and (vs is None or v - v == 0.0) and \
+                        (p is None or p - p == 0.0):
+                    if t < last_t:
+                        if strict and run_t:
+                            stats.records += len(run_t)
+                            yield TofRun(run_t, run_s, run_v, run_p)
+                            run_t, run_s, run_v, run_p = [], [], [], []
+                        _backwards(stats, strict, lineno, last_t, t)
+                    else:
+                        last_t = t
+                    run_t.append(t)
+                    run_s.append(int(ss))
+                    run_v.append(v)
+                    run_p.append(p)
+                    if len(run_t) >= _RUN_MAX:
+                        stats.records += len(run_t)
+                        yield TofRun(run_t, run_s, run_v, run_p)
+                        run_t, run_s, run_v, run_p = [], [], [], []
+                    continue
+            else:
+                m = pose_line(line)
+                if m is not None:
+                    kind, ts, xs, ys, yaws = m.groups()
+                    t, x, y, yaw = float(ts), float(xs), float(ys), float(yaws)
+                    if t - t == 0.0 and x - x == 0.0 and y - y == 0.0 and yaw - yaw == 0.0:
+                        rec = OdomRecord(t, x, y, yaw) if kind == "odom" else \
+                            TruthRecord(t, x, y, yaw)
+            if run_t:
+                stats.records += len(run_t)
+                yield TofRun(run_t, run_s, run_v, run_p)
+                run_t, run_s, run_v, run_p = [], [], [], []
             if rec is None:
-                stats.unknown[str(obj.get("type"))[:40]] += 1
-                continue
+                if not line.strip():
+                    continue
+                try:
+                    try:  # one object from the line's start to its end: json.loads
+                        obj, end = raw_decode(line)   # without its wrapper (same object)
+                        if end != len(line) and line[end:] != "\n":
+                            obj = json.loads(line)
+                    except ValueError:
+                        obj = json.loads(line)  # the same object, or json's own message
+                    if not isinstance(obj, dict):
+                        raise ValueError("not a JSON object")
+                    rec = record_from_dict(obj)
+                except ValueError as err:  # json.JSONDecodeError is a ValueError
+                    msg = str(err).splitlines()[0][:200]
+                    if strict:
+                        raise LogFormatError(f"line {lineno}: {msg}") from err
+                    stats.malformed_count += 1
+                    if len(stats.malformed) < stats.MAX_KEPT:
+                        stats.malformed.append((lineno, msg))
+                    continue
+                if rec is None:
+                    stats.unknown[str(obj.get("type"))[:40]] += 1
+                    continue
             if rec.t_s < last_t:
-                if strict:
-                    raise LogFormatError(f"line {lineno}: time went backwards "
-                                         f"({rec.t_s} after {last_t})")
-                stats.time_backwards_count += 1
-                if len(stats.time_backwards) < stats.MAX_KEPT:
-                    stats.time_backwards.append((lineno, last_t, rec.t_s))
-            last_t = max(last_t, rec.t_s)
+                _backwards(stats, strict, lineno, last_t, rec.t_s)
+            else:
+                last_t = rec.t_s
             stats.records += 1
             yield rec
+        if run_t:
+            stats.records += len(run_t)
+            yield TofRun(run_t, run_s, run_v, run_p)
     finally:
         if close:
             handle.close()
+
+
+def _backwards(stats: LogStats, strict: bool, lineno: int, last_t: float, t: float) -> None:
+    """Report a record at ``t`` after one at ``last_t`` (raise when ``strict``)."""
+    if strict:
+        raise LogFormatError(f"line {lineno}: time went backwards ({t} after {last_t})")
+    stats.time_backwards_count += 1
+    if len(stats.time_backwards) < stats.MAX_KEPT:
+        stats.time_backwards.append((lineno, last_t, t))
 
 
 class LogWriter:

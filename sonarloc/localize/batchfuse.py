@@ -200,7 +200,7 @@ def reduced_update(state: Gaussian, c: Compressed) -> tuple[Gaussian, float] | N
     if res is None:
         return None
     mean, cov, d2 = res
-    return Gaussian(np.array(mean), np.array(cov)), d2
+    return Gaussian.of_lists(mean, cov), d2
 
 
 def reduced_update_lists(mean: list[float], cov: list[list[float]], c: Compressed

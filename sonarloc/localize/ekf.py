@@ -95,6 +95,17 @@ class Gaussian:
         object.__setattr__(self, "cov", cov)
 
     @classmethod
+    def of_lists(cls, mean: Sequence[float], cov: Sequence[Sequence[float]]) -> Gaussian:
+        """A single belief from Python floats: ``mean`` (3,), ``cov`` (3, 3) nested (the
+        float loops of the batch replay); the same as ``Gaussian(np.array(mean),
+        np.array(cov))`` without the shape checks (the lists have those shapes)."""
+        g = object.__new__(cls)
+        g.__dict__["mean"] = np.array(mean, dtype=float)
+        c0, c1, c2 = cov
+        g.__dict__["cov"] = np.array([*c0, *c1, *c2], dtype=float).reshape(3, 3)
+        return g
+
+    @classmethod
     def from_pose(cls, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
                   sd_xy_m: float, sd_yaw_rad: float) -> Gaussian:
         """A prior with independent position (``sd_xy_m`` each axis) and yaw uncertainty."""
@@ -198,7 +209,7 @@ def _predict_one(state: Gaussian, u: Array, noise: OdomNoise) -> Gaussian:
     """:func:`predict` for one filter, in scalar arithmetic (same numbers to rounding,
     less overhead): :func:`predict_lists` on the belief's floats."""
     mean, cov = predict_lists(state.mean.tolist(), state.cov.tolist(), u.tolist(), noise)
-    return Gaussian(np.array(mean), np.array(cov))
+    return Gaussian.of_lists(mean, cov)
 
 
 def predict_lists(mean: Sequence[float], cov: Sequence[Sequence[float]],

@@ -218,6 +218,16 @@ class PoseEstimate:
     status: Status
     reason: str
 
+    @classmethod
+    def _of(cls, t_s: float, state: Gaussian, odom_pose: Array, map_to_odom: Array,
+            status: Status, reason: str) -> PoseEstimate:
+        """The same as the constructor, without the frozen dataclass's per-field
+        ``object.__setattr__`` (the batch replay makes one per odom record)."""
+        est = object.__new__(cls)
+        est.__dict__.update(t_s=t_s, state=state, odom_pose=odom_pose,
+                            map_to_odom=map_to_odom, status=status, reason=reason)
+        return est
+
     @property
     def x_m(self) -> float:
         return float(self.state.mean[0])
@@ -614,7 +624,8 @@ class Localizer:
         noise = self.config.odom_noise
         for tk, pk in zip(t_s, odom, strict=True):
             tk = float(tk)
-            x, y, yaw = (float(v) for v in pk)
+            x, y, yaw = pk
+            x, y, yaw = float(x), float(y), float(yaw)
             if not (math.isfinite(tk) and math.isfinite(x) and math.isfinite(y)
                     and math.isfinite(yaw)):
                 raise ValueError("`t_s` and `odom` must be finite")
@@ -627,7 +638,7 @@ class Localizer:
             mean, cov = ekf.predict_lists(last.state.mean.tolist(), last.state.cov.tolist(), u,
                                           noise)
             self._append(_Entry(tk, np.array([x, y, yaw]),
-                                Gaussian(np.array(mean), np.array(cov))))
+                                Gaussian.of_lists(mean, cov)))
             self._last_odom_t = tk
 
     def trim_history(self) -> None:
@@ -651,7 +662,7 @@ class Localizer:
         cm, sm = math.cos(mth), math.sin(mth)
         yaw = (mth - oth + math.pi) % (2.0 * math.pi) - math.pi
         m2o = np.array([mx + cm * ix - sm * iy, my + sm * ix + cm * iy, yaw])
-        return PoseEstimate(t_s, e.state, e.odom, m2o, status, reason)
+        return PoseEstimate._of(t_s, e.state, e.odom, m2o, status, reason)
 
     def on_tof(self, t_s: float, sensor: int, tof_us: float | None,
                pan_rad: float | None = None) -> None:
@@ -1188,7 +1199,8 @@ class Localizer:
 
     def _status(self, t: float, state: Gaussian) -> tuple[Status, str]:
         c = self.config
-        sd = math.sqrt(max(state.cov[0, 0], state.cov[1, 1], 0.0))
+        cov = state.cov                 # (3, 3): items 0 and 4 are the x and y variances
+        sd = math.sqrt(max(cov.item(0), cov.item(4), 0.0))
         if sd > c.lost_sd_m:
             return "lost", f"position SD {sd:.2f} m exceeds {c.lost_sd_m:g} m"
         if self._consecutive_rejected >= c.lost_after_rejections:

@@ -36,7 +36,7 @@ import numpy as np
 
 from sonarloc import se2
 from sonarloc.fit.result import Landmark
-from sonarloc.io.logfile import OdomRecord, TofRecord
+from sonarloc.io.logfile import OdomRecord, TofRecord, TofRun
 from sonarloc.localize import echoes, ekf
 from sonarloc.localize.batchfuse import (
     FAST_DXY_M,
@@ -143,7 +143,11 @@ class OfflinePipeline:
         self._last_t = -math.inf
         self._new = 0                            # odom records since the last round
         self._rows: list[tuple[float, OdomRecord]] = []  # in the history, not yet handed out
-        self._tof: list[TofRecord] = []          # waiting for odometry at or after them
+        # readings waiting for odometry at or after them, as columns (tof NaN: no echo)
+        self._tof_t: list[float] = []
+        self._tof_sensor: list[int] = []
+        self._tof_us: list[float] = []
+        self._tof_pan: list[float | None] = []
         self._waiting: list[Any] = []            # closed segments waiting for the fitter
         self._landmarks: list[Landmark] = []     # fitted, waiting to be fused
         self._track_t: list[float] = []          # odometry track for the readings' poses
@@ -171,7 +175,26 @@ class OfflinePipeline:
             loc.stats.skipped["unknown_sensor" if loc._mounts else "tof_before_rig"] += 1
             return
         if loc.config.method == "kuc":
-            self._tof.append(rec)
+            self._tof_t.append(rec.t_s)
+            self._tof_sensor.append(rec.sensor)
+            self._tof_us.append(math.nan if rec.tof_us is None else float(rec.tof_us))
+            self._tof_pan.append(rec.pan_deg)
+
+    def tofs(self, run: TofRun) -> None:
+        """A run of tof records (:func:`~sonarloc.io.logfile.iter_log_runs`): :meth:`tof`
+        of each."""
+        loc = self.loc
+        mounts = loc._mounts
+        if not mounts.keys() >= set(run.sensor):
+            for rec in run.records():
+                self.tof(rec)
+            return
+        loc.stats.tof += len(run)
+        if loc.config.method == "kuc":
+            self._tof_t += run.t_s
+            self._tof_sensor += run.sensor
+            self._tof_us += run.tof_us
+            self._tof_pan += run.pan_deg
 
     def finish(self) -> None:
         """End of the records (or a rig/init record follows): fit and fuse everything."""
@@ -208,7 +231,7 @@ class OfflinePipeline:
         # keep the odometry the readings still waiting may need (and one record before)
         if len(self._track_t) < 2:
             return
-        t_min = min((r.t_s for r in self._tof), default=self._track_t[-1])
+        t_min = min(self._tof_t, default=self._track_t[-1])
         if self.fast:  # the readings of segments still to come, inside the history
             t_min = min(t_min, self.loc._times[0] if self.loc._times else -math.inf)
         k = int(np.searchsorted(self._track_t, t_min, side="right")) - 1
@@ -228,41 +251,55 @@ class OfflinePipeline:
             self._waiting = []
 
     def _push_ready(self, t_odom: float, final: bool) -> None:
-        if not self._tof:
+        if not self._tof_t:
             return
         loc = self.loc
-        ready = [r for r in self._tof if r.t_s <= t_odom]
-        self._tof = [r for r in self._tof if r.t_s > t_odom] if not final else []
-        if final and self._tof:
-            loc.stats.skipped["tof_after_last_odom"] += len(self._tof)
-        if not ready:
+        t_all = np.array(self._tof_t)
+        sel = t_all <= t_odom
+        if final or sel.all():
+            ready = np.flatnonzero(sel)
+            cols = (self._tof_sensor, self._tof_us, self._tof_pan)
+            self._tof_t, self._tof_sensor, self._tof_us, self._tof_pan = [], [], [], []
+        else:
+            ready, later = np.flatnonzero(sel), np.flatnonzero(~sel).tolist()
+            cols = (self._tof_sensor, self._tof_us, self._tof_pan)
+            self._tof_t = [self._tof_t[i] for i in later]
+            self._tof_sensor = [self._tof_sensor[i] for i in later]
+            self._tof_us = [self._tof_us[i] for i in later]
+            self._tof_pan = [self._tof_pan[i] for i in later]
+        if not ready.size:
             return
         first_t = loc._times[0] if loc._times else self._odom[0][0] if self._odom \
             else math.inf
-        old = [r for r in ready if r.t_s < first_t]
-        if old:
-            loc.stats.skipped["tof_older_than_history"] += len(old)
-            ready = [r for r in ready if r.t_s >= first_t]
-            if not ready:
+        t = t_all[ready]
+        old = t < first_t
+        if old.any():
+            loc.stats.skipped["tof_older_than_history"] += int(np.count_nonzero(old))
+            ready, t = ready[~old], t[~old]
+            if not ready.size:
                 return
+        sensor_all, tof_all, pan_all = cols
         if self._source is None:
-            n = loc.segment_max_readings(ready[0].pan_deg is not None)
+            panning = pan_all[int(ready[0])] is not None
+            n = loc.segment_max_readings(panning)
             self._source = SegmentFitSource(
                 loc._c_mps, max_readings=n, min_echoes=loc.segment_min_echoes,
-                sweep_away_deg=loc.segment_sweep_away_deg(ready[0].pan_deg is not None))
-        t = np.array([r.t_s for r in ready])
+                sweep_away_deg=loc.segment_sweep_away_deg(panning))
+        sensors = np.array(sensor_all, dtype=np.int64)[ready]
+        tof = np.array(tof_all)[ready]
+        pans = [pan_all[i] for i in ready.tolist()]
+        pan = np.zeros(len(ready)) if all(p is None for p in pans) else \
+            np.array([0.0 if p is None else math.radians(p) for p in pans])
         # odometry pose at each reading: linear between records, yaw the short way round
         base = interpolate_track(np.array(self._track_t), np.array(self._track), t)
         bx, by, bth = base[:, 0], base[:, 1], base[:, 2]
         mounts = loc._mounts
-        m = np.array([mounts[r.sensor] for r in ready])
-        pan = np.array([0.0 if r.pan_deg is None else math.radians(r.pan_deg) for r in ready])
+        ids, inv = np.unique(sensors, return_inverse=True)
+        m = np.array([mounts[i] for i in ids.tolist()])[inv]
         c, s = np.cos(bth), np.sin(bth)
         px = bx + c * m[:, 0] - s * m[:, 1]
         py = by + s * m[:, 0] + c * m[:, 1]
         pth = bth + m[:, 2] + pan
-        tof = np.array([math.nan if r.tof_us is None else float(r.tof_us) for r in ready])
-        sensors = np.array([r.sensor for r in ready], dtype=np.int64)
         closed = self._source.segmenter.push_many(t, px, py, pth, tof, sensors)
         self._waiting += [s for _, s in closed]
 
@@ -459,10 +496,10 @@ class OfflinePipeline:
                     return "reduced"
                 obs = EchoObservation(*_NO_READINGS, math.nan, p.feature, p.t_ref,
                                       loc._c_mps, p.kind, compressed=p.reduced)
-                self._append_fused(p, ekf.Gaussian(np.array(new_mean), np.array(new_cov)),
+                self._append_fused(p, ekf.Gaussian.of_lists(new_mean, new_cov),
                                    obs, p.n_kept)
                 return "reduced"
-        state_ref = ekf.Gaussian(np.array(mean_ref), np.array(cov_ref))
+        state_ref = ekf.Gaussian.of_lists(mean_ref, cov_ref)
         # the per-segment path: associate and update (iterated) at the true belief
         assert p.chain is not None
         found = loc._associate_echoes(p.chain, math.nan, state_ref)

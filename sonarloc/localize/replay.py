@@ -20,13 +20,24 @@ from __future__ import annotations
 import csv
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Literal
 
 from sonarloc.errors import LogFormatError
-from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, TofRecord, iter_log
+from sonarloc.io.logfile import (
+    InitRecord,
+    LogStats,
+    OdomRecord,
+    Record,
+    RigRecord,
+    TofRecord,
+    TofRun,
+    TruthRecord,
+    iter_log,
+    iter_log_runs,
+)
 from sonarloc.io.posescsv import COLUMNS
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import Localizer, LocalizerConfig, PoseEstimate
@@ -115,13 +126,33 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
     t0, c0 = time.perf_counter(), time.process_time()
     first_t, last_t = math.nan, -math.inf
     have_prior = False
-    for rec in iter_log(source, stats):
+    # batch: runs of tof records as columns (no record objects)
+    items: Iterator[Record | TofRun] = iter_log_runs(source, stats) if pipe is not None \
+        else iter_log(source, stats)
+    for rec in items:
+        kind = type(rec)
+        if isinstance(rec, TofRun):
+            assert pipe is not None
+            t_run = max(rec.t_s)
+            if t_run > last_t:
+                last_t = t_run
+            if math.isnan(first_t):
+                first_t = rec.t_s[0]
+            pipe.tofs(rec)
+            continue
         t_s = rec.t_s
         if t_s > last_t:
             last_t = t_s
-        if type(rec) is TofRecord and pipe is not None and not math.isnan(first_t):
-            pipe.tof(rec)   # the most frequent record, first
-            continue
+        if pipe is not None and not math.isnan(first_t):
+            # the frequent records first (batch)
+            if kind is OdomRecord and have_prior:
+                pipe.odom(rec)  # type: ignore[arg-type]
+                continue
+            if kind is TruthRecord:
+                continue
+            if kind is TofRecord:
+                pipe.tof(rec)  # type: ignore[arg-type]
+                continue
         if math.isnan(first_t):
             first_t = t_s
         if isinstance(rec, InitRecord):

@@ -299,3 +299,37 @@ def test_push_and_push_many_mixed_give_identical_segments(pushes, sweep, censor,
         lo, k = hi, k + 1
     got += [(len(pushes), s) for s in seg.flush()]
     _compare(got, seg, want, seg_ref)
+
+
+def test_parallax_at_the_edge_of_the_beams_gives_identical_segments():
+    """A ring transducer beside the one that saw a landmark may cover it although its
+    axis is more than two beam half-widths away (the new transducer sits elsewhere):
+    _step skips the arc test only when the angle exceeds 2 beam + asin(d / lR), d the
+    distance between the transducers. Readings placed on both sides of that bound."""
+    rng = np.random.default_rng(11)
+    seg = fast.Segmenter()
+    beam = seg._beam
+    pushes: list[Push] = []
+    beyond = 0     # new axis more than 2 beams from the last one: parallax needed
+    for k in range(400):
+        t0 = 10.0 * k
+        lyaw = rng.uniform(-math.pi, math.pi)
+        lR = rng.uniform(0.3, 3.0)
+        for j in range(3):   # the first transducer's echoes of a landmark at lR
+            pushes.append((t0 + 0.03 * j, 0.0, 0.0, lyaw,
+                           lR / seg._m_per_us + seg._half_count_us, 0))
+        # a point of the arc, seen from a transducer at distance r along phi, near the
+        # edge of its beam (off), its axis then at phi - off
+        a = rng.uniform(-1.0, 1.0) * beam
+        ax, ay = lR * math.cos(lyaw + a), lR * math.sin(lyaw + a)
+        off = rng.uniform(0.9, 1.02) * beam * rng.choice([-1.0, 1.0])
+        phi = lyaw + a + rng.uniform(-0.6, 0.6)
+        r = rng.uniform(0.3, 1.5) * lR
+        x, y, yaw = ax - r * math.cos(phi), ay - r * math.sin(phi), phi - off
+        d_ang = abs((lyaw - yaw + math.pi) % (2 * math.pi) - math.pi)
+        beyond += d_ang > 2 * beam and abs(off) <= beam
+        R = r + rng.uniform(-0.5, 0.5) * seg._gate_m
+        pushes.append((t0 + 0.09, x, y, yaw, R / seg._m_per_us + seg._half_count_us, 1))
+    assert beyond > 20
+    n = _assert_same(pushes, {"min_echoes": 3})
+    assert n > 300

@@ -20,7 +20,15 @@ from io_strategies import odom_records, tof_records
 
 from sonarloc.errors import LogFormatError
 from sonarloc.io import logfile
-from sonarloc.io.logfile import LogStats, LogWriter, TruthRecord, iter_log, record_from_dict
+from sonarloc.io.logfile import (
+    LogStats,
+    LogWriter,
+    TofRun,
+    TruthRecord,
+    iter_log,
+    iter_log_runs,
+    record_from_dict,
+)
 
 
 def reference_iter(text: str, stats: LogStats, strict: bool = False) -> list:
@@ -59,21 +67,43 @@ def reference_iter(text: str, stats: LogStats, strict: bool = False) -> list:
     return out
 
 
+def _runs_expanded(text: str, stats: LogStats, strict: bool = False,
+                   seen: list | None = None) -> list:
+    """iter_log_runs' items with every run as its records (``seen``: the records
+    received before an error)."""
+    out = [] if seen is None else seen
+    for item in iter_log_runs(io.StringIO(text), stats, strict):
+        if isinstance(item, TofRun):
+            assert 0 < len(item) <= logfile._RUN_MAX
+            out += item.records()
+        else:
+            out.append(item)
+    return out
+
+
 def _same(text: str) -> None:
-    got_stats, want_stats = LogStats(), LogStats()
-    got = list(iter_log(io.StringIO(text), got_stats))
+    want_stats = LogStats()
     want = reference_iter(text, want_stats)
-    assert repr(got) == repr(want)           # repr: NaN fields compare too
-    assert vars(got_stats) == vars(want_stats)
-    errs = []
+    for reader in (lambda s: list(iter_log(io.StringIO(text), s)),
+                   lambda s: _runs_expanded(text, s)):
+        got_stats = LogStats()
+        got = reader(got_stats)
+        assert repr(got) == repr(want)           # repr: NaN fields compare too
+        assert vars(got_stats) == vars(want_stats)
+    errs, before = [], []
     for fn in (lambda: list(iter_log(io.StringIO(text), strict=True)),
+               lambda: _runs_expanded(text, LogStats(), True, before),
                lambda: reference_iter(text, LogStats(), strict=True)):
         try:
             fn()
             errs.append(None)
         except LogFormatError as err:
             errs.append(str(err))
-    assert errs[0] == errs[1]
+    assert errs[0] == errs[1] == errs[2]
+    if errs[2] is not None:   # the records before the bad line all came out first
+        line = int(errs[2].split(":")[0].split()[1])
+        assert repr(before) == repr(reference_iter(
+            "".join(io.StringIO(text).readlines()[:line - 1]), LogStats()))
 
 
 _VALUES = st.one_of(
@@ -107,6 +137,18 @@ def _lines(draw) -> str:
         lambda s: s.replace("1.0", "NaN"), lambda s: s.replace("0.0", "-Infinity"),
         lambda s: s.replace(":", "", 1), lambda s: "{}", lambda s: s + "{}",
     ]))
+    if draw(st.booleans()):   # the canonical tof form (iter_log_runs' regular expression)
+        base = draw(st.sampled_from([
+            '{"type":"tof","t_s":1.5,"sensor":3,"tof_us":9000.0}',
+            '{"type":"tof","t_s":0.5,"sensor":-0,"tof_us":null,"pan_deg":-12.5}',
+            '{"type":"tof","t_s":2,"sensor":12345678901234567890,"tof_us":1}',
+            '{"type":"tof","t_s":1e-3,"sensor":0,"tof_us":null,"pan_deg":null}']))
+        damage = draw(st.sampled_from([
+            lambda s: s, lambda s: s.replace("1.5", "1e999"), lambda s: s.replace("0.5", "-0.5"),
+            lambda s: s.replace("9000.0", "9e999"), lambda s: s.replace("12.5", "1E400"),
+            lambda s: s.replace("3", "03"), lambda s: s.replace("3", "true"),
+            lambda s: s.replace("0,", "0.0,"), lambda s: s.replace('"tof_us"', '"tof"'),
+            lambda s: s[:-1] + ',"x":1}', lambda s: s.replace("}", "}}")]))
     return damage(base) + draw(st.sampled_from(["\n", "\r\n", ""]))
 
 
@@ -115,6 +157,32 @@ def _lines(draw) -> str:
 def test_reader_sees_what_the_reference_sees(lines):
     # a line without its newline joins the next one, as in a real file
     _same("".join(lines))
+
+
+def test_runs_are_bounded_and_split_by_other_records():
+    buf = io.StringIO()
+    w = LogWriter(buf)
+    n = logfile._RUN_MAX + 10
+    for i in range(n):
+        w.write(logfile.TofRecord(0.001 * i, i % 16, None if i % 3 else 5000.0 + i))
+    w.write(logfile.OdomRecord(n * 0.001, 0.0, 0.0, 0.0))
+    w.write(logfile.TofRecord(n * 0.001, 2, 7000.0, 15.0))
+    stats = LogStats()
+    items = list(iter_log_runs(io.StringIO(buf.getvalue()), stats))
+    assert [type(i).__name__ for i in items] == ["TofRun", "TofRun", "OdomRecord", "TofRun"]
+    assert [len(i) for i in items if isinstance(i, TofRun)] == [logfile._RUN_MAX, 10, 1]
+    assert items[-1].records() == [logfile.TofRecord(n * 0.001, 2, 7000.0, 15.0)]
+    assert stats.records == n + 2
+
+
+def test_strict_errors_come_after_the_records_before_them():
+    tof = '{"type":"tof","t_s":%s,"sensor":1,"tof_us":null}\n'
+    odom = '{"type":"odom","t_s":%s,"x_m":0.0,"y_m":0.0,"yaw_deg":0.0}\n'
+    for text in [tof % 1.0 + tof % 2.0 + tof % 1.5,            # backwards inside a run
+                 tof % 1.0 + tof % 2.0 + odom % 1.5,           # after a run
+                 tof % 1.0 + tof % 2.0 + "{x\n",                # malformed after a run
+                 odom % 1.0 + tof % 2.0 + tof % 1e999]:         # not finite
+        _same(text)
 
 
 def test_record_from_dict_fast_path_equals_checked_path():

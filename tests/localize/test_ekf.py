@@ -247,3 +247,12 @@ def test_single_filter_predict_matches_batched(rng):
         batch = ekf.predict(Gaussian(g.mean[None], g.cov[None]), u[None], noise)
         assert np.allclose(one.mean, batch.mean[0], atol=1e-14, rtol=0)
         assert np.allclose(one.cov, batch.cov[0], atol=1e-16, rtol=1e-12)
+
+
+def test_gaussian_of_lists_equals_the_checked_constructor():
+    mean, cov = [1.0, -2.5, 0.3], [[0.1, 0.01, 0.0], [0.01, 0.2, -0.02], [0.0, -0.02, 0.05]]
+    g, h = ekf.Gaussian.of_lists(mean, cov), ekf.Gaussian(np.array(mean), np.array(cov))
+    assert np.array_equal(g.mean, h.mean) and np.array_equal(g.cov, h.cov)
+    assert g.mean.dtype == g.cov.dtype == np.float64 and g.cov.shape == (3, 3)
+    assert np.array_equal(ekf.predict(g, np.array([0.1, 0.0, 0.01])).cov,
+                          ekf.predict(h, np.array([0.1, 0.0, 0.01])).cov)

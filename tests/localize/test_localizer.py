@@ -209,3 +209,15 @@ def test_segment_fit_source_reports_every_fit_with_its_segment():
         echo = np.isfinite(seg.readings.tof_us)
         assert lm.extra["view_xy"] == pytest.approx(
             (np.mean(seg.readings.x_m[echo]), np.mean(seg.readings.y_m[echo])))
+
+
+def test_pose_estimate_of_equals_the_constructor():
+    from sonarloc.localize.localizer import PoseEstimate
+    g = ekf.Gaussian.of_lists([1.0, 2.0, 0.5], [[0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.01]])
+    args = (3.5, g, np.array([0.1, 0.2, 0.3]), np.array([1.0, 1.5, 0.2]), "tracking", "ok")
+    a, b = PoseEstimate._of(*args), PoseEstimate(*args)
+    assert vars(a).keys() == vars(b).keys()
+    assert all(x is y for x, y in zip(vars(a).values(), vars(b).values(), strict=True))
+    assert a.x_m == b.x_m == 1.0
+    with pytest.raises(AttributeError):
+        a.t_s = 1.0   # type: ignore[misc]

@@ -209,3 +209,43 @@ def test_any_record_sequence_is_survived(fmap, records):
         assert np.all(np.isfinite(est.state.mean))
         assert bool(est.state.is_spd())
         assert est.status in ("tracking", "dead_reckoning", "lost")
+
+
+def test_tof_runs_equal_tof_records(ring_log, fmap):
+    """replay_log hands the pipeline runs of tof records as columns
+    (iter_log_runs, OfflinePipeline.tofs): the same rows and counters as handing it each
+    tof record (OfflinePipeline.tof), unknown sensors and time going backwards
+    included."""
+    lines = ring_log.splitlines(keepends=True)
+    odd = []
+    for i, line in enumerate(lines):
+        odd.append(line)
+        if i % 97 == 50 and '"type":"tof"' in line:   # an unknown sensor, a late reading
+            odd.append(line.replace('"sensor":', '"sensor":4', 1))
+            t = float(line.split('"t_s":')[1].split(",")[0])
+            odd.append(line.replace(f'"t_s":{t!r}', f'"t_s":{t - 0.3!r}', 1))
+    text = "".join(odd)
+
+    def by_records():
+        loc = Localizer(fmap)
+        rows = []
+        pipe = OfflinePipeline(loc, lambda r, e: rows.append((r.t_s, e.state.mean.tolist(),
+                                                              e.state.cov.tolist())))
+        for rec in iter_log(io.StringIO(text)):
+            if isinstance(rec, OdomRecord):
+                pipe.odom(rec)
+            elif isinstance(rec, TofRecord):
+                pipe.tof(rec)
+            elif isinstance(rec, (RigRecord, InitRecord)):
+                pipe.finish()
+                loc.handle(rec)
+        pipe.finish()
+        return rows, loc.stats
+
+    rows_rec, stats_rec = by_records()
+    rows = []
+    res = replay_log(io.StringIO(text), fmap, on_estimate=lambda r, e: rows.append(
+        (r.t_s, e.state.mean.tolist(), e.state.cov.tolist())))
+    assert stats_rec.skipped["unknown_sensor"] > 0 and res.log.time_backwards_count > 0
+    assert rows == rows_rec
+    assert repr(res.localizer.stats) == repr(stats_rec)
