@@ -744,9 +744,9 @@ class Segmenter:
         bit k (1 ...) set if its k-th earlier reading is a lead row, bit 0 if the one
         just before hid it (``occluded_lead``). -1 elsewhere. The tests of _start, in
         the same float operations, so exactly its outcome. None if no echo
-        qualifies, or for few readings (little to gain)."""
+        qualifies, or for a short chunk (its numpy calls cost more than they save)."""
         want = self._censor - 1
-        if not 1 <= want <= 60 or ch.m < 64:
+        if not 1 <= want <= 60 or ch.m < 1024:
             return None
         c = np.flatnonzero(cand & ch.echo & (recent.rank_np >= want))
         if not len(c):
