@@ -1319,13 +1319,7 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             Ha[:, :, 2] *= kap[:, None]
             diag = np.maximum(np.einsum("bkk->bk", Ha), 1e-12)
             A = Ha + (lam[act, None] * diag)[:, :, None] * np.eye(3)[None]
-            delta = _solve3(A, -ga) if cfg.float32 else None
-            if delta is None:
-                try:
-                    delta = np.linalg.solve(A, -ga[..., None])[..., 0]
-                except np.linalg.LinAlgError:
-                    delta = np.stack([np.linalg.lstsq(A[b], -ga[b], rcond=None)[0]
-                                      for b in range(act.size)])
+            delta = _solve3(A, -ga) if cfg.float32 else _solve_pivoted(A, -ga)
             delta = np.where(np.isfinite(delta), delta, 0.0)
             # converged where the expected decrease (Newton decrement) is negligible
             done[act[-np.einsum("bk,bk->b", ga, delta) < tol]] = True
@@ -1521,18 +1515,37 @@ def _cofactors3(A: Array) -> tuple[tuple[Array, ...], Array, Array]:
     return (c00, c01, c02, c11, c12, c22), det, a00 + a11 + a22
 
 
-def _solve3(A: Array, b: Array) -> Array | None:
+def _solve3(A: Array, b: Array) -> Array:
     """Solutions x (B, 3) of symmetric 3x3 systems A x = b by cofactors (vectorised;
-    LAPACK's batched solve costs ~1 us per system), or None if any system is
-    ill-conditioned (smallest eigenvalue below 1e-10 of the largest, from
-    det / trace^3: the caller then solves with pivoting)."""
+    LAPACK's batched solve costs ~1 us per system); the ill-conditioned ones (smallest
+    eigenvalue below 1e-10 of the largest, from det / trace^3) with pivoting
+    (:func:`_solve_pivoted`). Each row's solution depends on its own system only."""
     (c00, c01, c02, c11, c12, c22), det, tr = _cofactors3(A)
-    if not np.all((det > 1e-10 * tr ** 3) & (tr > 0)):
-        return None
+    good = (det > 1e-10 * tr ** 3) & (tr > 0)
     b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
     x = np.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2,
                   c02 * b0 + c12 * b1 + c22 * b2], axis=-1)
-    x /= det[:, None]
+    x /= np.where(good, det, 1.0)[:, None]
+    bad = np.flatnonzero(~good)
+    if bad.size:
+        x[bad] = _solve_pivoted(A[bad], b[bad])
+    return x
+
+
+def _solve_pivoted(A: Array, b: Array) -> Array:
+    """Solutions x (B, k) of systems A (B, k, k) x = b (B, k) by LAPACK's pivoted LU;
+    the singular ones by least squares, row by row, so a singular system leaves the
+    others' solutions as they are."""
+    try:
+        return np.asarray(np.linalg.solve(A, b[..., None])[..., 0], dtype=float)
+    except np.linalg.LinAlgError:
+        pass
+    x = np.empty(b.shape)
+    for i in range(b.shape[0]):
+        try:
+            x[i] = np.linalg.solve(A[i], b[i])
+        except np.linalg.LinAlgError:
+            x[i] = np.linalg.lstsq(A[i], b[i], rcond=None)[0]
     return x
 
 

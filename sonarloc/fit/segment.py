@@ -38,6 +38,7 @@ where a decision is open.
 from __future__ import annotations
 
 import math
+from array import array
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -49,6 +50,7 @@ from sonarloc.io.scancsv import ScanReadings
 from sonarloc.physics.tof import ModuleParams
 
 _TWO_PI = 2.0 * math.pi
+_LIST_MAX = 4096    # push_many's columns as lists up to this many readings (_floats)
 
 
 def _wrap(a: float) -> float:
@@ -194,19 +196,45 @@ class _RecentIndex:
     def __init__(self, sensor: np.ndarray) -> None:
         self.rank: Sequence[int]
         self.by_sensor: dict[int, Sequence[int]]
+        # numpy forms: rank, and the k-th earlier reading of the same sensor of reading
+        # i is ``order[place[i] - k]`` (None for one sensor: it is i - k)
+        self.rank_np: np.ndarray
+        self.order: np.ndarray | None = None
+        self.place: np.ndarray | None = None
         if sensor[0] == sensor[-1] and not (sensor != sensor[0]).any():   # one sensor
             self.rank = range(len(sensor))
             self.by_sensor = {int(sensor[0]): self.rank}
+            self.rank_np = np.arange(len(sensor))
             return
         order = np.argsort(sensor, kind="stable")
         starts = np.flatnonzero(np.r_[True, sensor[order][1:] != sensor[order][:-1]])
         ends = np.r_[starts[1:], len(order)]
         rank = np.empty(len(order), dtype=np.int64)
         rank[order] = np.arange(len(order)) - np.repeat(starts, ends - starts)
-        self.rank = rank.tolist()
+        self.rank = _ints(rank)
+        self.rank_np, self.order = rank, order
+        self.place = np.empty(len(order), dtype=np.int64)
+        self.place[order] = np.arange(len(order))
         self.by_sensor = {
-            int(sensor[order[a]]): order[a:b].tolist()
+            int(sensor[order[a]]): _ints(order[a:b])
             for a, b in zip(starts.tolist(), ends.tolist(), strict=True)}
+
+
+def _floats(a: np.ndarray) -> Sequence[float]:
+    """The values of ``a`` (float64) as Python floats, indexed like a list: a list for a
+    few readings (the fastest to index), an ``array.array`` for more: one block of
+    memory that the garbage collector does not traverse (lists of a chunk's 65536
+    floats cost milliseconds at each collection that sees them)."""
+    if len(a) <= _LIST_MAX:
+        return a.tolist()
+    return array("d", np.ascontiguousarray(a, dtype=np.float64).tobytes())
+
+
+def _ints(a: np.ndarray) -> Sequence[int]:
+    """:func:`_floats` of integers (int64 values; bools as 0 / 1)."""
+    if len(a) <= _LIST_MAX:
+        return np.asarray(a, dtype=np.int64).tolist()
+    return array("q", np.ascontiguousarray(a, dtype=np.int64).tobytes())
 
 
 def _mids(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, R: np.ndarray
@@ -230,8 +258,8 @@ class _Chunk:
         self.echo = R < np.inf
         self.cols = np.stack([t, x, y, yaw, tof])          # (5, m)
         self.tl, self.xl, self.yl, self.yawl, self.tofl, self.Rl = (
-            a.tolist() for a in (t, x, y, yaw, tof, R))
-        self.sl: list[int] = sensor.tolist()
+            _floats(a) for a in (t, x, y, yaw, tof, R))
+        self.sl = _ints(sensor)
         self.at = 0      # the reading being handled
         self.closed: list[tuple[int, _Open, str]] = []    # (at, segment, closed_by)
 
@@ -409,9 +437,11 @@ class Segmenter:
         The checks, counters, wrapped axes and ranges of all readings are computed in
         numpy; the per-reading decisions run through the same :meth:`_step` as
         :meth:`push`, except where the outcome is known in advance: readings without an
-        echo while no segment is open change nothing, and a run of echoes from the same
+        echo while no segment is open change nothing, a run of echoes from the same
         spot each matching the previous one extends the only open segment (a panning
-        transducer crossing a landmark) in one go.
+        transducer crossing a landmark) in one go, a run of no-echo readings while one
+        segment is open takes a loop for that segment alone (its misses), and a new
+        segment's lead readings come from numpy tests of the chunk's candidate echoes.
         """
         cols = [np.asarray(a, dtype=float).ravel() for a in (t_s, x_m, y_m, yaw_rad, tof_us)]
         n = len(cols[0])
@@ -629,31 +659,62 @@ class Segmenter:
 
     def _chunk_loop(self, ch: _Chunk, index: np.ndarray) -> list[tuple[int, Segment]]:
         """The per-reading loop of :meth:`_push_chunk`: each reading through
-        :meth:`_step`, skipping what changes nothing and extending chained runs."""
+        :meth:`_step`, skipping what changes nothing, extending chained runs and taking
+        runs of misses of the only open segment through :meth:`_miss_run`."""
         m = ch.m
         chained = self._chain(ch)
         pos = np.arange(m)
         # the next echo at or after each reading, and the end of each chained run
-        next_echo = np.minimum.accumulate(np.where(ch.echo, pos, m)[::-1])[::-1].tolist()
-        run_end = np.minimum.accumulate(np.where(chained, m, pos)[::-1])[::-1].tolist()
-        chain = chained.tolist()
+        next_echo = _ints(np.minimum.accumulate(np.where(ch.echo, pos, m)[::-1])[::-1])
+        run_end = _ints(np.minimum.accumulate(np.where(chained, m, pos)[::-1])[::-1])
+        chain = _ints(chained)
         tl, xl, yl, yawl, tofl, sl, Rl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.tofl, ch.sl, ch.Rl
         recent = _RecentIndex(ch.sensor) if self._censor else None
+        # _start's lead rows and occluded_lead, worked out in advance for the echoes
+        # that may open a segment (bits; -1: not worked out, _start's own loop does it)
+        bits = self._lead_bits(ch, recent, ~chained) if recent is not None else None
+        lags: dict[int, tuple[int, ...]] = {}
+        one = recent is not None and recent.order is None
+        want = self._censor - 1
         opened = self._open
         step = self._step
         max_readings = self._max_readings
+        miss_run = self._miss_run
         i = 0
         while i < m:
             R = Rl[i]
-            if not opened and not R < math.inf:
-                i = next_echo[i]       # no echo and nothing open: nothing to do
-                continue
+            if not R < math.inf:
+                if not opened:
+                    i = next_echo[i]       # no echo and nothing open: nothing to do
+                    continue
+                if len(opened) == 1:       # misses of the only open segment
+                    i = miss_run(ch, i, next_echo[i])
+                    continue
             row = (tl[i], xl[i], yl[i], yawl[i], tofl[i], sl[i])
             ch.at = i        # segments closed now go to ch.closed
-            _, took = step(row, R, i)
+            if opened:
+                _, took = step(row, R, i)
+            else:
+                # an echo with nothing open: _step would change nothing (no segment to
+                # close, miss or extend), so it opens one; the earliest last echo is its
+                took = None
+                self._oldest_last = math.inf
             if took is None and R < math.inf:
-                prev = self._recent_rows(ch, recent, i) if recent is not None else []
-                self._start(row, R, prev, i)
+                b = bits[i] if bits is not None else -1
+                if b >= 0:
+                    ks = lags.get(b)
+                    if ks is None:   # the lags of its lead rows, oldest first
+                        ks = lags[b] = tuple(k for k in range(want, 0, -1) if b >> k & 1)
+                    if one:
+                        lead: list[_Row] = [~i + k for k in ks]     # ~(i - k)
+                    else:
+                        assert recent is not None
+                        mine, r = recent.by_sensor[sl[i]], recent.rank[i]
+                        lead = [~mine[r - k] for k in ks]
+                    self._open_new(row, R, lead, b & 1 == 1, i)
+                else:
+                    prev = self._recent_rows(ch, recent, i) if recent is not None else []
+                    self._start(row, R, prev, i)
             i += 1
             # a run of echoes, each matching the one before from the same spot, extends
             # the only open segment (whose last echo is the reading just handled)
@@ -675,6 +736,79 @@ class Segmenter:
         if recent is not None:
             self._remember_chunk(ch, recent)
         return ch.segments(index)
+
+    def _lead_bits(self, ch: _Chunk, recent: _RecentIndex, cand: np.ndarray
+                   ) -> Sequence[int] | None:
+        """What :meth:`_start` would find in its ``prev`` for each echo at ``cand`` ((m,)
+        bool) whose sensor has ``censor_window - 1`` readings before it in the chunk:
+        bit k (1 ...) set if its k-th earlier reading is a lead row, bit 0 if the one
+        just before hid it (``occluded_lead``). -1 elsewhere. The tests of _start, in
+        the same float operations, so exactly its outcome. None if no echo
+        qualifies, or for a short chunk (its numpy calls cost more than they save)."""
+        want = self._censor - 1
+        if not 1 <= want <= 60 or ch.m < 1024:
+            return None
+        c = np.flatnonzero(cand & ch.echo & (recent.rank_np >= want))
+        if not len(c):
+            return None
+        t, yaw, R = ch.t, ch.yaw, ch.R
+        tc, yawc, Rc = t[c], yaw[c], R[c]
+        farther, nearer = Rc + self._gate_m, Rc - self._gate_m
+        max_gap, two_beam = self.config.max_gap_s, 2.0 * self._beam
+        b = np.zeros(len(c), dtype=np.int64)
+        for k in range(1, want + 1):
+            j = c - k if recent.order is None or recent.place is None else \
+                recent.order[recent.place[c] - k]
+            near = (tc - t[j] <= max_gap) & (np.abs(_wrap_array(yaw[j] - yawc)) <= two_beam)
+            b |= (near & (R[j] > farther)).astype(np.int64) << k
+            if k == 1:
+                b |= near & (R[j] < nearer)
+        bits = np.full(ch.m, -1, dtype=np.int64)
+        bits[c] = b
+        return _ints(bits)
+
+    def _miss_run(self, ch: _Chunk, i: int, e: int) -> int:
+        """:meth:`_step` of the no-echo readings ``i`` to ``e - 1`` of the chunk while
+        exactly one segment is open (a transducer turning or moving away from the
+        landmark it last saw): the same closes, misses and censoring, for one segment,
+        in the same float operations. Stops where the segment closes (the rest of the
+        run then changes nothing). Returns the next reading to handle (``e``)."""
+        s = self._open[0]
+        tl, xl, yl, yawl, sl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.sl
+        last_t = s.last[0]
+        mx, my = s.mid
+        sensors = s.sensors
+        max_gap, away, miss = self._max_gap, self._away, self._miss
+        censor, lim, miss_angle = self._censor, self.config.miss_limit, self._miss_angle
+        atan2, floor, pi = math.atan2, math.floor, math.pi
+        for j in range(i, e):
+            t = tl[j]
+            if t - self._oldest_last > max_gap:    # the gap test of _step
+                if t - last_t > max_gap:
+                    ch.at = j
+                    self._close(s, "gap")
+                    self._oldest_last = math.inf
+                    return e
+                self._oldest_last = last_t
+            yaw, sensor = yawl[j], sl[j]
+            # the off-axis angle of _off_axis (the swept test) and of the miss test (whose
+            # cheap pre-test only skips landmarks beyond the miss width: not needed here)
+            a = atan2(my - yl[j], mx - xl[j]) - yaw
+            off = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
+            if off > away and sensor in sensors:
+                ch.at = j
+                self._close(s, "swept")
+                return e
+            if off <= miss:
+                if sensor in sensors and s.trailing < censor:
+                    s.rows.append(j)
+                    s.trailing += 1
+                s.misses += 1
+                if (s.misses >= lim and off >= miss_angle) or s.misses >= 4 * lim:
+                    ch.at = j
+                    self._close(s, "misses")
+                    return e
+        return e
 
     def _chain(self, ch: _Chunk) -> np.ndarray:
         """(m,) bool: reading i is an echo that :meth:`_step` surely adds to a segment
@@ -715,12 +849,6 @@ class Segmenter:
         _, lx, ly, lyaw, lR, _ = s.last
         return [(lx + lR * math.cos(lyaw + a), ly + lR * math.sin(lyaw + a)) for a in self._arc]
 
-    @staticmethod
-    def _mid_point(s: _Open) -> tuple[float, float]:
-        """The middle of :meth:`_arc_points` (the landmark on the last echo's beam axis)."""
-        _, lx, ly, lyaw, lR, _ = s.last
-        return lx + lR * math.cos(lyaw + 0.0), ly + lR * math.sin(lyaw + 0.0)
-
     def _off_axis(self, s: _Open, x: float, y: float, yaw: float) -> float:
         """Off-axis angle [rad] of ``s``'s last seen landmark for a reading at (x, y, yaw)."""
         px, py = s.mid   # the arc's middle point: the beam axis of the last echo
@@ -741,10 +869,7 @@ class Segmenter:
         oldest first, as (t, yaw, range (inf: no echo), the segment's row for it without
         its echo); at most ``censor_window - 1`` of them (the sensor's recent readings
         with this one)."""
-        t, x, y, yaw, _, sensor = row
-        closed: list[Segment] = []
-        if len(self._open) >= self.config.max_open:
-            closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
+        t, _, _, yaw, _, _ = row
         lead: list[_Row] = []
         # earlier readings of this sensor that saw nothing here: no echo, or a farther
         # echo won (the first crossing would have been this landmark's); the cheap tests
@@ -755,14 +880,29 @@ class Segmenter:
                 a = r_yaw - yaw
                 if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) <= two_beam:
                     lead.append(r_ref)
-        s = _Open(self._next_id, lead + [ref], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
         # the reading of this sensor just before: a nearer echo there hid this landmark
+        occluded = False
         if prev:
             r_t, r_yaw, r_range, _ = prev[-1]
-            s.occluded_lead = (t - r_t <= self.config.max_gap_s
-                               and abs(_wrap(r_yaw - yaw)) <= 2.0 * self._beam
-                               and r_range < R - self._gate_m)
-        s.mid = self._mid_point(s)
+            occluded = (t - r_t <= self.config.max_gap_s
+                        and abs(_wrap(r_yaw - yaw)) <= 2.0 * self._beam
+                        and r_range < R - self._gate_m)
+        return self._open_new(row, R, lead, occluded, ref)
+
+    def _open_new(self, row: tuple[float, float, float, float, float, int], R: float,
+                  lead: list[_Row], occluded: bool, ref: _Row) -> list[Segment]:
+        """The rest of :meth:`_start`, given the lead rows (``lead``, appended to) and
+        ``occluded_lead``: closes the oldest segment if ``max_open`` are open, opens
+        this one."""
+        t, x, y, yaw, _, sensor = row
+        closed: list[Segment] = []
+        if len(self._open) >= self.config.max_open:
+            closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
+        lead.append(ref)
+        # its mid: the middle of :meth:`_arc_points` (the landmark on the echo's axis)
+        s = _Open(self._next_id, lead, 1, (t, x, y, yaw, R, sensor), sensors={sensor},
+                  mid=(x + R * math.cos(yaw + 0.0), y + R * math.sin(yaw + 0.0)),
+                  occluded_lead=occluded)
         self._next_id += 1
         self._open.append(s)
         self._oldest_last = min(self._oldest_last, t)

@@ -247,6 +247,31 @@ def test_covariance_inverts_fisher_and_survives_singular(rng):
     assert np.all(np.linalg.eigvalsh(C[:3]) > 0)
 
 
+def test_step_solves_of_a_row_depend_on_its_own_system_only(rng):
+    # an ill-conditioned or singular system in the batch must not switch the others'
+    # solves (it once sent the whole batch to LAPACK, so an unconverged fit moved with
+    # the segments it happened to share a batch with)
+    from sonarloc.fit.lsq import _solve3, _solve_pivoted
+
+    A = rng.normal(size=(40, 3, 3))
+    A = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3)
+    b = rng.normal(size=(40, 3))
+    alone3, alone_p = _solve3(A, b), _solve_pivoted(A, b)
+    np.testing.assert_allclose(np.einsum("bij,bj->bi", A, alone3), b, atol=1e-9)
+    bad = A.copy()
+    bad[7] = np.diag([1.0, 1e-13, 1.0])                       # ill-conditioned
+    bad[20] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])       # singular
+    mixed3, mixed_p = _solve3(bad, b), _solve_pivoted(bad, b)
+    others = np.setdiff1d(np.arange(40), [7, 20])
+    assert np.array_equal(mixed3[others], alone3[others])     # to the last bit
+    assert np.array_equal(mixed_p[others], alone_p[others])
+    for x in (mixed3, mixed_p):
+        assert np.all(np.isfinite(x))
+        np.testing.assert_allclose(x[7], b[7] / np.array([1.0, 1e-13, 1.0]), rtol=1e-6)
+        v = np.array([1.0, 2.0, 3.0])                         # least squares: along v
+        np.testing.assert_allclose(x[20], v * (v @ b[20]) / (v @ v) ** 2, rtol=1e-9)
+
+
 def test_batch_and_fast_presets(rng):
     # batch: the default's answer (to a fraction of an SD); fast: one guarded step from
     # a coarse grid, coarser but sound (no divergence, sub-degree bearings)
