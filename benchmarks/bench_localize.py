@@ -417,7 +417,7 @@ def batch_soak(text: str, fmap: FeatureMap, hours: float, every_s: float
 
     def buffered() -> int:
         seg = pipe._source.segmenter.open_segments if pipe._source is not None else 0
-        return (len(pipe._odom) + len(pipe._rows) + len(pipe._tof) + len(pipe._waiting)
+        return (len(pipe._odom) + len(pipe._rows) + len(pipe._tof_t) + len(pipe._waiting)
                 + len(pipe._landmarks) + len(pipe._segs) + len(pipe._track_t) + seg)
 
     samples: list[tuple[float, float, int, int]] = []
