@@ -997,10 +997,14 @@ class Localizer:
         return FusionOutcome(t_ref, assoc, True, "fused")
 
     def finish(self) -> list[FusionOutcome]:
-        """End of stream: fuse what the fitter still holds."""
+        """End of stream: fuse what the fitter still holds (readings later than the last
+        odometry are counted in ``stats.skipped["tof_after_last_odom"]``)."""
         out: list[FusionOutcome] = []
         if self._entries:
             self._drain_pending(self._last_odom_t)
+        if self._pending:
+            self.stats.skipped["tof_after_last_odom"] += len(self._pending)
+            self._pending.clear()
         if self._source is not None:
             for lm in self._source.flush():
                 out.append(self.add_landmark(lm))

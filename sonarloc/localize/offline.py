@@ -258,6 +258,8 @@ class OfflinePipeline:
         sel = t_all <= t_odom
         if final or sel.all():
             ready = np.flatnonzero(sel)
+            if ready.size < t_all.size:     # final: no odometry reaches these readings
+                loc.stats.skipped["tof_after_last_odom"] += int(t_all.size - ready.size)
             cols = (self._tof_sensor, self._tof_us, self._tof_pan)
             self._tof_t, self._tof_sensor, self._tof_us, self._tof_pan = [], [], [], []
         else:

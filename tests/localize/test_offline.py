@@ -249,3 +249,19 @@ def test_tof_runs_equal_tof_records(ring_log, fmap):
     assert stats_rec.skipped["unknown_sensor"] > 0 and res.log.time_backwards_count > 0
     assert rows == rows_rec
     assert repr(res.localizer.stats) == repr(stats_rec)
+
+
+def test_readings_after_the_last_odometry_are_counted_online_and_in_batch(ring_log, fmap):
+    # a log that stops between an odom record and the readings after it: those readings
+    # can never be placed; both replays say how many they left out
+    recs = list(iter_log(io.StringIO(ring_log)))
+    t_end = max(r.t_s for r in recs)
+    buf = io.StringIO()
+    with LogWriter(buf) as w:
+        w.write_all([TofRecord(t_end + 0.01 * (k + 1), 0, 5000.0, None) for k in range(3)])
+    text = ring_log + buf.getvalue()
+    t_odom = max(r.t_s for r in recs if isinstance(r, OdomRecord))
+    late = sum(isinstance(r, TofRecord) and r.t_s > t_odom for r in recs) + 3
+    for mode in ("online", "batch"):
+        res, _ = _rows(text, fmap, mode=mode)
+        assert res.localizer.stats.skipped["tof_after_last_odom"] == late, mode
