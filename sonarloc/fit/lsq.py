@@ -645,19 +645,13 @@ def _off_axis32(tier: str, mod: ModuleParams, phi: Array, yaw32: NDArray[np.floa
         th = phi.astype(f32) - yaw32
     else:
         th = M._wrap_fast(phi - yaw).astype(f32)
-    inv_s2 = 1.0 / np.deg2rad(mod.sigma_deg) ** 2
-    cap = np.log(M._G_MAX)
-    q = th * th
-    q *= f32(0.5 * inv_s2)
-    capped = bool(q.size) and float(q.max()) >= cap
-    if capped:
-        np.minimum(q, f32(cap), out=q)
+    q, capped = _gauss_log_factor32(th, mod)
     if not derivative:
         return q, None
     dlng = th
-    dlng *= f32(inv_s2 / ddiv)
+    dlng *= f32(1.0 / np.deg2rad(mod.sigma_deg) ** 2 / ddiv)   # inv_s2 / ddiv
     if capped:
-        dlng[q >= f32(cap)] = 0.0
+        dlng[q >= f32(np.log(M._G_MAX))] = 0.0
     return q, dlng
 
 
@@ -866,18 +860,27 @@ def tof_jacobian(kind: str, tier: str, p: Array, batch: SegmentBatch, cfg: FitCo
                  ) -> tuple[Array, Array, Array]:
     """Whitened TOF Jacobian (B, 3, Nd), mean delays (B, Nd) and SDs (B, Nd) at ``p``."""
     mod = cfg.module
-    tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
     geo = M.geometry(kind, r, phi, batch.px, batch.py, batch.yaw)
     g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod)
     z = M.detection_z(K, lng, mod) if cfg.detection else None
+    J, et, sd = tof_jacobian_at(geo, K, g, dg, z, tier, mod)
+    return J, et.delay, sd
+
+
+def tof_jacobian_at(geo: M.Geometry, K: Array, g: Array, dg: Array, z: Array | None,
+                    tier: str, mod: ModuleParams) -> tuple[Array, M.EchoTerms, Array]:
+    """:func:`tof_jacobian` from the readings' geometry, kappa (B, 1), the beam's delay
+    factor and its derivative and the detection margins (None: no detection model) at
+    the fits: the whitened Jacobian (B, 3, Nd), the echo terms and the TOF SDs."""
+    tau = M.us_per_m(mod)
     et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
     sd = np.sqrt(M.tof_variance_us2(et.delay, mod, et.delay_var if tier == "waveform"
                                     else None))
     a = et.ddelay_du * K * dg
     J = np.stack([tau * geo.dR_dr + a * geo.dtheta_dr, tau * geo.dR_dphi + a * geo.dtheta_dphi,
                   np.broadcast_to(et.ddelay_du * g, g.shape)], axis=1) / sd[:, None, :]
-    return J, et.delay, sd
+    return J, et, sd
 
 
 def _kappa_penalty(K: Array, cfg: FitConfig) -> tuple[Array, Array, Array]:
@@ -1056,10 +1059,19 @@ def _log_factor32(theta: FloatArray, tier: str, mod: ModuleParams) -> FloatArray
     if M.BEAMS[tier] == "piston":
         table = M._piston_table(mod.diameter_m, mod.carrier_hz, mod.c_mps)
         return table.lookup_log32(theta, derivative=False)[0]
+    return _gauss_log_factor32(theta, mod)[0]
+
+
+def _gauss_log_factor32(theta: FloatArray, mod: ModuleParams) -> tuple[FloatArray, bool]:
+    """ln g = theta^2 / 2 sigma^2 of the gauss beam in float32, capped as in
+    :func:`sonarloc.fit.model.beam_log_factor`, and whether any entry is capped."""
+    cap = np.log(M._G_MAX)
     q = theta * theta
     q *= np.float32(0.5 / np.deg2rad(mod.sigma_deg) ** 2)
-    np.minimum(q, np.float32(np.log(M._G_MAX)), out=q)
-    return q
+    capped = bool(q.size) and float(q.max()) >= cap
+    if capped:
+        np.minimum(q, np.float32(cap), out=q)
+    return q, capped
 
 
 def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray,

@@ -261,9 +261,7 @@ class _HermiteTable:
     def coef32(self) -> NDArray[np.float32]:
         """:attr:`coef` in float32 (the float32 passes; rows are gathered whole: one
         row gather costs less than one gather of a column)."""
-        out = self.coef.astype(np.float32)
-        out.setflags(write=False)
-        return out
+        return _readonly32(self.coef)
 
     def lookup_log32(self, theta: NDArray[np.floating[Any]], derivative: bool = True,
                      ddiv: float = 1.0
@@ -292,26 +290,42 @@ class _HermiteTable:
         else:
             u -= i
             s = u.astype(f32)
-        c = np.take(coef, i, axis=0)
-        a1, a2, a3 = c[..., 1], c[..., 2], c[..., 3]
-        lng = a3 * s
-        lng += a2
-        lng *= s
-        lng += a1
-        lng *= s
-        lng += c[..., 0]
-        dlng = None
-        if derivative:
-            dlng = a3 * (f32(3.0) * s)
-            dlng += f32(2.0) * a2
-            dlng *= s
-            dlng += a1
+        lng, dlng = _cubic32(np.take(coef, i, axis=0), s, derivative)
+        if dlng is not None:
             dlng *= np.copysign(f32(1.0 / (self.step * ddiv)), theta)
         if far is not None:
             lng[far] = f32(np.log(_G_MAX))
             if dlng is not None:
                 dlng[far] = 0.0
         return lng, dlng, beyond
+
+
+def _readonly32(coef: Array) -> NDArray[np.float32]:
+    """A read-only float32 copy of a table's coefficients."""
+    out = coef.astype(np.float32)
+    out.setflags(write=False)
+    return out
+
+
+def _cubic32(c: NDArray[np.float32], s: NDArray[np.float32], derivative: bool
+             ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+    """The cubic c0 + c1 s + c2 s^2 + c3 s^3 of each entry's coefficient row ``c``
+    (..., >= 4) at its position ``s`` in the interval, and its derivative by s (None
+    without ``derivative``), by Horner's rule in float32 (the tables' float32 lookups)."""
+    a1, a2, a3 = c[..., 1], c[..., 2], c[..., 3]
+    d = None
+    if derivative:
+        d = a3 * (np.float32(3.0) * s)
+        d += np.float32(2.0) * a2
+        d *= s
+        d += a1
+    v = a3 * s
+    v += a2
+    v *= s
+    v += a1
+    v *= s
+    v += c[..., 0]
+    return v, d
 
 
 def _hermite_coef(f: Array, d: Array) -> Array:
@@ -555,9 +569,7 @@ class _DelayTable:
     @functools.cached_property
     def coef32(self) -> NDArray[np.float32]:
         """:attr:`coef` in float32 (the float32 passes; rows are gathered whole)."""
-        out = self.coef.astype(np.float32)
-        out.setflags(write=False)
-        return out
+        return _readonly32(self.coef)
 
     def lookup_log32(self, x: NDArray[np.float32], derivative: bool = True
                      ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None,
@@ -579,22 +591,11 @@ class _DelayTable:
         s = tc
         s -= i.astype(f32)
         c = np.take(coef, i, axis=0)
-        a1, a2, a3 = c[..., 1], c[..., 2], c[..., 3]
-        dm = None
-        if derivative:
-            dm = a3 * (f32(3.0) * s)
-            dm += f32(2.0) * a2
-            dm *= s
-            dm += a1
+        m, dm = _cubic32(c, s, derivative)
+        if dm is not None:
             dm *= f32(1.0 / self.dx)
             if above:
                 dm[t > n] = 0.0
-        m = a3 * s
-        m += a2
-        m *= s
-        m += a1
-        m *= s
-        m += c[..., 0]
         var = c[..., 5] * s
         var += c[..., 4]
         # below the table (u < 1e-3 us) the module is eq. 3 with a log-normal gain

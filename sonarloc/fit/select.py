@@ -33,7 +33,15 @@ from numpy.typing import NDArray
 from scipy.special import ndtr
 
 from sonarloc.fit import model as M
-from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _take, fit_batch, tof_jacobian
+from sonarloc.fit.lsq import (
+    BatchFit,
+    FitConfig,
+    SegmentBatch,
+    _take,
+    fit_batch,
+    tof_jacobian,
+    tof_jacobian_at,
+)
 from sonarloc.physics.tiers import GAUSS_TOLERANCE_US
 
 Array = NDArray[np.float64]
@@ -199,9 +207,8 @@ def _tier_model(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kin
                 ) -> tuple[dict[str, tuple[Array, Array | None]], _GaussModel | None]:
     """:func:`_tier_predictions` and, with ``jacobian`` (``"gauss"`` among ``tiers``),
     the Gaussian fits' :class:`_GaussModel` from the same pass (the same numbers as
-    :func:`sonarloc.fit.lsq.tof_jacobian` and :func:`misfit` compute on their own)."""
+    :func:`sonarloc.fit.lsq.tof_jacobian_at` and :func:`misfit` compute)."""
     mod = cfg.module
-    tau = M.us_per_m(mod)
     sub = _take(batch, idx)
     p = sel.local[idx]
     K = p[:, 2:3]
@@ -222,12 +229,8 @@ def _tier_model(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kin
             beams[beam] = (g, dg, z, zn, None if zn is None else ndtr(zn))
         g, dg, z, zn, pr = beams[beam]
         if t == "gauss" and jacobian:
-            et = M.echo_terms(K, g, z, mod, want_info=False, tier=t)
-            sd = np.sqrt(M.tof_variance_us2(et.delay, mod))
-            a = et.ddelay_du * K * dg
-            J = np.stack([tau * geo.dR_dr + a * geo.dtheta_dr,
-                          tau * geo.dR_dphi + a * geo.dtheta_dphi,
-                          np.broadcast_to(et.ddelay_du * g, g.shape)], axis=1) / sd[:, None, :]
+            assert dg is not None
+            J, et, sd = tof_jacobian_at(geo, K, g, dg, z, t, mod)
             gm = _GaussModel(J, et.delay, sd, et.log_p, zn)
             out[t] = (et.delay, pr)
         else:
@@ -321,12 +324,8 @@ def misfit(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: st
         return bad
     if model is not None:
         lp, zn = model
-        worst = np.min(np.where(sel.used[idx], lp, 0.0), axis=1)
-        nv = batch.ne_valid[idx]
-        if zn is not None and nv.any():
-            lpn = M.noecho_terms(zn, want_info=False)[0]
-            worst = np.minimum(worst, np.min(np.where(nv, lpn, 0.0), axis=1))
-        return bad | (-2.0 * worst > surprise)
+        return bad | (-2.0 * _worst_log_p(lp, sel.used[idx], zn, batch.ne_valid[idx])
+                      > surprise)
     sub = _take(batch, idx)
     p = sel.local[idx]
     tier = sel.tier[idx]
@@ -337,14 +336,25 @@ def misfit(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: st
         geo = M.geometry(kind, p[j, 0:1], p[j, 1:2], s2.px, s2.py, s2.yaw)
         g, _, lg = M.beam_delay_factor(geo.theta, str(t), mod, derivative=False)
         lp = M.echo_terms(K, g, M.detection_z(K, lg, mod), mod, want_info=False).log_p
-        worst = np.min(np.where(sel.used[idx][j], lp, 0.0), axis=1)
+        zn = None
         if s2.ne_valid.any():
             ng = M.geometry(kind, p[j, 0:1], p[j, 1:2], s2.ne_px, s2.ne_py, s2.ne_yaw)
             _, _, lgn = M.beam_delay_factor(ng.theta, str(t), mod, derivative=False)
-            lpn = M.noecho_terms(M.detection_z(K, lgn, mod), want_info=False)[0]
-            worst = np.minimum(worst, np.min(np.where(s2.ne_valid, lpn, 0.0), axis=1))
-        bad[j] |= -2.0 * worst > surprise
+            zn = M.detection_z(K, lgn, mod)
+        bad[j] |= -2.0 * _worst_log_p(lp, sel.used[idx][j], zn, s2.ne_valid) > surprise
     return bad
+
+
+def _worst_log_p(log_p: Array, used: NDArray[np.bool_], zn: Array | None,
+                 ne_valid: NDArray[np.bool_]) -> Array:
+    """The least probable event of each segment (B,): log P(echo) of the used echoes
+    (B, Nd) and log P(no echo) of the valid no-echo readings at margins ``zn`` (B, Nn;
+    None: none counted)."""
+    worst = np.min(np.where(used, log_p, 0.0), axis=1)
+    if zn is not None and ne_valid.any():
+        lpn = M.noecho_terms(zn, want_info=False)[0]
+        worst = np.minimum(worst, np.min(np.where(ne_valid, lpn, 0.0), axis=1))
+    return worst
 
 
 REBRACKET_DCOST = 100.0
