@@ -256,15 +256,14 @@ class OfflinePipeline:
         loc = self.loc
         t_all = np.array(self._tof_t)
         sel = t_all <= t_odom
+        cols = (self._tof_sensor, self._tof_us, self._tof_pan)
         if final or sel.all():
             ready = np.flatnonzero(sel)
             if ready.size < t_all.size:     # final: no odometry reaches these readings
                 loc.stats.skipped["tof_after_last_odom"] += int(t_all.size - ready.size)
-            cols = (self._tof_sensor, self._tof_us, self._tof_pan)
             self._tof_t, self._tof_sensor, self._tof_us, self._tof_pan = [], [], [], []
         else:
             ready, later = np.flatnonzero(sel), np.flatnonzero(~sel).tolist()
-            cols = (self._tof_sensor, self._tof_us, self._tof_pan)
             self._tof_t = [self._tof_t[i] for i in later]
             self._tof_sensor = [self._tof_sensor[i] for i in later]
             self._tof_us = [self._tof_us[i] for i in later]
