@@ -1011,9 +1011,10 @@ def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
         for c in range(C)]
     keep = np.flatnonzero(~hopeless)
     if keep.size:
-        for c, pf in zip(keep.tolist(), _search_pairs(
-                ev, None if C == 1 else keep, [segs[c] for c in keep],
-                [singles[c] for c in keep], s0[keep], c0[keep], price[keep], bar[keep],
+        kept = keep.tolist()
+        for c, pf in zip(kept, _search_pairs(
+                ev, None if C == 1 else keep, [segs[c] for c in kept],
+                [singles[c] for c in kept], s0[keep], c0[keep], price[keep], bar[keep],
                 n_starts), strict=True):
             out[c] = pf
     return [pf for pf in out if pf is not None]
