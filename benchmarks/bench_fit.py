@@ -405,9 +405,9 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 
 # ---------------------------------------------------------------- 4. large CSV
 
-BASELINE_REV = "f7b51e7"
-"""main at the start of session 6 (2026-11-21; session 5's default fit: arc start, float32
-Gaussian passes): section 4's "before" column, run from a `git archive` of it."""
+BASELINE_REV = "9d07041"
+"""main at the start of session 7 (2026-11-21; session 6's fit, pair and segmenter speed-ups):
+section 4's "before" column, run from a `git archive` of it."""
 
 _STAGES = r"""
 import json, sys, time
@@ -630,6 +630,9 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
     lines += [
         f"| **fitting side** (segment + fit + pairs) / parse | {side_b / b_parse:.2f} | "
         f"**{side_now / csv['now_parse']:.2f}** | | |",
+        f"| fitting side with the set-up below / parse | "
+        f"{(side_b + csv.get('before_fit_first_extra', math.nan)) / b_parse:.2f} | "
+        f"{(side_now + csv['now_fit_first_extra']) / csv['now_parse']:.2f} | | |",
         f"| whole command, CPU (user + system) | {b_cpu:.2f} | {csv['now_cli_cpu']:.2f} | "
         f"{b_cpu / csv['now_cli_cpu']:.1f}x | |",
         f"| whole command, wall clock | {b_wall:.2f} | {csv['now_cli_wall']:.2f} | "

@@ -54,9 +54,9 @@ def test_serve_sim_log_over_pty_and_record(run_cli, tmp_path) -> None:
     log, sent, out = tmp_path / "in.jsonl", tmp_path / "sent.jsonl", tmp_path / "rec.jsonl"
     with LogWriter(log) as w:
         w.write_all(ring_stream(duration_s=1.0, pan=True))
-    # the module lingers 3 s after its last record so that a host slowed down by a loaded
-    # machine still reads what is in flight before the terminal hangs up (1 s lost data
-    # once under a parallel test suite)
+    # the module lingers 3 s after its last record, and closing its terminal waits until
+    # the host has read what is in flight (PtyTransport.DRAIN_WAIT_S): a host slowed down
+    # by a loaded machine lost the last records before that wait was there
     proc, url = serve("--log", str(log), "--pty", "--rate", "5", "--sent-log", str(sent),
                       "--linger", "3.0")
     assert url.startswith("/dev/")

@@ -8,16 +8,18 @@ import os
 import random
 import subprocess
 import sys
+import threading
 import time
 import tty
 
 import pytest
+import serial
 from io_streams import drain, ring_stream
 
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.drivers import BACKENDS, driver_class, open_driver, parse_source
 from sonarloc.io.drivers.serial import SerialDriver
-from sonarloc.io.drivers.sim import SimModule
+from sonarloc.io.drivers.sim import PtyTransport, SimModule
 from sonarloc.io.logfile import LogWriter, OdomRecord, RigRecord, TofRecord, iter_log
 from sonarloc.io.protocol.framing import ACK, REQUEST_RIG, START, SerialEncoder
 from sonarloc.io.protocol.messages import Ack, Echo, RigInfo, RigMount, Start, Stop
@@ -261,3 +263,38 @@ def test_a_failing_callback_is_reported_not_swallowed() -> None:
                 except DeviceTimeoutError:
                     continue
         assert drv.stats.callback_errors == 1
+
+
+def test_pty_close_waits_for_the_host_to_read() -> None:
+    """Closing the module's pty hangs the terminal up and Linux drops what the host has not
+    read yet: close() waits (bounded) until the host has read every byte written."""
+    tr = PtyTransport()
+    host = serial.Serial(tr.url, timeout=2.0)   # the host's side, as the serial driver opens it
+    try:
+        payload = bytes(range(256)) * 12   # fits the terminal's buffer: no write waits
+        assert tr._write(payload)
+        t0 = time.monotonic()
+        closer = threading.Thread(target=tr.close)
+        closer.start()
+        time.sleep(0.3)            # a slow host: the module is closing meanwhile
+        assert closer.is_alive()   # still waiting for the host
+        got = host.read(len(payload))
+        closer.join(5.0)
+        assert got == payload
+        assert not closer.is_alive() and time.monotonic() - t0 < PtyTransport.DRAIN_WAIT_S
+    finally:
+        host.close()
+        tr.close()
+
+
+def test_pty_close_without_a_reading_host_gives_up() -> None:
+    tr = PtyTransport()
+    tr.DRAIN_WAIT_S = 0.2
+    host = serial.Serial(tr.url, timeout=0.1)   # opened, never read
+    try:
+        assert tr._write(b"x" * 100)
+        t0 = time.monotonic()
+        tr.close()
+        assert 0.15 < time.monotonic() - t0 < 2.0
+    finally:
+        host.close()

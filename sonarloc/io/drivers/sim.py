@@ -33,9 +33,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import fcntl
 import os
 import select
 import socket
+import struct
+import termios
 import threading
 import time
 import tty
@@ -204,10 +207,43 @@ class PtyTransport(_ByteTransport):
             if data:
                 self._commands(data)
 
+    DRAIN_WAIT_S = 5.0
+    """Longest :meth:`close` waits for the host to read what is still in the terminal."""
+
+    def _drain(self, timeout_s: float) -> None:
+        """Wait until the host has read every byte written (at most ``timeout_s``).
+
+        Closing the master hangs the terminal up, and Linux then drops what the host
+        has not read yet: a host slowed down by a loaded machine would lose the last
+        records. The bytes still unread are the slave's input queue (FIONREAD on a
+        descriptor of the slave of our own); the kernel moves written bytes there a
+        little later, so the queue must be seen empty twice, 50 ms apart."""
+        try:
+            fd = os.open(self.slave_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError:
+            return   # no terminal left to wait for
+        try:
+            end = time.monotonic() + timeout_s
+            empty_since = None
+            while (now := time.monotonic()) < end:
+                unread = struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0" * 4))[0]
+                if unread:
+                    empty_since = None
+                elif empty_since is None:
+                    empty_since = now
+                elif now - empty_since >= 0.05:
+                    return
+                time.sleep(0.01)
+        except OSError:
+            return
+        finally:
+            os.close(fd)
+
     def close(self) -> None:
         self._join()
         with self._lock:
             if self._master >= 0:
+                self._drain(self.DRAIN_WAIT_S)
                 os.close(self._master)
                 self._master = -1
         if self.link is not None:
