@@ -24,7 +24,13 @@ from sonarloc.fit import odomcov
 from sonarloc.fit.lsq import FitConfig, SegmentBatch, _take, pack_flat
 from sonarloc.fit.pair import resolve_pair_groups
 from sonarloc.fit.result import FitStatus, Landmark
-from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig, SegmenterStats
+from sonarloc.fit.segment import (
+    Segment,
+    SegmentBlock,
+    Segmenter,
+    SegmenterConfig,
+    SegmenterStats,
+)
 from sonarloc.fit.select import KAPPA_WALL_US, Selection, select_models
 from sonarloc.io.scancsv import ScanReadings
 
@@ -176,12 +182,32 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     n = len(segments)
     if n == 0:
         return []
-    parts = [_arrays(s) for s in segments]
-    lengths = np.array([p[0].size for p in parts], dtype=np.int64)
-    seg = np.repeat(np.arange(n), lengths)
-    t, x, y, yaw, tof = (np.concatenate([p[k] for p in parts], dtype=float)
-                         for k in range(5))
-    sensor = np.concatenate([p[5] for p in parts], dtype=np.int64, casting="unsafe")
+    if isinstance(segments, SegmentBlock):   # already end to end
+        r = segments.readings
+        lengths = np.diff(segments.bounds)
+        t, x, y, yaw, tof, sensor = r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us, r.sensor
+        info: Sequence[tuple[int, str, tuple[bool, bool]] | None] = list(
+            zip(segments.seg_id, segments.closed_by, segments.occluded, strict=True))
+    else:
+        parts = [_arrays(s) for s in segments]
+        lengths = np.array([p[0].size for p in parts], dtype=np.int64)
+        t, x, y, yaw, tof = (np.concatenate([p[k] for p in parts], dtype=float)
+                             for k in range(5))
+        sensor = np.concatenate([p[5] for p in parts], dtype=np.int64, casting="unsafe")
+        info = [(s.seg_id, s.closed_by, s.occluded) if isinstance(s, Segment) else None
+                for s in segments]
+    return _fit_packed(np.repeat(np.arange(n), lengths), t, x, y, yaw, tof, sensor, info,
+                       cfg, odometry_sd_deg_per_m)
+
+
+def _fit_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Array,
+                tof: Array, sensor: NDArray[np.int64],
+                info: Sequence[tuple[int, str, tuple[bool, bool]] | None], cfg: FitConfig,
+                odometry_sd_deg_per_m: float | None) -> list[Landmark]:
+    """:func:`fit_segments` of segments end to end: reading ``k`` belongs to segment
+    ``seg[k]`` (non-decreasing, (N,)); ``info``: each segment's ``(seg_id, closed_by,
+    occluded)`` (None: not a :class:`Segment`)."""
+    n = len(info)
     ok, _ = _clean(t, x, y, yaw, tof)
     n_bad = np.bincount(seg[~ok], minlength=n)
     seg, t, x, y, tof, sensor = seg[ok], t[ok], x[ok], y[ok], tof[ok], sensor[ok]
@@ -191,13 +217,12 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     n_noecho = np.bincount(seg[~echo], minlength=n)
     bounds = np.searchsorted(seg, np.arange(n + 1))
     meta: list[dict[str, object]] = []
-    for i, s in enumerate(segments):
-        m: dict[str, object] = {"n_bad_input": int(n_bad[i])}
-        if isinstance(s, Segment):
-            m.update(seg_id=s.seg_id, closed_by=s.closed_by)
-            if any(s.occluded):
-                m["occluded"] = ("both" if all(s.occluded) else
-                                 "first" if s.occluded[0] else "last")
+    for nb, s in zip(n_bad.tolist(), info, strict=True):
+        m: dict[str, object] = {"n_bad_input": nb}
+        if s is not None:
+            m["seg_id"], m["closed_by"], occ = s
+            if occ[0] or occ[1]:
+                m["occluded"] = "both" if occ[0] and occ[1] else "first" if occ[0] else "last"
         meta.append(m)
     out: list[Landmark | None] = [None] * n
     for i in np.flatnonzero(n_echo < 3).tolist():
@@ -470,7 +495,7 @@ def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
     """
     cfg = config or FitConfig()
     seg = Segmenter(segmenter, cfg.module)
-    segments = list(seg.feed(scan))
+    segments = seg.feed_block(scan)
     return FitReport(_resolve(segments, fit_segments(segments, cfg, odometry_sd_deg_per_m),
                               cfg), seg.stats)
 

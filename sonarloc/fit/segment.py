@@ -42,6 +42,7 @@ from array import array
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import overload
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -154,6 +155,82 @@ class Segment:
         """``(t_s, x_m, y_m, yaw_rad, tof_us)``, the form :func:`pack_segments` takes."""
         r = self.readings
         return r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us
+
+
+class SegmentBlock(Sequence[Segment]):
+    """Segments stored end to end: one set of reading columns for all of them.
+
+    ``readings`` holds every segment's readings in order, segment ``k``'s at
+    ``bounds[k]:bounds[k + 1]``; ``seg_id``, ``closed_by`` and ``occluded`` are the
+    segments' fields. Indexing gives segment ``k`` as a :class:`Segment` (its readings
+    views into the block), built when asked for, so a scan's thousands of segments
+    reach the fitter (:func:`sonarloc.fit.landmarks.fit_segments`) without an object
+    each.
+    """
+
+    def __init__(self, readings: ScanReadings, bounds: Sequence[int], seg_id: list[int],
+                 closed_by: list[str], occluded: list[tuple[bool, bool]]) -> None:
+        n = len(seg_id)
+        if not (len(bounds) == n + 1 and len(closed_by) == n and len(occluded) == n
+                and bounds[0] == 0 and bounds[-1] == len(readings)):
+            raise ValueError(f"`bounds` ({len(bounds)}), `closed_by` ({len(closed_by)}) "
+                             f"and `occluded` ({len(occluded)}) do not fit {n} segments "
+                             f"of {len(readings)} readings")
+        self.readings = readings
+        self.bounds = list(bounds)
+        self.seg_id = seg_id
+        self.closed_by = closed_by
+        self.occluded = occluded
+
+    @classmethod
+    def of(cls, segments: Sequence[Segment]) -> SegmentBlock:
+        """The block of ``segments`` (their readings copied end to end)."""
+        cols = [np.concatenate([getattr(s.readings, f) for s in segments]
+                               + [np.empty(0, dtype=dt)])
+                for f, dt in _READING_FIELDS]
+        bounds = np.cumsum([0] + [len(s.readings) for s in segments]).tolist()
+        return cls(ScanReadings(*cols), bounds, [s.seg_id for s in segments],
+                   [s.closed_by for s in segments], [s.occluded for s in segments])
+
+    @classmethod
+    def join(cls, blocks: Sequence[SegmentBlock]) -> SegmentBlock:
+        """One block of the segments of ``blocks``, in order."""
+        cols = [np.concatenate([getattr(b.readings, f) for b in blocks]
+                               + [np.empty(0, dtype=dt)])
+                for f, dt in _READING_FIELDS]
+        bounds, base = [0], 0
+        for b in blocks:
+            bounds += [base + k for k in b.bounds[1:]]
+            base += b.bounds[-1]
+        return cls(ScanReadings(*cols), bounds, [k for b in blocks for k in b.seg_id],
+                   [w for b in blocks for w in b.closed_by],
+                   [o for b in blocks for o in b.occluded])
+
+    def __len__(self) -> int:
+        return len(self.seg_id)
+
+    def __iter__(self) -> Iterator[Segment]:
+        return (self[k] for k in range(len(self.seg_id)))
+
+    @overload
+    def __getitem__(self, k: int) -> Segment: ...
+
+    @overload
+    def __getitem__(self, k: slice) -> list[Segment]: ...
+
+    def __getitem__(self, k: int | slice) -> Segment | list[Segment]:
+        if isinstance(k, slice):
+            return [self[j] for j in range(*k.indices(len(self)))]
+        n = len(self.seg_id)
+        if not -n <= k < n:
+            raise IndexError(f"segment {k} of a block of {n}")
+        k %= n
+        return Segment(self.readings.select(slice(self.bounds[k], self.bounds[k + 1])),
+                       self.seg_id[k], self.closed_by[k], self.occluded[k])
+
+
+_READING_FIELDS = (("t_s", np.float64), ("x_m", np.float64), ("y_m", np.float64),
+                   ("yaw_rad", np.float64), ("tof_us", np.float64), ("sensor", np.int64))
 
 
 @dataclass
@@ -269,17 +346,13 @@ class _Chunk:
         return (self.tl[i], self.xl[i], self.yl[i], self.yawl[i],
                 self.tofl[i] if r >= 0 else math.nan, self.sl[i])
 
-    def segments(self, index: np.ndarray) -> list[tuple[int, Segment]]:
+    def block(self) -> SegmentBlock:
         """The segments closed in this chunk (``closed``), built together: their rows
         (indices, and tuples from before the chunk) taken from the chunk's columns in
-        one go. ``index``: (m,) each reading's index in the caller's arrays.
-
-        Their arrays are views into one block of this chunk's readings."""
-        if not self.closed:
-            return []
+        one go."""
         flat: list[int] = []
         extra: list[tuple[float, float, float, float, float, int]] = []
-        ends: list[int] = []
+        ends: list[int] = [0]
         for _, s, _ in self.closed:
             rows = s.rows
             if type(rows[0]) is int:   # all indices (tuples from before come first)
@@ -303,15 +376,10 @@ class _Chunk:
         v = cols[:, i]
         v[4, bare] = np.nan
         t, x, y, yaw, tof = v
-        sens = sensor[i]
-        out: list[tuple[int, Segment]] = []
-        a = 0
-        for (at, s, why), b in zip(self.closed, ends, strict=True):
-            readings = ScanReadings(t[a:b], x[a:b], y[a:b], yaw[a:b], tof[a:b], sens[a:b])
-            out.append((int(index[at]),
-                        Segment(readings, s.seg_id, why, (s.occluded_lead, s.occluded_trail))))
-            a = b
-        return out
+        return SegmentBlock(ScanReadings(t, x, y, yaw, tof, sensor[i]), ends,
+                            [s.seg_id for _, s, _ in self.closed],
+                            [why for _, _, why in self.closed],
+                            [(s.occluded_lead, s.occluded_trail) for _, s, _ in self.closed])
 
 
 class Segmenter:
@@ -443,6 +511,16 @@ class Segmenter:
         segment is open takes a loop for that segment alone (its misses), and a new
         segment's lead readings come from numpy tests of the chunk's candidate echoes.
         """
+        closed: list[tuple[int, Segment]] = []
+        for at, block in self._push_blocks(t_s, x_m, y_m, yaw_rad, tof_us, sensor, chunk):
+            closed += zip(at, block, strict=True)
+        return closed
+
+    def _push_blocks(self, t_s: ArrayLike, x_m: ArrayLike, y_m: ArrayLike,
+                     yaw_rad: ArrayLike, tof_us: ArrayLike, sensor: ArrayLike | None,
+                     chunk: int) -> list[tuple[list[int], SegmentBlock]]:
+        """:meth:`push_many`, the segments each chunk closed in a block, with the indices
+        of the readings that closed them."""
         cols = [np.asarray(a, dtype=float).ravel() for a in (t_s, x_m, y_m, yaw_rad, tof_us)]
         n = len(cols[0])
         sens = np.zeros(n, dtype=np.int64) if sensor is None else \
@@ -453,12 +531,12 @@ class Segmenter:
                 raise ValueError(f"`{name}` has length {len(a)}, expected {n}")
         if not (isinstance(chunk, int) and chunk >= 1):
             raise ValueError(f"`chunk` must be a positive integer, got {chunk!r}")
-        closed: list[tuple[int, Segment]] = []
+        out = []
         for lo in range(0, n, chunk):
             hi = min(lo + chunk, n)
             t, x, y, yaw, tof = (a[lo:hi] for a in cols)
-            closed += self._push_chunk(t, x, y, yaw, tof, sens[lo:hi], lo)
-        return closed
+            out.append(self._push_chunk(t, x, y, yaw, tof, sens[lo:hi], lo))
+        return out
 
     def flush(self) -> list[Segment]:
         """Close every open segment (end of stream)."""
@@ -477,6 +555,13 @@ class Segmenter:
                                        scan.sensor[part], chunk=chunk):
                 yield s
         yield from self.flush()
+
+    def feed_block(self, scan: ScanReadings, chunk: int = 65536) -> SegmentBlock:
+        """:meth:`feed`, the segments in one :class:`SegmentBlock` (the same segments in
+        the same order, without an object each)."""
+        blocks = [b for _, b in self._push_blocks(scan.t_s, scan.x_m, scan.y_m, scan.yaw_rad,
+                                                  scan.tof_us, scan.sensor, chunk)]
+        return SegmentBlock.join([*blocks, SegmentBlock.of(self.flush())])
 
     # -- the per-reading decisions (shared by push and push_many) ----------------------
 
@@ -625,7 +710,7 @@ class Segmenter:
 
     def _push_chunk(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
                     tof: np.ndarray, sensor: np.ndarray, offset: int
-                    ) -> list[tuple[int, Segment]]:
+                    ) -> tuple[list[int], SegmentBlock]:
         """:meth:`push_many` of one chunk (float64 / int64 arrays of one length)."""
         st = self.stats
         n = len(t)
@@ -645,7 +730,7 @@ class Segmenter:
         st.no_echo += int(len(keep) - np.count_nonzero(echo))
         self._last_t = float(latest[-1])
         if not len(keep):
-            return []
+            return [], SegmentBlock.of([])
         tof = tof[keep]
         R = np.where(echo, (tof - self._half_count_us) * self._m_per_us, np.inf)
         ch = self._chunk = _Chunk(t[keep], x[keep], y[keep], _wrap_array(yaw[keep]), tof,
@@ -657,7 +742,7 @@ class Segmenter:
                 s.rows = [ch.row_of(r) if isinstance(r, int) else r for r in s.rows]
             self._chunk = None
 
-    def _chunk_loop(self, ch: _Chunk, index: np.ndarray) -> list[tuple[int, Segment]]:
+    def _chunk_loop(self, ch: _Chunk, index: np.ndarray) -> tuple[list[int], SegmentBlock]:
         """The per-reading loop of :meth:`_push_chunk`: each reading through
         :meth:`_step`, skipping what changes nothing, extending chained runs and taking
         runs of misses of the only open segment through :meth:`_miss_run`."""
@@ -735,7 +820,7 @@ class Segmenter:
                     i = j
         if recent is not None:
             self._remember_chunk(ch, recent)
-        return ch.segments(index)
+        return [int(index[at]) for at, _, _ in ch.closed], ch.block()
 
     def _lead_bits(self, ch: _Chunk, recent: _RecentIndex, cand: np.ndarray
                    ) -> Sequence[int] | None:

@@ -54,14 +54,28 @@ def _run_many(config, pushes: list[Push], chunk: int):
     return out, seg
 
 
+def _run_block(config, pushes: list[Push], chunk: int):
+    """``feed_block`` (as fit_scan), its segments with the closing index of ``want``
+    (a block does not keep it; the order and the segments are compared)."""
+    seg = fast.Segmenter(config)
+    cols = [np.array(c) for c in zip(*pushes, strict=True)] if pushes else [np.zeros(0)] * 6
+    block = seg.feed_block(ScanReadings(*cols[:5], cols[5].astype(np.int64)), chunk=chunk)
+    assert isinstance(block, fast.SegmentBlock) and len(block.bounds) == len(block) + 1
+    return list(block), seg
+
+
 def _assert_same(pushes: list[Push], config_kwargs: dict,
                  chunks: tuple[int, ...] = (1, 7, 65536)) -> int:
-    """Reference against the online form and ``push_many`` in each of ``chunks``."""
+    """Reference against the online form, ``push_many`` and ``feed_block`` in each of
+    ``chunks``."""
     want, seg_ref = _run(ref, ref.SegmenterConfig(**config_kwargs), pushes)
     config = fast.SegmenterConfig(**config_kwargs)
     for got, seg_new in [_run(fast, config, pushes),
                          *(_run_many(config, pushes, c) for c in chunks)]:
         _compare(got, seg_new, want, seg_ref)
+    for c in chunks:
+        segs, seg_new = _run_block(config, pushes, c)
+        _compare([(i, s) for (i, _), s in zip(want, segs, strict=True)], seg_new, want, seg_ref)
     return len(want)
 
 

@@ -1,0 +1,114 @@
+"""Segments end to end (:class:`SegmentBlock`): the segmenter's ``feed_block`` and the
+fitter's flat path give the same segments and landmarks, to the last bit, as a list of
+:class:`Segment` objects (``feed``, ``fit_segments`` of the list)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from sonarloc.fit.landmarks import _resolve, fit_scan, fit_segments
+from sonarloc.fit.lsq import FitConfig
+from sonarloc.fit.segment import Segment, SegmentBlock, Segmenter, SegmenterConfig
+from sonarloc.fit.synth import Reflector, pan_scan, rotation_scan
+from sonarloc.io.scancsv import ScanReadings
+
+FIELDS = ("t_s", "x_m", "y_m", "yaw_rad", "tof_us", "sensor")
+
+
+def _bits(v: object) -> object:
+    """A value with every float as its bits (NaN == NaN, -0.0 != 0.0) and dicts in order."""
+    if isinstance(v, np.ndarray):
+        return (str(v.dtype), v.shape, v.tobytes())
+    if isinstance(v, float):
+        return v.hex()
+    if isinstance(v, dict):
+        return [(k, _bits(x)) for k, x in v.items()]
+    if isinstance(v, (tuple, list)):
+        return [_bits(x) for x in v]
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return [(f.name, _bits(getattr(v, f.name))) for f in dataclasses.fields(v)]
+    return (type(v).__name__, repr(v))
+
+
+def _scans() -> dict[str, ScanReadings]:
+    rng = np.random.default_rng(21)
+    out = {
+        # a wall whose trailing end a pole hides, and a pole
+        "occluded": pan_scan([Reflector.polar(1.5, 0.0, 0.15), Reflector.polar(1.2, 15.0, 0.67)],
+                             rng, -40, 40, 0.3),
+        # two poles merged into one segment (the pair and split stages run)
+        "merged": pan_scan([Reflector.polar(1.5, -10.0, 0.67),
+                            Reflector.polar(1.505, 10.0, 0.67)], rng, -40, 40, 0.3),
+        "rotation": rotation_scan(3000, rng),
+    }
+    # spikes (single echoes far off any arc; 1-echo segments with min_echoes 1) and
+    # NaN poses (dropped by the segmenter)
+    scan = pan_scan([Reflector.polar(1.46, -17, 0.67)], rng, -40, 40, 0.3)
+    tof, x = scan.tof_us.copy(), scan.x_m.copy()
+    tof[rng.choice(len(tof), 15, replace=False)] = rng.uniform(1500, 12000, 15)
+    x[7::31] = np.nan
+    out["spikes"] = ScanReadings(scan.t_s, x, scan.y_m, scan.yaw_rad, tof, scan.sensor)
+    return out
+
+
+@pytest.mark.parametrize("name", ["occluded", "merged", "rotation"])
+def test_block_of_join_and_indexing_give_the_segments(name):
+    segs = list(Segmenter().feed(_scans()[name]))
+    assert len(segs) >= (1 if name == "merged" else 2)
+    k = len(segs) // 2
+    for block in (SegmentBlock.of(segs),
+                  SegmentBlock.join([SegmentBlock.of(segs[:k]), SegmentBlock.of([]),
+                                     SegmentBlock.of(segs[k:])])):
+        assert len(block) == len(segs)
+        assert _bits(list(block)) == _bits(segs)
+        assert _bits(block[-1]) == _bits(segs[-1]) and _bits(block[-2:]) == _bits(segs[-2:])
+        with pytest.raises(IndexError):
+            block[len(segs)]
+    assert len(SegmentBlock.of([])) == 0 and list(SegmentBlock.of([])) == []
+
+
+def test_block_checks_its_bounds():
+    r = ScanReadings(*(np.zeros(3) for _ in range(5)), np.zeros(3, dtype=np.int64))
+    SegmentBlock(r, [0, 1, 3], [0, 1], ["gap", "flush"], [(False, False)] * 2)
+    for bounds in ([0, 1, 2], [1, 1, 3], [0, 3]):
+        with pytest.raises(ValueError, match="do not fit"):
+            SegmentBlock(r, bounds, [0, 1], ["gap", "flush"], [(False, False)] * 2)
+
+
+@pytest.mark.parametrize("name", ["occluded", "merged", "rotation", "spikes"])
+@pytest.mark.parametrize("min_echoes", [3, 1])
+def test_fit_segments_of_a_block_equals_the_list(name, min_echoes):
+    # min_echoes 1: segments with 1-2 echoes take the fallback path
+    scan = _scans()[name]
+    block = Segmenter(SegmenterConfig(min_echoes=min_echoes)).feed_block(scan)
+    segs = list(block)
+    assert any(s.occluded != (False, False) for s in segs) or name != "occluded"
+    assert any(s.n_echo < 3 for s in segs) or (name, min_echoes) != ("spikes", 1)
+    lms = fit_segments(block)
+    assert _bits(lms) == _bits(fit_segments(segs))
+    ends = {(False, False): None, (True, False): "first", (False, True): "last",
+            (True, True): "both"}
+    for s, lm in zip(segs, lms, strict=True):
+        assert (lm.extra["seg_id"], lm.extra["closed_by"], lm.extra.get("occluded")) == \
+            (s.seg_id, s.closed_by, ends[s.occluded])
+    # and as plain arrays (no segment fields in extra)
+    tuples = [s.arrays() for s in segs]
+    got = fit_segments(tuples)
+    assert all("seg_id" not in lm.extra for lm in got)
+    assert [lm.params.tobytes() for lm in got] == [lm.params.tobytes()
+                                                   for lm in fit_segments(segs)]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fit_scan_equals_the_segment_list_path(seed):
+    refl = [Reflector.polar(1.5, -10.0, 0.67), Reflector.polar(1.505, 10.0, 0.67)]
+    scan = pan_scan(refl, np.random.default_rng(seed), -40, 40, 0.3)
+    cfg = FitConfig()
+    segs = list(Segmenter().feed(scan))
+    want = _resolve(segs, fit_segments(segs, cfg), cfg)
+    got = fit_scan(scan, cfg).landmarks
+    assert _bits(got) == _bits(want)
+    assert all(isinstance(s, Segment) for s in segs)
