@@ -30,6 +30,8 @@ Decision (documented in docs/FITTING.md): the pair replaces the single landmark 
 * the bearings differ by more than ``MIN_SEPARATION_DEG``, and the weaker one is not
   where the stronger one's side lobe would be (``SIDE_LOBE_DEG``).
 
+A candidate whose single fit leaves no room for that gain (each echo costs at least
+what a zero-delay echo at its mean costs: :func:`_pair_cost_floor`) is not searched.
 Otherwise the single landmark stands; a segment whose single fit was not trusted
 keeps its status and its reason gets the pair test's numbers (the two could not be
 told apart). Each echo is evaluated with a robust cap (``outlier_sigma^2`` plus the
@@ -49,7 +51,7 @@ from numpy.typing import NDArray
 from scipy.special import chdtrc, chdtri, ndtr
 
 from sonarloc.fit import model as M
-from sonarloc.fit.lsq import FitConfig, SegmentBatch, _kappa_penalty, pack_segments
+from sonarloc.fit.lsq import FitConfig, SegmentBatch, _kappa_penalty, pack_flat
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment
 from sonarloc.physics.tof import ModuleParams
@@ -104,7 +106,10 @@ class PairFit:
     ``basis``: a sentence saying why; ``ambiguous``: components whose bearing another
     optimum fits as well; ``hidden``: (2,) 0 where a component's minimum is seen (it is
     the first echo at the reading nearest its bearing), NaN where the other reflector
-    hides it, else how far [deg] it lies beyond the readings.
+    hides it, else how far [deg] it lies beyond the readings. A candidate whose pair
+    cannot reach the bar is not searched (:func:`_bounded`): ``cost_single`` is then the
+    cost of the single landmark as given, ``cost_pair`` a lower bound of every pair's
+    (so ``gain`` is an upper bound) and the fitted quantities are NaN.
     """
 
     local: Array
@@ -988,19 +993,80 @@ def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
                n_starts: int = N_STARTS) -> list[PairFit]:
     """Fit one and two point reflectors to each of several segments of one tier (all
     moving or all still), every search step of all of them in one cost call
-    (:class:`_Segments`)."""
+    (:class:`_Segments`); candidates whose pair provably cannot gain the bar over their
+    single fit (:func:`_pair_cost_floor`) are not searched (:func:`_bounded`)."""
     C = len(segs)
     cfg = segs[0].cfg
     ev: _Segment = segs[0] if C == 1 else _Segments(segs)
-
-    def own(rows: Sequence[int] | NDArray[np.intp]) -> NDArray[np.intp] | None:
-        return None if C == 1 else np.asarray(rows, dtype=np.intp)
-
     every = np.arange(C)
     s0 = np.array([[s[0] / _SCALE[0], s[1] / _SCALE[1],
                     math.log(max(float(s[2]), cfg.kappa_min_us))] for s in singles])
+    c0 = np.asarray(ev.cost(_unscale(s0), None if C == 1 else every))
+    price = np.array([3.0 * math.log(max(seg.n, 2)) for seg in segs])
+    bar = np.maximum(price, MIN_GAIN)
+    bound = c0 - _pair_cost_floor(segs)     # no pair gains more
+    hopeless = bound <= bar
+    out: list[PairFit | None] = [
+        _bounded(c0[c], bound[c], price[c], bar[c]) if hopeless[c] else None
+        for c in range(C)]
+    keep = np.flatnonzero(~hopeless)
+    if keep.size:
+        kept = keep.tolist()
+        for c, pf in zip(kept, _search_pairs(
+                ev, None if C == 1 else keep, [segs[c] for c in kept],
+                [singles[c] for c in kept], s0[keep], c0[keep], price[keep], bar[keep],
+                n_starts), strict=True):
+            out[c] = pf
+    return [pf for pf in out if pf is not None]
+
+
+def _pair_cost_floor(segs: Sequence[_Segment]) -> Array:
+    """(C,) a lower bound of each segment's two-reflector cost (:meth:`_Segment.cost`)
+    whatever the components' parameters: ``n_echo`` times the least cost of one echo,
+    less 1e-9 per echo for the rounding of the computed costs.
+
+    Proof: an echo's mixture density ``f_A P_A (1 - P_B (1 - w)) + f_B P_B (1 - P_A w)``
+    is at most ``max(f_A, f_B) (P_A + P_B - P_A P_B) <= max(f_A, f_B)``, and a normal
+    density is at most ``1 / sqrt(2 pi s2)`` with the TOF variance ``s2`` at least its
+    zero-delay value (:func:`sonarloc.fit.model.tof_variance_us2`: jitter and counting
+    plus a non-negative delay term; the waveform tier's delay variance is interpolated
+    between non-negative nodes). With the floor ``exp(-cap / 2)`` an echo then costs at
+    least ``-2 log(1 / sqrt(2 pi s2(0)) + exp(-cap / 2))``; the no-echo terms
+    ``-2 log((1 - P_A)(1 - P_B))`` and the kappa prior are non-negative. So no pair gains
+    more than ``cost_single - floor`` over a single fit of cost ``cost_single``.
+    """
+    first = segs[0]
+    lb = -2.0 * float(np.logaddexp(
+        -0.5 * math.log(2.0 * math.pi * float(M.tof_variance_us2(0.0, first.cfg.module))),
+        -0.5 * first.cap))
+    return np.array([seg.y.size for seg in segs]) * (lb - 1e-9)
+
+
+def _bounded(c0: float, bound: float, price: float, bar: float) -> PairFit:
+    """The result of a candidate whose pair cannot reach the bar (:func:`_pair_cost_floor`):
+    not searched; ``cost_pair`` the floor (so ``gain`` is the bound), fitted values NaN."""
+    nan2 = np.full(2, np.nan)
+    return PairFit(np.full((2, 3), np.nan), np.full((2, 3, 3), np.nan), float(c0),
+                   float(c0 - bound), nan2, nan2.copy(), float(price), False,
+                   f"two reflectors cannot fit enough better than one: -2 log-likelihood "
+                   f"gain at most {bound:.1f} (no echo more likely than at zero delay) <= "
+                   f"{bar:.1f}", nan2.copy(), hidden=nan2.copy())
+
+
+def _search_pairs(ev: _Segment, idx: NDArray[np.intp] | None, segs: Sequence[_Segment],
+                  singles: Sequence[Array], s0: Array, c0: Array, price: Array, bar: Array,
+                  n_starts: int) -> list[PairFit]:
+    """:func:`_fit_pairs`' search of segments ``segs`` (rows ``idx`` of ``ev``, None: ``ev``
+    is the one segment): the single fits refitted from ``s0`` (scaled, cost ``c0``), the
+    grid starts, the screen, the optima and the decisions."""
+    C = len(segs)
+
+    def own(rows: Sequence[int] | NDArray[np.intp]) -> NDArray[np.intp] | None:
+        return None if idx is None else idx[np.asarray(rows, dtype=np.intp)]
+
+    every = np.arange(C)
     x1, c1 = _minimise_batch(ev, s0, owner=own(every))
-    c1 = np.minimum(c1, np.asarray(ev.cost(_unscale(s0), own(every))))
+    c1 = np.minimum(c1, c0)
     # grid starts of every segment, ranked by the full likelihood in one call
     grids = _start_grids(segs, singles)
     have = [c for c in range(C) if grids[c] is not None]
@@ -1019,8 +1085,6 @@ def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
     d1 = np.array([0.0, 1.0 / _SCALE[1] * math.radians(1.0), 0.0])
     for c in range(C):
         starts[c].append(np.concatenate([x1[c] - d1, x1[c] + d1]))
-    price = np.array([3.0 * math.log(max(seg.n, 2)) for seg in segs])
-    bar = np.maximum(price, MIN_GAIN)
     # all starts in lockstep; a few iterations first: a pair that then still gains far
     # less than the bar will not reach it (screen; docs/FITTING.md). The screen runs
     # each candidate's best grid start and its split single fit (SCREEN_ITER); the
@@ -1346,19 +1410,18 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
     if len(segments) != len(landmarks):
         raise ValueError(f"`segments` ({len(segments)}) and `landmarks` ({len(landmarks)}) "
                          "must have equal lengths")
-    cand = [i for i, lm in enumerate(landmarks) if is_candidate(lm, cfg)
-            and lm.tier != "conventional"]
+    cand = [i for i, lm in enumerate(landmarks) if is_candidate(lm, cfg)]
     if not cand:
         return out
-    parts = []
-    for i in cand:
-        r = segments[i].readings
-        good = (np.isfinite(r.t_s) & np.isfinite(r.x_m) & np.isfinite(r.y_m)
-                & np.isfinite(r.yaw_rad) & (np.isnan(r.tof_us)
-                                            | (np.isfinite(r.tof_us) & (r.tof_us > 0))))
-        parts.append((r.t_s[good], r.x_m[good], r.y_m[good], M.wrap_angle(r.yaw_rad[good]),
-                      r.tof_us[good]))
-    batch = pack_segments(parts)
+    # the candidates' readings end to end; the usable ones packed
+    reads = [segments[i].readings for i in cand]
+    t, x, y, yaw, tof = (np.concatenate([getattr(r, f) for r in reads])
+                         for f in ("t_s", "x_m", "y_m", "yaw_rad", "tof_us"))
+    good = (np.isfinite(t) & np.isfinite(x) & np.isfinite(y) & np.isfinite(yaw)
+            & (np.isnan(tof) | (np.isfinite(tof) & (tof > 0))))
+    which = np.repeat(np.arange(len(cand)), [len(r.t_s) for r in reads])
+    batch = pack_flat(which[good], t[good], x[good], y[good], M.wrap_angle(yaw[good]),
+                      tof[good], n_segments=len(cand))
     groups: dict[tuple[str, bool, bool], list[tuple[int, _Segment, Array]]] = {}
     for j, i in enumerate(cand):
         lm = landmarks[i]

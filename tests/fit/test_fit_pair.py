@@ -405,3 +405,115 @@ def test_flat_segments_detail_is_each_segments_own(rng):
         np.testing.assert_allclose(resp[j, :, :n], rj[0], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(resid[j, :n], ej[0], rtol=1e-9, atol=1e-9)
         assert not resp[j, :, n:].any() and not resid[j, n:].any()
+
+
+@pytest.mark.parametrize("tier", ["gauss", "piston", "waveform"])
+def test_pair_cost_floor_bounds_every_pair_and_is_reached(rng, tier):
+    # no parameters (random, or optimised from the grid starts) cost less than the floor;
+    # readings at the mean of an on-axis, strong (zero-delay, surely detected) reflector
+    # reach it: then two copies of it cost the floor plus their kappa prior
+    cfg = FitConfig()
+    scan = pan_scan([Reflector.polar(1.5, -6.0, 0.67), Reflector.polar(1.5005, 6.0, 0.67)],
+                    rng, -30, 30, 0.5, tier=tier if tier != "piston" else "gauss")
+    seg = P._Segment(_batch(scan), 0, cfg, tier)
+    floor = float(P._pair_cost_floor([seg])[0])
+    x = np.column_stack([rng.uniform(1400.0, 1600.0, 400), rng.uniform(-40.0, 40.0, 400),
+                         rng.uniform(math.log(0.01), math.log(50.0), 400)])
+    x = np.concatenate([x, x[::-1]], axis=1)
+    xo, co = P._minimise_batch(seg, x[:8])
+    assert np.asarray(seg.cost(P._unscale(x))).min() >= floor
+    assert co.min() >= floor and np.asarray(seg.cost(P._unscale(x[:, :3]))).min() >= floor
+    n = 30
+    on_axis = pack_segments([(np.arange(n) * 0.03, np.zeros(n), np.zeros(n),
+                              np.full(n, 0.1), np.full(n, 9000.0))])
+    strong = P._Segment(on_axis, 0, cfg, tier)
+    q = np.array([[1.5, 0.1, P._LNK_LO]])
+    (mean, _, _, _), _ = strong._component(q, strong._readings(None, 1))
+    strong.y = mean[0]
+    pen = float(P._kappa_penalty(np.exp(q[:, 2]), cfg)[0][0])
+    floor = float(P._pair_cost_floor([strong])[0])
+    for comps in ([q], [q, q]):
+        c = float(np.asarray(strong.cost(comps))[0]) - len(comps) * pen
+        assert 0.0 <= c - floor <= 1e-7 * n
+
+
+def test_hopeless_candidates_are_not_searched_and_the_others_as_before(rng, monkeypatch):
+    # a candidate whose pair cannot gain the bar by the cost floor is not searched (its
+    # gain reported as that bound, which the search stays below); the others, searched
+    # with them in one group, get the result of the search of all (up to the rounding of
+    # a group's sums)
+    cfg = FitConfig()
+    scans = []
+    for sep, step, k in ((0.0, 2.0, 0.67), (20.0, 0.3, 0.67), (0.0, 2.0, 2.68),
+                         (0.0, 1.0, 0.15), (12.0, 1.0, 0.67), (0.0, 2.0, 0.15),
+                         (16.0, 0.5, 0.67)):
+        refl = [Reflector.polar(1.5, -sep / 2, k)] + ([Reflector.polar(1.5005, sep / 2, k)]
+                                                       if sep else [])
+        scans.append(pan_scan(refl, rng, -40, 40, step))
+    batch = pack_segments([(s.t_s, s.x_m, s.y_m, s.yaw_rad, s.tof_us) for s in scans])
+    segs = [P._Segment(batch, b, cfg, "gauss") for b in range(len(scans))]
+    singles = list(fit_batch(batch, "point", "gauss").local)
+    got = P._fit_pairs(segs, singles)
+    floor = P._pair_cost_floor(segs)
+    bars = [max(3.0 * math.log(seg.n), P.MIN_GAIN) for seg in segs]
+    monkeypatch.setattr(P, "_pair_cost_floor", lambda s: np.full(len(s), -np.inf))
+    full = P._fit_pairs(segs, singles)
+    skipped = 0
+    for a, b, f, bar in zip(got, full, floor, bars, strict=True):
+        if a.cost_single - f <= bar:
+            skipped += 1
+            assert a.basis.startswith("two reflectors cannot fit enough better than one")
+            assert not a.accepted and not b.accepted
+            assert a.gain == pytest.approx(a.cost_single - f, abs=1e-9)
+            assert b.gain <= a.gain and np.isnan(a.local).all()
+        else:
+            assert (a.accepted, a.basis) == (b.accepted, b.basis)
+            assert a.gain == pytest.approx(b.gain, abs=1e-6)
+            np.testing.assert_allclose(a.local, b.local, rtol=1e-7, atol=1e-9)
+    assert skipped >= 2 and sum(pf.accepted for pf in got) >= 2
+    assert got[0].basis.startswith("two reflectors cannot")     # before a searched one
+    # the threshold: a bound just below the bar is not searched, one just above it is
+    s0 = np.array([[s[0] / P._SCALE[0], s[1] / P._SCALE[1],
+                    math.log(max(float(s[2]), cfg.kappa_min_us))] for s in singles])
+    c0 = np.asarray(P._Segments(segs).cost(P._unscale(s0), np.arange(len(segs))))
+    over = np.array([-1e-6, 1e-6, 1e-6, -1e-6, 1e-6, -1e-6, 1e-6])
+    monkeypatch.setattr(P, "_pair_cost_floor", lambda s: c0 - np.array(bars) - over)
+    at_bar = P._fit_pairs(segs, singles)
+    assert [pf.basis[15:21] == "cannot" for pf in at_bar] == (over < 0.0).tolist()
+
+
+def test_unusable_readings_of_candidates_are_left_out(rng):
+    # readings with a non-finite time, position or yaw, or a TOF <= 0, do not enter the
+    # pair test: the candidates decide as without them
+    from dataclasses import replace
+
+    from sonarloc.fit.landmarks import fit_segments
+    from sonarloc.fit.segment import Segmenter
+    cfg = FitConfig()
+    clean = []
+    for sep, lo in ((20.0, -40.0), (12.0, -30.0)):
+        refl = [Reflector.polar(1.5, -sep / 2, 0.67), Reflector.polar(1.5005, sep / 2, 0.67)]
+        clean += list(Segmenter().feed(pan_scan(refl, rng, lo, 40, 0.3)))
+    lms = fit_segments(clean, cfg)
+    assert all(P.is_candidate(lm, cfg) for lm in lms)
+    assert len({len(s.readings) for s in clean}) == len(clean)
+    bad = [(0, math.nan), (1, math.inf), (2, math.nan), (3, -math.inf), (4, 0.0), (4, -1.0)]
+    dirty = []
+    for s in clean:
+        r = s.readings
+        cols = [c.copy() for c in (r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us)]
+        at = np.sort(rng.choice(len(r), len(bad), replace=False)) + np.arange(len(bad))
+        for (col, v), j in zip(bad, at, strict=True):
+            for c, arr in enumerate(cols):
+                cols[c] = np.insert(arr, j, v if c == col else arr[min(j, arr.size - 1)])
+        sensor = np.zeros(cols[0].size, dtype=np.int64)
+        dirty.append(replace(s, readings=ScanReadings(*cols, sensor)))
+    a = P.resolve_pair_groups(clean, lms, cfg)
+    b = P.resolve_pair_groups(dirty, fit_segments(clean, cfg), cfg)
+    assert [len(g) for g in a] == [len(g) for g in b] and any(len(g) == 2 for g in a)
+    for ga, gb in zip(a, b, strict=True):
+        for la, lb in zip(ga, gb, strict=True):
+            np.testing.assert_array_equal(la.params, lb.params)
+            assert la.n_readings == lb.n_readings
+            for key in ("pair_basis", "pair_gain", "pair_price"):
+                assert la.extra.get(key) == lb.extra.get(key)
