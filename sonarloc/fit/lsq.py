@@ -885,22 +885,24 @@ def tof_jacobian_at(geo: M.Geometry, K: Array, g: Array, dg: Array, z: Array | N
 
 def _kappa_penalty(K: Array, cfg: FitConfig) -> tuple[Array, Array, Array]:
     """Soft box prior: (-2 log prior, its derivative by K, its curvature by K)."""
-    if not np.isfinite(cfg.kappa_soft_log_sd):
-        z = np.zeros(np.shape(K))
-        return z, z, z
-    v = cfg.kappa_soft_log_sd ** 2
-    lk = np.log(K)
-    d = np.maximum(lk - np.log(cfg.kappa_hi_us), 0.0) + np.minimum(
-        lk - np.log(cfg.kappa_lo_us), 0.0)                     # ln-distance outside the box
-    out = d != 0.0
-    return d * d / v, 2.0 * d / (v * K), np.where(out, 2.0 * (1.0 - d) / (v * K * K), 0.0)
+    if np.isfinite(cfg.kappa_soft_log_sd):
+        lk = np.log(K)
+        lo, hi = np.log(cfg.kappa_lo_us), np.log(cfg.kappa_hi_us)
+        if not (lk.size and lk.min() >= lo and lk.max() <= hi):    # some outside the box
+            v = cfg.kappa_soft_log_sd ** 2
+            d = np.maximum(lk - hi, 0.0) + np.minimum(lk - lo, 0.0)   # ln-distance outside
+            out = d != 0.0
+            return (d * d / v, 2.0 * d / (v * K),
+                    np.where(out, 2.0 * (1.0 - d) / (v * K * K), 0.0))
+    z = np.zeros(np.shape(K))     # no prior, or every kappa inside the box
+    return z, z, z
 
 
 def _kappa_prior(K: Array, grad: Array, H: Array, cfg: FitConfig, want_derivs: bool
                  ) -> Array:
     """-2 log of the kappa prior (B,); adds its share to the gradient of F/2 and to H."""
     pen, d1, d2 = _kappa_penalty(K, cfg)
-    if want_derivs:
+    if want_derivs and d1.any():
         grad[:, 2] += 0.5 * d1
         H[:, 2, 2] += 0.5 * np.maximum(d2, 0.0)
     return pen
@@ -1329,9 +1331,9 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             Ha = H[act]
             Ha[:, 2, :] *= kap[:, None]
             Ha[:, :, 2] *= kap[:, None]
-            diag = np.maximum(np.einsum("bkk->bk", Ha), 1e-12)
-            A = Ha + (lam[act, None] * diag)[:, :, None] * np.eye(3)[None]
-            delta = _solve3(A, -ga) if cfg.float32 else _solve_pivoted(A, -ga)
+            dg = np.einsum("bkk->bk", Ha)                 # a view: damp in place
+            dg += lam[act, None] * np.maximum(dg, 1e-12)
+            delta = _solve3(Ha, -ga) if cfg.float32 else _solve_pivoted(Ha, -ga)
             delta = np.where(np.isfinite(delta), delta, 0.0)
             # converged where the expected decrease (Newton decrement) is negligible
             done[act[-np.einsum("bk,bk->b", ga, delta) < tol]] = True
@@ -1369,14 +1371,15 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
                 if cfg.follow_variances:
                     s2 = s2s = s2q
             else:
-                ia = act[ok]
-                p[ia], F[ia], E[ia] = q[ok], Fq[ok], eq[ok]
+                # (every step taken: the rows as they are, no masks)
+                ia, tk = (act, slice(None)) if ok.all() else (act[ok], ok)
+                p[ia], F[ia], E[ia] = q[tk], Fq[tk], eq[tk]
                 if not last:
-                    grad[ia], H[ia] = gq[ok], Hq[ok]
+                    grad[ia], H[ia] = gq[tk], Hq[tk]
                 if cfg.follow_variances:
-                    s2[ia] = s2q[ok]
+                    s2[ia] = s2q[tk]
                     s2s = s2s.copy() if s2s is s2 else s2s
-                    s2s[ok] = s2q[ok]
+                    s2s[tk] = s2q[tk]
             lam[act] = np.where(ok, np.maximum(lam[act] / 4.0, 1e-9),
                                 np.minimum(lam[act] * 8.0, 1e9))
             done[act[~ok & (lam[act] >= 1e9)]] = True
@@ -1516,15 +1519,22 @@ def _profile_refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Arra
     return _State(q, inside, F, H, e, s2q, np.zeros((B, 3)))
 
 
-def _cofactors3(A: Array) -> tuple[tuple[Array, ...], Array, Array]:
-    """Cofactors (c00, c01, c02, c11, c12, c22), determinants and traces (B,) of
-    symmetric 3x3 matrices A (B, 3, 3) (its upper triangle is read)."""
-    a00, a01, a02 = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
-    a11, a12, a22 = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
-    c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
-    c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    return (c00, c01, c02, c11, c12, c22), det, a00 + a11 + a22
+_COF = np.array((4, 2, 1, 2, 0, 1, 1, 1, 0, 8, 5, 5, 5, 8, 2, 5, 2, 4,
+                 5, 1, 2, 1, 2, 0, 2, 0, 1, 5, 8, 4, 8, 2, 5, 4, 5, 1))
+"""Entries a, b, c, d (9 each; of a flattened 3x3 matrix's upper triangle) whose
+products a b - c d are the cofactors in the adjugate's order: c00 c01 c02 / c01 c11 c12
+/ c02 c12 c22."""
+
+
+def _cofactors3(A: Array) -> tuple[Array, Array, Array]:
+    """Adjugates (B, 3, 3), determinants and traces (B,) of symmetric 3x3 matrices A
+    (B, 3, 3) (its upper triangle is read)."""
+    a = A.reshape(-1, 9)
+    g = a[:, _COF]                                  # one gather: (B, 36)
+    C = g[:, :9] * g[:, 9:18]
+    C -= g[:, 18:27] * g[:, 27:]
+    det = a[:, 0] * C[:, 0] + a[:, 1] * C[:, 1] + a[:, 2] * C[:, 2]
+    return C.reshape(-1, 3, 3), det, a[:, 0] + a[:, 4] + a[:, 8]
 
 
 def _solve3(A: Array, b: Array) -> Array:
@@ -1532,11 +1542,11 @@ def _solve3(A: Array, b: Array) -> Array:
     LAPACK's batched solve costs ~1 us per system); the ill-conditioned ones (smallest
     eigenvalue below 1e-10 of the largest, from det / trace^3) with pivoting
     (:func:`_solve_pivoted`). Each row's solution depends on its own system only."""
-    (c00, c01, c02, c11, c12, c22), det, tr = _cofactors3(A)
+    C, det, tr = _cofactors3(A)
     good = (det > 1e-10 * tr ** 3) & (tr > 0)
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    x = np.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2,
-                  c02 * b0 + c12 * b1 + c22 * b2], axis=-1)
+    P = C * b[:, None, :]
+    x = P[:, :, 0] + P[:, :, 1]
+    x += P[:, :, 2]
     x /= np.where(good, det, 1.0)[:, None]
     bad = np.flatnonzero(~good)
     if bad.size:
@@ -1569,11 +1579,9 @@ def _covariance(H: Array) -> Array:
     """
     Hs = 0.5 * (H + np.swapaxes(H, -1, -2))
     Hs = np.where(np.isfinite(Hs), Hs, 0.0)
-    (c00, c01, c02, c11, c12, c22), det, tr = _cofactors3(Hs)
+    out, det, tr = _cofactors3(Hs)
     good = (det > 1e-12 * tr ** 3) & (tr > 0)
-    inv_det = 1.0 / np.where(good, det, 1.0)
-    out = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1).reshape(-1, 3, 3)
-    out *= inv_det[:, None, None]
+    out *= (1.0 / np.where(good, det, 1.0))[:, None, None]
     bad = np.flatnonzero(~good)
     if bad.size:
         w, V = np.linalg.eigh(Hs[bad])

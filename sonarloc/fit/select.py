@@ -503,14 +503,14 @@ def choose_tier(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                 if win.any():
                     sel.put(rows2[win], alt.take(np.flatnonzero(win)))
                     basis[rows2[win]] = "waveform fits the data better (after piston)"
-    # (Python values per segment: the loop runs once per segment)
-    dc = [(f"dcost_{t}", d.tolist(), np.isfinite(d).tolist()) for t, d in dcost.items()]
-    ka = np.where(sel.tier == "gauss", kappa_alt, np.nan)
-    for b, (ex, bs) in enumerate(zip(sel.extra, basis.tolist(), strict=True)):
+    # (Python values; each segment's keys in this order)
+    for ex, bs in zip(sel.extra, basis.tolist(), strict=True):
         ex["tier_basis"] = bs
-        for key, dv, f in dc:
-            if f[b]:
-                ex[key] = dv[b]
+    for t, d in dcost.items():
+        key, dv = f"dcost_{t}", d.tolist()
+        for b in np.flatnonzero(np.isfinite(d)).tolist():
+            sel.extra[b][key] = dv[b]
+    ka = np.where(sel.tier == "gauss", kappa_alt, np.nan)
     for b in np.flatnonzero(np.isfinite(ka)).tolist():
         sel.extra[b]["kappa_waveform_us"] = float(ka[b])
 

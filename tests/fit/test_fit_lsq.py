@@ -247,6 +247,64 @@ def test_covariance_inverts_fisher_and_survives_singular(rng):
     assert np.all(np.linalg.eigvalsh(C[:3]) > 0)
 
 
+def test_kappa_prior_zero_inside_its_box_and_per_segment_outside():
+    from sonarloc.fit.lsq import _kappa_penalty, _kappa_prior
+
+    cfg = FitConfig()
+    v = cfg.kappa_soft_log_sd ** 2
+    inside = np.array([cfg.kappa_lo_us, 0.3, 1.0, cfg.kappa_hi_us])    # edges included
+    for x in _kappa_penalty(inside, cfg):
+        np.testing.assert_array_equal(x, 0.0)
+    # one below, one above the box among inside ones: each row its own value
+    K = np.array([0.01, 1.0, 50.0, 5.0])
+    pen, d1, d2 = _kappa_penalty(K, cfg)
+    d = np.array([np.log(0.01 / cfg.kappa_lo_us), 0.0, np.log(50.0 / cfg.kappa_hi_us), 0.0])
+    np.testing.assert_allclose(pen, d * d / v, rtol=1e-12)
+    np.testing.assert_allclose(d1, 2.0 * d / (v * K), rtol=1e-12)
+    np.testing.assert_allclose(d2, np.where(d != 0, 2.0 * (1.0 - d) / (v * K * K), 0.0),
+                               rtol=1e-12)
+    for i in range(K.size):
+        for x, y in zip(_kappa_penalty(K[i:i + 1], cfg), (pen, d1, d2), strict=True):
+            assert x[0] == y[i]
+    # the prior adds to the gradient and Fisher matrix of the rows outside only
+    grad, H = np.ones((4, 3)), np.ones((4, 3, 3))
+    np.testing.assert_array_equal(_kappa_prior(K, grad, H, cfg, True), pen)
+    np.testing.assert_array_equal(grad[:, 2], 1.0 + 0.5 * d1)
+    np.testing.assert_array_equal(H[:, 2, 2], 1.0 + 0.5 * np.maximum(d2, 0.0))
+    grad, H = np.ones((4, 3)), np.ones((4, 3, 3))
+    np.testing.assert_array_equal(_kappa_prior(inside, grad, H, cfg, True), 0.0)
+    assert np.all(grad == 1.0) and np.all(H == 1.0)
+
+
+@pytest.mark.parametrize("tier", ["gauss", "waveform", "piston"])
+def test_a_step_is_taken_only_where_it_lowers_the_objective(rng, tier):
+    # one more step never raises a segment's objective (starts far off, so that some
+    # steps overshoot and are refused while the batch's others are taken)
+    from dataclasses import replace
+
+    from sonarloc.fit.lsq import _refine
+
+    segs, truth = [], []
+    for _ in range(40):
+        r, b, k = rng.uniform(1, 3), rng.uniform(-10, 10), rng.choice([0.15, 0.67, 2.68])
+        sc = pan_scan([Reflector.polar(r, b, k)], rng, -40, 40, 1.0, tier="auto")
+        segs.append((sc.t_s, sc.x_m, sc.y_m, sc.yaw_rad, sc.tof_us))
+        truth.append((r, np.deg2rad(b), k))
+    batch = pack_segments(segs)
+    cfg = FitConfig()
+    y = np.where(batch.valid, batch.tof_us - 0.5 * cfg.module.count_period_us, 0.0)
+    start = np.array(truth) + np.column_stack([rng.normal(0, 0.05, 40),
+                                               rng.normal(0, 0.3, 40), np.zeros(40)])
+    start[:, 2] *= np.exp(rng.normal(0, 1.5, 40))
+    prev = None
+    for n in range(1, 9):          # one round: the same variances throughout
+        F = _refine("point", tier, start, batch, y, batch.valid, replace(cfg, iterations=n),
+                    1).full_cost(batch.valid)
+        if prev is not None:
+            assert np.all(F <= prev)
+        prev = F
+
+
 def test_step_solves_of_a_row_depend_on_its_own_system_only(rng):
     # an ill-conditioned or singular system in the batch must not switch the others'
     # solves (it once sent the whole batch to LAPACK, so an unconverged fit moved with

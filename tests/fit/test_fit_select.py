@@ -70,3 +70,22 @@ def test_tier_predictions_share_the_beam_of_piston_and_waveform(rotation_segment
     # and the tiers do predict differently (the test would see a shared delay)
     assert not np.array_equal(both["waveform"][0], both["piston"][0])
     assert not np.array_equal(both["gauss"][1], both["piston"][1])
+
+
+def test_tier_extras_name_the_fitted_alternatives_in_order(rotation_segments):
+    # dcost_<tier> where that tier was fitted (a finite gain), nowhere else; each
+    # segment's keys in the order tier_basis, dcost_waveform, dcost_piston
+    lms = fit_segments(rotation_segments[:600])
+    order = ["tier_basis", "dcost_waveform", "dcost_piston"]
+    seen = set()
+    for lm in lms:
+        keys = [k for k in lm.extra if k in order]
+        if not keys:        # too few echoes for a fit: no model selection
+            continue
+        assert keys == [k for k in order if k in keys]
+        for k in keys[1:]:
+            assert isinstance(lm.extra[k], float) and np.isfinite(lm.extra[k])
+            seen.add(k)
+        # "gauss: ..." (the tiers agree, or the residuals do not lean): none fitted
+        assert (len(keys) > 1) != str(lm.extra["tier_basis"]).startswith("gauss:")
+    assert seen == {"dcost_waveform", "dcost_piston"}

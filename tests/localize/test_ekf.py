@@ -223,6 +223,15 @@ def test_gate_values():
         ekf.chi2_gate(2, 1.5)
 
 
+@pytest.mark.parametrize("dof", [1, 2, 3, 4, 7])
+def test_gate_is_scipy_stats_quantile(dof):
+    # computed from scipy.special (no scipy.stats import in a drive): the same numbers
+    from scipy.stats import chi2
+
+    for p in (0.5, 0.9, 0.95, 0.99, 0.999, 1 - 1e-9):
+        assert ekf.chi2_gate(dof, p) == float(chi2.ppf(p, dof))
+
+
 def test_axis_range_wall_jacobian_and_values(rng, poses, sensors):
     walls = np.stack([rng.uniform(0.5, 6, 40), rng.uniform(-math.pi, math.pi, 40)], axis=-1)
     z, h = ekf.axis_range_wall(poses, sensors, walls)

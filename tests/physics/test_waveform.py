@@ -149,12 +149,18 @@ def test_table_lookup_matches_template_search() -> None:
     np.testing.assert_allclose(t, idx * tpl.dt_us, atol=tpl.dt_us + 0.01)
 
 
+def _drive(p: ModuleParams, n: int) -> tuple[float, np.ndarray]:
+    """Sample spacing [us] and the first ``n`` samples of the unit burst."""
+    dt_us = 1e6 / (p.carrier_hz * 1000)
+    t_us = np.arange(n) * dt_us
+    omega = 2 * np.pi * p.carrier_hz
+    return dt_us, np.where(t_us < p.burst_cycles * 1e6 / p.carrier_hz,
+                           np.cos(omega * t_us * 1e-6), 0.0)
 
-def test_cached_band_passed_echo_is_the_direct_computation():
+
+def test_cached_band_passed_echo_is_the_direct_computation() -> None:
     # the calibration reuses one band-passed echo of a power-of-two length for every
     # leak it tries; a causal filter gives the same first n samples to the last bit
-    from scipy import signal
-
     from sonarloc.physics import waveform as W
 
     p = ModuleParams()
@@ -164,15 +170,98 @@ def test_cached_band_passed_echo_is_the_direct_computation():
     for tau in (1.0, 60.0):
         dt_us, w = W._processed_unit_echo(tau, p.carrier_hz, p.burst_cycles, q, b)
         n = w.size
-        t_us = np.arange(n) * dt_us
-        drive = np.where(t_us < p.burst_cycles * 1e6 / p.carrier_hz,
-                         np.cos(omega * t_us * 1e-6), 0.0)
-        num, den = signal.bilinear([omega / q, 0.0], [1.0, omega / q, omega * omega],
-                                   fs=1e6 / dt_us)
-        rect = np.abs((1 - b) * drive + b * signal.lfilter(num, den, drive)) / (1 - b)
+        _, drive = _drive(p, n)
+        rect = np.abs((1 - b) * drive + b * W._bandpass(drive, omega, q, 1e6 / dt_us)) / (1 - b)
         decay = np.exp(-dt_us / tau)
         want = np.zeros(n)
-        want[1:] = signal.lfilter([0.5 * dt_us], [1.0, -decay], rect[1:] + decay * rect[:-1])
+        want[1:] = W._one_pole(0.5 * dt_us * (rect[1:] + decay * rect[:-1]), float(decay))
         np.testing.assert_array_equal(w, want)
         peaks.append(w.max())
     assert peaks[0] < peaks[1]      # the peak grows with the leak's time constant
+
+
+@pytest.mark.parametrize("pole", [np.exp(-20.0), -0.5, 0.5, 0.99, 0.9999,
+                                  0.997 * np.exp(0.0054j), 0.9 * np.exp(2.5j)])
+@pytest.mark.parametrize("n", [1, 2, 3, 1000, 4097])
+def test_one_pole_is_scipy_lfilter(pole: complex, n: int) -> None:
+    from scipy import signal  # the oracle (the package does not import it)
+
+    from sonarloc.physics.waveform import _one_pole
+
+    x = np.random.default_rng(n).normal(size=n) + 0.3
+    got = _one_pole(x, pole)
+    want = signal.lfilter([1.0], [1.0, -pole], x)
+    assert got.dtype == want.dtype
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.max(np.abs(want)))
+
+
+@pytest.mark.parametrize("q", [0.3, 0.5, 1.0, 5.0, 40.0])
+def test_bandpass_is_scipy_bilinear_lfilter(q: float) -> None:
+    # at 20 samples per period the polynomial form is well conditioned: scipy's
+    # bilinear + lfilter and the exact poles agree to rounding
+    from scipy import signal
+
+    from sonarloc.physics.waveform import _bandpass
+
+    omega, fs = 2 * np.pi * 49.4e3, 20 * 49.4e3
+    t = np.arange(3000) / fs
+    x = np.where(t < 16 / 49.4e3, np.cos(omega * t), 0.0)
+    x[::7] += np.random.default_rng(3).normal(size=x[::7].size)   # not only a burst
+    num, den = signal.bilinear([omega / q, 0.0], [1.0, omega / q, omega * omega], fs=fs)
+    want = signal.lfilter(num, den, x)
+    np.testing.assert_allclose(_bandpass(x, omega, q, fs), want, rtol=0,
+                               atol=1e-12 * np.max(np.abs(want)))
+
+
+def _bandpass_40_digits(x: np.ndarray, omega: float, q: float, fs: float) -> np.ndarray:
+    """The bilinear band-pass's recursion in 40-digit decimal arithmetic."""
+    from decimal import Decimal, localcontext
+
+    with localcontext() as ctx:
+        ctx.prec = 40
+        k, w = 2 * Decimal(fs), Decimal(omega)
+        bw = w / Decimal(q)
+        a0 = k * k + bw * k + w * w
+        g, a1, a2 = bw * k / a0, 2 * (w * w - k * k) / a0, (k * k - bw * k + w * w) / a0
+        y1 = y2 = x1 = x2 = Decimal(0)
+        out = []
+        for xn in map(Decimal, x.tolist()):
+            yn = g * (xn - x2) - a1 * y1 - a2 * y2
+            out.append(float(yn))
+            y2, y1, x2, x1 = y1, yn, x1, xn
+    return np.array(out)
+
+
+@pytest.mark.parametrize("q", [0.5, 1.0, 5.0])
+def test_bandpass_at_template_rate_is_the_exact_filter(q: float) -> None:
+    # at 1000 samples per period the poles lie within 0.005 of z = 1: rounding the
+    # polynomial coefficients (scipy.signal.bilinear) moves lfilter's output by up to
+    # ~6e-11 of its size (q = 5); the exact poles stay at rounding level of the
+    # 40-digit recursion
+    from scipy import signal
+
+    from sonarloc.physics.waveform import _bandpass
+
+    p = ModuleParams(transducer_q=q)
+    omega = 2 * np.pi * p.carrier_hz
+    dt_us, x = _drive(p, 20000)
+    fs = 1e6 / dt_us
+    got = _bandpass(x, omega, q, fs)
+    exact = _bandpass_40_digits(x, omega, q, fs)
+    scale = np.max(np.abs(exact))
+    assert np.max(np.abs(got - exact)) < 1e-12 * scale
+    num, den = signal.bilinear([omega / q, 0.0], [1.0, omega / q, omega * omega], fs=fs)
+    assert np.max(np.abs(got - signal.lfilter(num, den, x))) < 1e-10 * scale
+
+
+@pytest.mark.parametrize("limit_us", [12.0, 10.0, 9.85, 12.5])
+@pytest.mark.parametrize("q", [0.5, 1.0, 3.0])
+def test_template_peak_is_the_detection_limit_exactly(limit_us: float, q: float) -> None:
+    # an echo at the limit is detected in every tier: the scaled template's peak must
+    # not round below (or above) it (scaling alone rounds it off for (12, 3), (10, 0.5),
+    # (12.5, 1), ...; at (9.85, 1) five samples of the flat top round above it)
+    tpl = waveform_template(ModuleParams(detection_limit_us=limit_us, transducer_q=q))
+    assert tpl.peak_us == limit_us
+    assert tpl.processed.max() == limit_us
+    assert np.isfinite(crossing_delay_us(limit_us, ModuleParams(detection_limit_us=limit_us,
+                                                                transducer_q=q)))
