@@ -631,11 +631,25 @@ def waveform_delay_table(params: ModuleParams) -> _DelayTable:
     W = crossing_delay_us(np.exp(y), params)
     W = np.where(np.isfinite(W), W, 0.0)
     x = np.linspace(np.log(1e-3), np.log(params.detection_limit_us) + 6.0 * s, 512)
-    a = (x[:, None] - y[None, :]) / s
-    k = np.exp(-0.5 * a * a) * dy[None, :]
-    dk = -a / s * k
-    D, N, E2 = k.sum(1), (k * W).sum(1), (k * W * W).sum(1)
-    Dp, Np = dk.sum(1), (dk * W).sum(1)
+    # the kernel k = exp(-a^2 / 2) dy, a = (x - y) / s, and its derivative by x,
+    # -a / s k, with their W-weighted sums; in place (each (512, 2500) temporary costs
+    # as much as the arithmetic), the same operations as the plain expressions
+    a = np.subtract(x[:, None], y[None, :])
+    a /= s
+    k = np.multiply(a, -0.5)
+    k *= a
+    np.exp(k, out=k)
+    k *= dy
+    kw = k * W
+    D, N = k.sum(1), kw.sum(1)
+    kw *= W
+    E2 = kw.sum(1)
+    dk = np.negative(a, out=a)
+    dk /= s
+    dk *= k
+    Dp = dk.sum(1)
+    dk *= W
+    Np = dk.sum(1)
     mean = N / D
     dmean = (Np * D - N * Dp) / (D * D)
     var = np.maximum(E2 / D - mean * mean, 0.0)

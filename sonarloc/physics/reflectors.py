@@ -121,22 +121,26 @@ def _roll_off(ka: NDArray[np.float64], c: float) -> NDArray[np.float64]:
 
 @functools.lru_cache(maxsize=8)
 def cylinder_rule_constants(params: ModuleParams = ModuleParams()) -> tuple[float, float]:
-    """(kappa_inf [us], c) of the cylinder rule, fitted to the paper's pole and rod."""
+    """(kappa_inf [us], c) of the cylinder rule, fitted to the paper's pole and rod.
+
+    ``c`` in closed form: with ``P, R`` the cubes of ``ka`` of the pole and the rod,
+    ``G`` their geometric strength ratio ``sqrt((a_rod + r)/a_rod) / sqrt((a_pole + r)
+    /a_pole)`` and ``Q`` the paper's ratio 2.68/0.67, the squared rule
+    ``G^2 P (R + c^3) / (R (P + c^3)) = Q^2`` is linear in ``c^3``:
+    ``c^3 = P R (Q^2 - G^2) / (G^2 P - Q^2 R)``, positive for every module: Q^2 = 16
+    exceeds G^2 = 10.8, and ``P / R`` (the radius ratio cubed, 1.4e3) exceeds
+    ``Q^2 / G^2``.
+    """
     k = _wavenumber(params)
     r = REFERENCE_RANGE_M
 
     def geo(a: float) -> float:
         return math.sqrt((a + r) / a)
 
-    want = ROD_KAPPA_US / POLE_KAPPA_US
-
-    def mismatch(c: float) -> float:
-        f = _roll_off(np.array([k * POLE_RADIUS_M, k * ROD_RADIUS_M]), c)
-        return geo(ROD_RADIUS_M) / geo(POLE_RADIUS_M) * float(f[0] / f[1]) - want
-
-    from scipy import optimize  # here, not at import (start-up of the commands)
-
-    c = float(optimize.brentq(mismatch, 1e-6, 1e3, xtol=1e-12))
+    p3, r3 = (k * POLE_RADIUS_M) ** 3, (k * ROD_RADIUS_M) ** 3
+    g2 = (geo(ROD_RADIUS_M) / geo(POLE_RADIUS_M)) ** 2
+    q2 = (ROD_KAPPA_US / POLE_KAPPA_US) ** 2
+    c = (p3 * r3 * (q2 - g2) / (g2 * p3 - q2 * r3)) ** (1.0 / 3.0)
     f_pole = float(_roll_off(np.array(k * POLE_RADIUS_M), c))
     return POLE_KAPPA_US * f_pole / geo(POLE_RADIUS_M), c
 

@@ -198,9 +198,21 @@ def _processed_unit_echo(
     return dt_us, w
 
 
-@functools.lru_cache(maxsize=16)
-def _template(carrier_hz: float, burst_cycles: int, q: float, b: float,
-              peak_us: float) -> WaveformTemplate:
+_STORED_LEAKS_US: dict[tuple[float, int, float, float, float], float] = {
+    (49.4e3, 16, 1.0, 0.5, 12.0): 8.404799957508134,
+}
+"""Calibrated leaks (:func:`_calibrate_leak`) by ``(carrier_hz, burst_cycles,
+transducer_q, resonant_fraction, detection_limit_us)``: the default module's, stored so
+that a process using it does not import scipy.optimize for the root finder (0.12 s CPU,
+two thirds of a ``sonarloc fit`` process's set-up). The calibration's own result to
+the last bit (x86_64 Linux); tests/physics/test_waveform.py recalibrates every entry.
+Other modules are calibrated when first used."""
+
+
+def _calibrate_leak(carrier_hz: float, burst_cycles: int, q: float, b: float,
+                    peak_us: float) -> float:
+    """The integrator's leak [us] whose processed unit echo peaks at ``peak_us``
+    (a root of the peak's excess, to 1e-9 us)."""
     def excess(tau_us: float) -> float:
         return float(_processed_unit_echo(tau_us, carrier_hz, burst_cycles, q, b)[1].max()
                      - peak_us)
@@ -213,7 +225,15 @@ def _template(carrier_hz: float, burst_cycles: int, q: float, b: float,
         )
     from scipy import optimize
 
-    tau = float(optimize.brentq(excess, 1e-3, hi, xtol=1e-9, rtol=1e-12))
+    return float(optimize.brentq(excess, 1e-3, hi, xtol=1e-9, rtol=1e-12))
+
+
+@functools.lru_cache(maxsize=16)
+def _template(carrier_hz: float, burst_cycles: int, q: float, b: float,
+              peak_us: float) -> WaveformTemplate:
+    tau = _STORED_LEAKS_US.get((carrier_hz, burst_cycles, q, b, peak_us))
+    if tau is None:
+        tau = _calibrate_leak(carrier_hz, burst_cycles, q, b, peak_us)
     dt_us, w = _processed_unit_echo(tau, carrier_hz, burst_cycles, q, b)
     # remove the root finder's last 1e-9 of mismatch, and the scaling's rounding: the
     # peak is the limit exactly (an echo at the limit is detected, as in eq. 3)

@@ -185,6 +185,34 @@ def test_waveform_delay_table_matches_monte_carlo():
     assert np.all(np.diff(m) >= -1e-9)          # later for weaker echoes
 
 
+def test_waveform_delay_table_is_the_plain_kernel_sums():
+    # the table is built in place to save temporaries: the same numbers, to the last
+    # bit, as the kernel sums written out
+    from sonarloc.physics.waveform import crossing_delay_us, waveform_template
+
+    for params in (MOD, ModuleParams(amplitude_fluctuation=0.4, detection_limit_us=9.0)):
+        tab = M.waveform_delay_table(params)
+        s = M.sigma_a(params)
+        peak = float(waveform_template(params).running_max[-1])
+        span = np.log(peak / 1e-3)
+        edges = np.unique(np.log(peak) - np.concatenate(
+            [[span], np.geomspace(span, 1e-9, 2500), [0.0]]))
+        y, dy = 0.5 * (edges[1:] + edges[:-1]), np.diff(edges)
+        W = crossing_delay_us(np.exp(y), params)
+        W = np.where(np.isfinite(W), W, 0.0)
+        x = np.linspace(np.log(1e-3), np.log(params.detection_limit_us) + 6.0 * s, 512)
+        a = (x[:, None] - y[None, :]) / s
+        k = np.exp(-0.5 * a * a) * dy[None, :]
+        dk = -a / s * k
+        D, N, E2 = k.sum(1), (k * W).sum(1), (k * W * W).sum(1)
+        Dp, Np = dk.sum(1), (dk * W).sum(1)
+        mean = N / D
+        np.testing.assert_array_equal(tab.mean, mean)
+        np.testing.assert_array_equal(tab.dmean_dx, (Np * D - N * Dp) / (D * D))
+        np.testing.assert_array_equal(tab.var, np.maximum(E2 / D - mean * mean, 0.0))
+        assert (tab.x0, tab.dx) == (float(x[0]), float(x[1] - x[0]))
+
+
 def test_log_sf32_matches_log_ndtr_everywhere():
     from scipy.special import log_ndtr
 

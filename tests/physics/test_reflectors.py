@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sonarloc.physics import constants
+from sonarloc.physics import ModuleParams, constants
 from sonarloc.physics.reflectors import (
     EDGE_MAX_RANGE_M,
     Reflector,
@@ -38,6 +38,26 @@ def test_cylinder_rule_reproduces_pole_and_rod() -> None:
     assert default_kappa_us("rod", radius_m=0.004) == pytest.approx(2.68)
     # the paper's levels: plane 13 dB above the pole, pole 12 dB above the rod
     assert 20 * np.log10(2.68 / 0.67) == pytest.approx(12.0, abs=0.1)
+
+
+@pytest.mark.parametrize("params", [ModuleParams(), ModuleParams(c_mps=300.0),
+                                    ModuleParams(carrier_hz=60e3, c_mps=360.0)])
+def test_cylinder_rule_constants_solve_the_rule(params: ModuleParams) -> None:
+    # the closed form reproduces the paper's pole and rod for every module, and is the
+    # root a root finder gives (the oracle)
+    from scipy import optimize
+
+    np.testing.assert_allclose(cylinder_kappa_us([0.0445, 0.004], params=params),
+                               [0.67, 2.68], rtol=1e-14)
+    k = 2 * math.pi * params.carrier_hz / params.c_mps
+
+    def ratio(c: float) -> float:
+        f = np.sqrt((k * np.array([0.0445, 0.004])) ** 3
+                    / ((k * np.array([0.0445, 0.004])) ** 3 + c ** 3))
+        return math.sqrt(1.504 / 0.004) / math.sqrt(1.5445 / 0.0445) * f[0] / f[1] - 4.0
+
+    root = optimize.brentq(ratio, 1e-6, 1e3, xtol=1e-14, rtol=1e-15)
+    assert cylinder_rule_constants(params)[1] == pytest.approx(root, rel=1e-13)
 
 
 def test_cylinder_rule_limits() -> None:

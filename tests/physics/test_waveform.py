@@ -265,3 +265,33 @@ def test_template_peak_is_the_detection_limit_exactly(limit_us: float, q: float)
     assert tpl.processed.max() == limit_us
     assert np.isfinite(crossing_delay_us(limit_us, ModuleParams(detection_limit_us=limit_us,
                                                                 transducer_q=q)))
+
+
+def test_stored_leaks_are_the_calibration() -> None:
+    from sonarloc.physics import waveform as W
+
+    for key, tau in W._STORED_LEAKS_US.items():
+        # the root finder's tolerance (its last digits may differ on another platform;
+        # here the stored value is its result to the last bit)
+        assert W._calibrate_leak(*key) == pytest.approx(tau, rel=0, abs=1e-9)
+    p = ModuleParams()
+    key = (p.carrier_hz, p.burst_cycles, p.transducer_q, p.resonant_fraction,
+           p.detection_limit_us)
+    assert key in W._STORED_LEAKS_US            # the default module's is stored
+
+
+def test_default_template_needs_no_calibration(monkeypatch: pytest.MonkeyPatch) -> None:
+    from sonarloc.physics import waveform as W
+
+    def fail(*args: object) -> float:
+        raise AssertionError(f"calibrated {args}")
+
+    monkeypatch.setattr(W, "_calibrate_leak", fail)
+    W._template.cache_clear()
+    try:
+        tpl = W.waveform_template()
+        assert tpl.peak_us == 12.0
+        with pytest.raises(AssertionError, match="calibrated"):
+            W.waveform_template(ModuleParams(detection_limit_us=11.0))
+    finally:
+        W._template.cache_clear()
