@@ -165,7 +165,8 @@ class _Rd(NamedTuple):
     """The readings of the evaluated rows (:meth:`_Segment._readings`): echo (px, py,
     yaw, y) and no-echo (px, py, yaw) arrays, (n,) / (S, n) with parameters per row
     (``rows`` None), or flat (N,) over all rows' readings with ``rows`` (N,) / ``nrows``
-    (N_ne,) the row of each entry (:class:`_Segments`); ``S`` rows."""
+    (N_ne,) the row of each entry (:class:`_Segments`: px, py empty where the
+    transducer did not move, the geometry then needs no positions); ``S`` rows."""
 
     px: Array
     py: Array
@@ -252,7 +253,7 @@ class _Segment:
         s2 = M.tof_variance_us2(et.delay, mod, et.delay_var if waveform else None)
         mean = M.us_per_m(mod) * R + et.delay
         ng = None
-        has_ne = bool(npx.shape[-1])
+        has_ne = bool(nyaw.shape[-1])
         if has_ne:
             rn, phin, Kn = ((r, phi, K) if rd.nrows is None else
                             (r_[rd.nrows, 0], phi_[rd.nrows, 0], K_[rd.nrows, 0]))
@@ -324,8 +325,8 @@ class _Segment:
                           _rowsum(lqn, rd.nrows, rd.S)))
             parts.append(cg)
         mix = self._mixture(terms)
-        pens = [_kappa_penalty(np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)), self.cfg)
-                for q in comps]
+        Ks = [np.exp(np.clip(q[:, 2], _LNK_LO, _LNK_HI)) for q in comps]
+        pens = [_kappa_penalty(K, self.cfg) for K in Ks]
         cost, _, _ = self._combine(terms, comps, mask, False, mix, rd, [p[0] for p in pens])
         # per echo: d(-2 ll)/d(mean, variance, log P) of each component
         if len(comps) == 1:
@@ -381,9 +382,9 @@ class _Segment:
                     d_phi = d_phi + _rowsum(gn_t, nrows, S)
                 d_lk = d_lk + _rowsum(gn_v, nrows, S)
             lk = q[:, 2]
-            K = np.exp(np.clip(lk, _LNK_LO, _LNK_HI))
-            d_lk = (d_lk + pens[k][1] * K) * ((lk > _LNK_LO) & (lk < _LNK_HI))
-            grad[:, 3 * k:3 * k + 3] = np.stack([d_r, d_phi, d_lk], axis=1) * _SCALE
+            d_lk = (d_lk + pens[k][1] * Ks[k]) * ((lk > _LNK_LO) & (lk < _LNK_HI))
+            for j, d in enumerate((d_r, d_phi, d_lk)):
+                grad[:, 3 * k + j] = d * _SCALE[j]
         grad[cost >= 1e12] = 0.0
         return cost, grad
 
@@ -482,6 +483,7 @@ class _Segments(_Segment):
         self.off = np.concatenate([[0], np.cumsum(self.n_echo)[:-1]])
         self.ne_off = np.concatenate([[0], np.cumsum(self.n_ne)[:-1]])
         self.sizes = self.n_echo + self.n_ne
+        self._last: tuple[NDArray[np.intp], _Rd] | None = None
 
     @property
     def n(self) -> int:
@@ -502,10 +504,18 @@ class _Segments(_Segment):
         if owner is None:
             raise ValueError("_Segments needs the `owner` of every row")
         owner = np.asarray(owner, dtype=np.intp)
+        # the last call's readings again (consecutive quasi-Newton steps mostly
+        # evaluate the same rows)
+        if self._last is not None and np.array_equal(self._last[0], owner):
+            return self._last[1]
         ie, rows, _ = self._gather(self.off, self.n_echo, owner)
         inn, nrows, _ = self._gather(self.ne_off, self.n_ne, owner)
-        return _Rd(self.px[ie], self.py[ie], self.yaw[ie], self.y[ie], self.npx[inn],
-                   self.npy[inn], self.nyaw[inn], rows, nrows, S)
+        none = np.zeros(0)
+        rd = _Rd(self.px[ie] if self.moving else none, self.py[ie] if self.moving else none,
+                 self.yaw[ie], self.y[ie], self.npx[inn] if self.ne_moving else none,
+                 self.npy[inn] if self.ne_moving else none, self.nyaw[inn], rows, nrows, S)
+        self._last = (owner.copy(), rd)
+        return rd
 
     def _pad_detail(self, terms: list[tuple[Array, ...]], parts: list[Array], ll: Array,
                     rd: _Rd) -> tuple[Array, Array]:
@@ -580,10 +590,12 @@ def _minimise(seg: _Segment, x0: Array, fixed: int | None = None, maxiter: int =
 def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None = None,
                     maxiter: int = 60, gtol: float = 1e-2,
                     owner: NDArray[np.intp] | None = None) -> tuple[Array, Array]:
-    """BFGS from several starts in lockstep: every iteration evaluates the trial points
-    of all unfinished starts with their analytic gradients in one
-    :meth:`_Segment.cost_grad` call (the cost of a call is mostly per-call overhead, so
-    S starts cost about as much as one).
+    """BFGS from several starts in lockstep: every call of :meth:`_Segment.cost_grad`
+    evaluates the next trial point of every unfinished start with its analytic gradient
+    (the first of a new step, or a shorter one where its line search backtracks: each
+    start's line search runs on its own, so backtracking starts cost no calls of their
+    own). The cost of a call is mostly per-call overhead, so S starts cost about as
+    much as one; each start's path is the one it would take alone.
 
     Parameters
     ----------
@@ -616,29 +628,37 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
     first = np.ones(S, dtype=bool)
     active = np.abs(g).max(1) > gtol
     it = np.zeros(S, dtype=int)
+    # each row's line search (backtracking, Armijo, at most 12 trials) runs on its own:
+    # every call evaluates the next trial point of every active row, the first of a new
+    # step or a shorter one, so a row that backtracks costs no call of its own
+    p = np.zeros((S, D))
+    slope, alpha = np.zeros(S), np.zeros(S)
+    tries = np.zeros(S, dtype=int)               # trials of the row's current step
     while active.any():
-        rows = np.flatnonzero(active)
-        p = -np.einsum("sij,sj->si", Hinv[rows], g[rows])
-        slope = np.einsum("si,si->s", p, g[rows])
-        bad = ~(slope < 0)                       # not a descent direction: steepest descent
-        p[bad] = -g[rows][bad]
-        slope[bad] = -np.einsum("si,si->s", g[rows][bad], g[rows][bad])
-        alpha = np.where(first[rows], np.minimum(1.0, 1.0 / np.maximum(
-            np.linalg.norm(p, axis=1), 1e-300)), 1.0)
-        pending = np.ones(rows.size, dtype=bool)
+        new = np.flatnonzero(active & (tries == 0))
+        if new.size:
+            pn = -np.einsum("sij,sj->si", Hinv[new], g[new])
+            sl = np.einsum("si,si->s", pn, g[new])
+            bad = ~(sl < 0)                      # not a descent direction: steepest descent
+            pn[bad] = -g[new][bad]
+            sl[bad] = -np.einsum("si,si->s", g[new][bad], g[new][bad])
+            p[new], slope[new] = pn, sl
+            alpha[new] = np.where(first[new], np.minimum(1.0, 1.0 / np.maximum(
+                np.linalg.norm(pn, axis=1), 1e-300)), 1.0)
+        k = np.flatnonzero(active)
+        trial = x[k] + alpha[k, None] * p[k]
+        ft, gt = evaluate(trial, k)
+        ok = ft <= f[k] + 1e-4 * alpha[k] * slope[k]
+        tries[k] += 1
+        alpha[k[~ok]] *= 0.3
+        end = ok | (tries[k] >= 12)              # the rows whose step ends here
+        if not end.any():
+            continue
+        rows, moved = k[end], ok[end]
+        tries[rows] = 0
         x_new, f_new, g_new = x[rows].copy(), f[rows].copy(), g[rows].copy()
-        for _ in range(12):                      # backtracking (Armijo), all in one call
-            k = np.flatnonzero(pending)
-            if k.size == 0:
-                break
-            trial = x[rows[k]] + alpha[k, None] * p[k]
-            ft, gt = evaluate(trial, rows[k])
-            ok = ft <= f[rows[k]] + 1e-4 * alpha[k] * slope[k]
-            kk = k[ok]
-            x_new[kk], f_new[kk], g_new[kk] = trial[ok], ft[ok], gt[ok]
-            pending[kk] = False
-            alpha[k[~ok]] *= 0.3
-        moved = ~pending
+        x_new[moved], f_new[moved], g_new[moved] = (trial[end][moved], ft[end][moved],
+                                                    gt[end][moved])
         sv = x_new - x[rows]
         yv = g_new - g[rows]
         sy = np.einsum("si,si->s", sv, yv)
@@ -1297,18 +1317,23 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
     fit) that are ``UNRESOLVED`` or ``FLAT`` with at least ``2 min_echoes`` echoes, and
     ``OK`` ones whose residuals say the single model is strained.
     """
-    if lm.n_readings < 2 * cfg.min_echoes or lm.tier == "conventional":
+    n = lm.n_readings
+    if n < 2 * cfg.min_echoes or lm.tier == "conventional":
         return False
-    if lm.kind == "line" and lm.extra.get("kind_basis") == "motion":
+    extra = lm.extra
+    if lm.kind == "line" and extra.get("kind_basis") == "motion":
         return False
-    if lm.status in (FitStatus.UNRESOLVED, FitStatus.FLAT):
+    status = lm.status
+    if status is FitStatus.UNRESOLVED or status is FitStatus.FLAT:
         return True
-    if lm.status is not FitStatus.OK:
+    if status is not FitStatus.OK:
         return False
-    if float(lm.extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z:  # type: ignore[arg-type]
+    if float(extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z:  # type: ignore[arg-type]
         return True
-    chi2 = max(float(lm.extra.get("chi2", 0.0)), 0.0)  # type: ignore[arg-type]
-    dof = max(lm.n_readings - 3, 1)
+    chi2 = max(float(extra.get("chi2", 0.0)), 0.0)  # type: ignore[arg-type]
+    dof = max(n - 3, 1)
+    if chi2 <= dof:               # p > 0.3 (at dof = 1; the chi-square's median < dof)
+        return False
     lo, hi = _chi2_band(dof)      # p < CANDIDATE_P certainly above hi, certainly not below lo
     if chi2 < lo or chi2 > hi:
         return chi2 > hi
@@ -1426,10 +1451,11 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
     for j, i in enumerate(cand):
         lm = landmarks[i]
         seg = _Segment(batch, j, cfg, lm.tier)
-        local = np.array([lm.range_m, lm.bearing_rad, lm.kappa_us])
-        if seg.y.size < 2 * cfg.min_echoes or not np.all(np.isfinite(local)):
+        local = (lm.range_m, lm.bearing_rad, lm.kappa_us)
+        if seg.y.size < 2 * cfg.min_echoes or not all(map(math.isfinite, local)):
             continue
-        groups.setdefault((lm.tier, seg.moving, seg.ne_moving), []).append((i, seg, local))
+        groups.setdefault((lm.tier, seg.moving, seg.ne_moving), []).append(
+            (i, seg, np.array(local)))
     fits: dict[int, PairFit] = {}
     for members in groups.values():
         for (i, _, _), pf in zip(members, _fit_pairs([m[1] for m in members],

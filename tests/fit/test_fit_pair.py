@@ -517,3 +517,44 @@ def test_unusable_readings_of_candidates_are_left_out(rng):
             assert la.n_readings == lb.n_readings
             for key in ("pair_basis", "pair_gain", "pair_price"):
                 assert la.extra.get(key) == lb.extra.get(key)
+
+
+def test_lockstep_starts_backtrack_on_their_own_and_take_their_paths_alone(rng, monkeypatch):
+    # starts whose line searches backtrack different numbers of times share every call
+    # (a call evaluates some starts' first trial of a step and others' shorter ones) and
+    # each reaches the optimum, cost and path length it reaches alone
+    refl = [Reflector.polar(1.5, -8.0, 0.67), Reflector.polar(1.5005, 8.0, 0.67)]
+    seg = P._Segment(_batch(pan_scan(refl, rng, -40, 40, 0.3)), 0, FitConfig(), "gauss")
+    starts = np.array([[1500.0, -6.0, math.log(0.5), 1500.0, 6.0, math.log(0.9)],
+                       [1490.0, -20.0, math.log(5.0), 1530.0, 25.0, math.log(0.05)],
+                       [1500.2, -1.0, math.log(0.3), 1500.2, 1.0, math.log(0.3)],
+                       [1460.0, 10.0, math.log(0.01), 1550.0, -30.0, math.log(20.0)]])
+    calls: list[int] = []
+    cost_grad = P._Segment.cost_grad
+
+    def counting(self, x, owner=None):
+        calls.append(x.shape[0])
+        return cost_grad(self, x, owner)
+
+    monkeypatch.setattr(P._Segment, "cost_grad", counting)
+    xs, cs = P._minimise_batch(seg, starts, maxiter=30)
+    n_together = len(calls)
+    alone = []
+    for x0 in starts:
+        calls.clear()
+        alone.append((*P._minimise_batch(seg, x0[None, :], maxiter=30), len(calls)))
+    # (up to the rounding of batch-wide branches of the model's terms, amplified along
+    # a flat valley: 1e-4 here, as in lockstep steps)
+    for x, c, (xa, ca, _) in zip(xs, cs, alone, strict=True):
+        np.testing.assert_allclose(x, xa[0], rtol=0.0, atol=1e-3)
+        assert c == pytest.approx(float(ca[0]), abs=1e-4)
+    # the calls of the starts together are as many as the longest search alone needs
+    assert n_together == max(n for _, _, n in alone)
+    assert len({n for _, _, n in alone}) > 1
+    # and the searches near the optimum reach scipy's BFGS optimum (a line search that
+    # gave up early would stop short)
+    from scipy.optimize import minimize
+    for j in (0, 2):
+        ref = minimize(lambda v: float(np.asarray(seg.cost(P._unscale(v[None, :])))[0]),
+                       starts[j], method="BFGS", options={"gtol": 1e-3, "maxiter": 400})
+        assert cs[j] <= ref.fun + 0.1
