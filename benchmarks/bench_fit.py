@@ -609,9 +609,9 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
         "command (`python -m sonarloc fit SCAN.csv --json`, medians) and the wall clock of "
         "its start-up (`import sonarloc.commands.fit`). With the machine shared, wall "
         "clock runs well above CPU time. The first fit stage of a process also sets up the "
-        "waveform tier (its template and tables, ~0.4 s of it importing scipy.signal and "
-        "scipy.optimize): the stage medians leave it out, its row below and the command "
-        "include it.",
+        "waveform tier (its template and tables; up to session 6 ~0.4 s of it importing "
+        "scipy.signal and scipy.optimize, which a fit no longer imports): the stage "
+        "medians leave it out, its row below and the command include it.",
         "",
         "| stage | before (s) | now (s) | speed-up | share now |",
         "|---|---:|---:|---:|---:|",

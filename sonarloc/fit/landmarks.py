@@ -152,11 +152,10 @@ def _add_odometry_covariance(batch: SegmentBatch, sel: Selection, cfg: FitConfig
             idx = np.flatnonzero((sel.kind == kind) & (sel.tier == tier))
             extra = odomcov.odometry_covariance(_take(batch, idx), sel.rows(idx), cfg, sd)
             sel.cov[idx] += extra
-            for j, b in enumerate(idx.tolist()):
-                if extra[j, 0, 0] > 0.0 or extra[j, 1, 1] > 0.0:
-                    sel.extra[b]["odom_range_sd_m"] = math.sqrt(extra[j, 0, 0])
-                    sel.extra[b]["odom_bearing_sd_deg"] = math.degrees(
-                        math.sqrt(extra[j, 1, 1]))
+            for j in np.flatnonzero((extra[:, 0, 0] > 0.0) | (extra[:, 1, 1] > 0.0)).tolist():
+                ex = sel.extra[int(idx[j])]
+                ex["odom_range_sd_m"] = math.sqrt(extra[j, 0, 0])
+                ex["odom_bearing_sd_deg"] = math.degrees(math.sqrt(extra[j, 1, 1]))
 
 
 def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = None,
@@ -208,10 +207,12 @@ def _fit_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Array
     ``seg[k]`` (non-decreasing, (N,)); ``info``: each segment's ``(seg_id, closed_by,
     occluded)`` (None: not a :class:`Segment`)."""
     n = len(info)
-    ok, _ = _clean(t, x, y, yaw, tof)
+    ok, bad = _clean(t, x, y, yaw, tof)
     n_bad = np.bincount(seg[~ok], minlength=n)
-    seg, t, x, y, tof, sensor = seg[ok], t[ok], x[ok], y[ok], tof[ok], sensor[ok]
-    yaw = M.wrap_angle(yaw[ok])
+    if bad:   # (a segmenter's readings are all clean)
+        t, x, y, yaw, tof = (a[ok] for a in (t, x, y, yaw, tof))
+        seg, sensor = seg[ok], sensor[ok]
+    yaw = M.wrap_angle(yaw)
     echo = np.isfinite(tof)
     n_echo = np.bincount(seg[echo], minlength=n)
     n_noecho = np.bincount(seg[~echo], minlength=n)
@@ -236,20 +237,26 @@ def _fit_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Array
                                "(range, bearing, kappa)", cfg, meta[i])
     todo = np.flatnonzero(n_echo >= 3)
     if todo.size:
-        remap = np.full(n, -1, dtype=np.int64)
-        remap[todo] = np.arange(todo.size)
-        keep = remap[seg] >= 0
-        batch = pack_flat(remap[seg[keep]], t[keep], x[keep], y[keep], yaw[keep], tof[keep],
-                          n_segments=todo.size)
-        # transducers that contributed echoes, per segment
-        e = keep & echo
-        s_lo = int(sensor[e].min(initial=0))
-        width = int(sensor[e].max(initial=0)) - s_lo + 1
-        keys = np.unique(remap[seg[e]] * width + (sensor[e] - s_lo))
-        cut = np.searchsorted(keys // width, np.arange(todo.size + 1))
-        vals = (keys % width + s_lo).tolist()
-        sensors = [tuple(vals[a:b]) for a, b in zip(cut[:-1].tolist(), cut[1:].tolist(),
-                                                     strict=True)]
+        if todo.size < n:   # the readings of those, renumbered
+            remap = np.full(n, -1, dtype=np.int64)
+            remap[todo] = np.arange(todo.size)
+            keep = remap[seg] >= 0
+            t, x, y, yaw, tof = (a[keep] for a in (t, x, y, yaw, tof))
+            seg, sensor, echo = remap[seg[keep]], sensor[keep], echo[keep]
+        batch = pack_flat(seg, t, x, y, yaw, tof, n_segments=todo.size)
+        # transducers that contributed echoes, per segment (each has echoes)
+        s_echo = sensor[echo]
+        s_lo = int(s_echo.min())
+        width = int(s_echo.max()) - s_lo + 1
+        sensors: list[tuple[int, ...]]
+        if width == 1:      # one transducer (the sort below takes milliseconds)
+            sensors = [(s_lo,)] * todo.size
+        else:
+            keys = np.unique(seg[echo] * width + (s_echo - s_lo))
+            cut = np.searchsorted(keys // width, np.arange(todo.size + 1))
+            vals = (keys % width + s_lo).tolist()
+            sensors = [tuple(vals[a:b]) for a, b in zip(cut[:-1].tolist(), cut[1:].tolist(),
+                                                         strict=True)]
         sel = select_models(batch, cfg)
         _add_odometry_covariance(batch, sel, cfg, odometry_sd_deg_per_m)
         lms = _landmarks(batch, sel, cfg, [meta[i] for i in todo.tolist()], sensors,
@@ -280,8 +287,8 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         # clear arm, a flat curve (strong plane) does not
         for tier in set(sel.tier[idx]):
             jdx = idx[sel.tier[idx] == tier]
-            sub = _take(batch, jdx)
-            geo = M.geometry(kind, local[jdx, 0:1], local[jdx, 1:2], sub.px, sub.py, sub.yaw)
+            geo = M.geometry(kind, local[jdx, 0:1], local[jdx, 1:2], batch.px[jdx],
+                             batch.py[jdx], batch.yaw[jdx])
             g, _, _ = M.beam_delay_factor(geo.theta, str(tier), mod, derivative=False)
             d = np.minimum(local[jdx, 2:3] * g, 1e6)
             u = sel.used[jdx]
@@ -297,14 +304,18 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     flat_sd = math.radians(cfg.flat_bearing_sd_deg)
     p_fit = _chi2_sf(sel.chi2, np.maximum(n_used - 3, 1))
     # per-segment values as Python lists (the loop below runs once per segment)
-    sd_l, local_l, strength_l = sd.tolist(), local.tolist(), strength.tolist()
-    n_used_l, n_echo_l, n_noecho_l = n_used.tolist(), n_echo.tolist(), n_noecho.tolist()
-    chi2_l, cost_l, p_fit_l = sel.chi2.tolist(), sel.cost.tolist(), p_fit.tolist()
+    sd_l, local_l = sd.tolist(), local.tolist()
+    n_used_l, chi2_l, p_fit_l = n_used.tolist(), sel.chi2.tolist(), p_fit.tolist()
     finite_l, outside_l, span_l = finite.tolist(), outside.tolist(), span.tolist()
-    rms_l = rms.tolist()
-    kind_l, tier_l = sel.kind.tolist(), sel.tier.tolist()
-    ref_t_l, ref_xy_l, ref_yaw_l = (batch.ref_t_s.tolist(), batch.ref_xy.tolist(),
-                                    batch.ref_yaw.tolist())
+    kind_l = np.where(sel.kind == "point", "point", "line").tolist()
+    tier_l = [str(t) for t in sel.tier.tolist()]
+    # the fields of each landmark but status and reason, and the first of its extras
+    fields = zip(kind_l, params, cov, local_l, n_used_l, batch.ref_t_s.tolist(),
+                 zip(*batch.ref_xy.T.tolist(), batch.ref_yaw.tolist(), strict=True), tier_l,
+                 rms.tolist(), sensors, strict=True)
+    extras = zip(meta, sel.extra, np.degrees(sd[:, 1]).tolist(), sd_l, strength.tolist(),
+                 n_noecho.tolist(), (n_echo - n_used).tolist(), chi2_l, sel.cost.tolist(),
+                 strict=True)
     # segments that may fail a test below (a superset of each, NaN failing as there):
     # the rest are OK without going through them one by one
     kap = local[:, 2]
@@ -316,16 +327,14 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                | (p_fit < cfg.min_fit_p) | ((outside > math.radians(1.0)) & (span > 3.0))
                | (kap < 1.5 * cfg.kappa_lo_us) | (sd[:, 1] > flat_sd)).tolist()
     out = []
-    for j in range(B):
-        sd_j = sd_l[j]
+    for j, (check, f, e) in enumerate(zip(check_l, fields, extras, strict=True)):
+        m_j, ex_j, b_sd, sd_j, strength_j, n_noecho_j, n_spikes_j, chi2_j, cost_j = e
         extra: dict[str, object] = {
-            **meta[j], **sel.extra[j],
-            "bearing_sd_deg": math.degrees(sd_j[1]), "range_sd_m": sd_j[0],
-            "kappa_sd_us": sd_j[2], "strength_db": strength_l[j],
-            "n_noecho": n_noecho_l[j], "n_spikes": n_echo_l[j] - n_used_l[j],
-            "chi2": chi2_l[j], "cost": cost_l[j]}
+            **m_j, **ex_j, "bearing_sd_deg": b_sd, "range_sd_m": sd_j[0],
+            "kappa_sd_us": sd_j[2], "strength_db": strength_j, "n_noecho": n_noecho_j,
+            "n_spikes": n_spikes_j, "chi2": chi2_j, "cost": cost_j}
         status, reason = FitStatus.OK, ""
-        if not check_l[j]:
+        if not check:
             pass                  # passes every test below
         elif not finite_l[j]:
             status, reason = FitStatus.BAD_INPUT, "non-finite fit (bad input)"
@@ -385,13 +394,12 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             status = FitStatus.FLAT
             reason = (f"curve too flat for its bearing (SD {math.degrees(sd_l[j][1]):.1f} deg "
                       f"> {cfg.flat_bearing_sd_deg:g} deg)")
+        kind, p_j, c_j, loc_j, n_j, ref_t, ref_pose, tier, rms_j, sensors_j = f
         out.append(Landmark._from_fields({   # every field, in order
-            "kind": "point" if kind_l[j] == "point" else "line", "params": params[j],
-            "cov": cov[j], "range_m": local_l[j][0], "bearing_rad": local_l[j][1],
-            "n_readings": int(n_used_l[j]), "ref_t_s": ref_t_l[j],
-            "ref_pose": (ref_xy_l[j][0], ref_xy_l[j][1], ref_yaw_l[j]),
-            "status": status, "reason": reason, "tier": str(tier_l[j]),
-            "rms_us": rms_l[j], "sensors": sensors[j], "extra": extra}))
+            "kind": kind, "params": p_j, "cov": c_j, "range_m": loc_j[0],
+            "bearing_rad": loc_j[1], "n_readings": n_j, "ref_t_s": ref_t,
+            "ref_pose": ref_pose, "status": status, "reason": reason, "tier": tier,
+            "rms_us": rms_j, "sensors": sensors_j, "extra": extra}))
     return out
 
 

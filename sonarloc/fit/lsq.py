@@ -1519,22 +1519,15 @@ def _profile_refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Arra
     return _State(q, inside, F, H, e, s2q, np.zeros((B, 3)))
 
 
-_COF = np.array((4, 2, 1, 2, 0, 1, 1, 1, 0, 8, 5, 5, 5, 8, 2, 5, 2, 4,
-                 5, 1, 2, 1, 2, 0, 2, 0, 1, 5, 8, 4, 8, 2, 5, 4, 5, 1))
-"""Entries a, b, c, d (9 each; of a flattened 3x3 matrix's upper triangle) whose
-products a b - c d are the cofactors in the adjugate's order: c00 c01 c02 / c01 c11 c12
-/ c02 c12 c22."""
-
-
-def _cofactors3(A: Array) -> tuple[Array, Array, Array]:
-    """Adjugates (B, 3, 3), determinants and traces (B,) of symmetric 3x3 matrices A
-    (B, 3, 3) (its upper triangle is read)."""
-    a = A.reshape(-1, 9)
-    g = a[:, _COF]                                  # one gather: (B, 36)
-    C = g[:, :9] * g[:, 9:18]
-    C -= g[:, 18:27] * g[:, 27:]
-    det = a[:, 0] * C[:, 0] + a[:, 1] * C[:, 1] + a[:, 2] * C[:, 2]
-    return C.reshape(-1, 3, 3), det, a[:, 0] + a[:, 4] + a[:, 8]
+def _cofactors3(A: Array) -> tuple[tuple[Array, ...], Array, Array]:
+    """Cofactors (c00, c01, c02, c11, c12, c22), determinants and traces (B,) of
+    symmetric 3x3 matrices A (B, 3, 3) (its upper triangle is read)."""
+    a00, a01, a02 = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    a11, a12, a22 = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+    c00, c01, c02 = a11 * a22 - a12 * a12, a02 * a12 - a01 * a22, a01 * a12 - a02 * a11
+    c11, c12, c22 = a00 * a22 - a02 * a02, a01 * a02 - a00 * a12, a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    return (c00, c01, c02, c11, c12, c22), det, a00 + a11 + a22
 
 
 def _solve3(A: Array, b: Array) -> Array:
@@ -1542,11 +1535,11 @@ def _solve3(A: Array, b: Array) -> Array:
     LAPACK's batched solve costs ~1 us per system); the ill-conditioned ones (smallest
     eigenvalue below 1e-10 of the largest, from det / trace^3) with pivoting
     (:func:`_solve_pivoted`). Each row's solution depends on its own system only."""
-    C, det, tr = _cofactors3(A)
+    (c00, c01, c02, c11, c12, c22), det, tr = _cofactors3(A)
     good = (det > 1e-10 * tr ** 3) & (tr > 0)
-    P = C * b[:, None, :]
-    x = P[:, :, 0] + P[:, :, 1]
-    x += P[:, :, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    x = np.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2,
+                  c02 * b0 + c12 * b1 + c22 * b2], axis=-1)
     x /= np.where(good, det, 1.0)[:, None]
     bad = np.flatnonzero(~good)
     if bad.size:
@@ -1579,9 +1572,11 @@ def _covariance(H: Array) -> Array:
     """
     Hs = 0.5 * (H + np.swapaxes(H, -1, -2))
     Hs = np.where(np.isfinite(Hs), Hs, 0.0)
-    out, det, tr = _cofactors3(Hs)
+    (c00, c01, c02, c11, c12, c22), det, tr = _cofactors3(Hs)
     good = (det > 1e-12 * tr ** 3) & (tr > 0)
-    out *= (1.0 / np.where(good, det, 1.0))[:, None, None]
+    inv_det = 1.0 / np.where(good, det, 1.0)
+    out = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1).reshape(-1, 3, 3)
+    out *= inv_det[:, None, None]
     bad = np.flatnonzero(~good)
     if bad.size:
         w, V = np.linalg.eigh(Hs[bad])

@@ -365,7 +365,7 @@ class _Chunk:
                         flat.append(self.m + len(extra))
                         extra.append(r)
             ends.append(len(flat))
-        i = np.array(flat, dtype=np.int64)
+        i = np.fromiter(flat, dtype=np.int64, count=len(flat))
         bare = i < 0
         i[bare] = ~i[bare]
         cols, sensor = self.cols, self.sensor
@@ -373,10 +373,10 @@ class _Chunk:
             more = np.array(extra, dtype=float).T
             cols = np.concatenate([cols, more[:5]], axis=1)
             sensor = np.concatenate([sensor, more[5].astype(np.int64)])
-        v = cols[:, i]
+        v = np.take(cols, i, axis=1)      # (a third of the time of cols[:, i])
         v[4, bare] = np.nan
         t, x, y, yaw, tof = v
-        return SegmentBlock(ScanReadings(t, x, y, yaw, tof, sensor[i]), ends,
+        return SegmentBlock(ScanReadings(t, x, y, yaw, tof, np.take(sensor, i)), ends,
                             [s.seg_id for _, s, _ in self.closed],
                             [why for _, _, why in self.closed],
                             [(s.occluded_lead, s.occluded_trail) for _, s, _ in self.closed])

@@ -5,6 +5,7 @@ fitter's flat path give the same segments and landmarks, to the last bit, as a l
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ import pytest
 from sonarloc.fit.landmarks import _resolve, fit_scan, fit_segments
 from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.segment import Segment, SegmentBlock, Segmenter, SegmenterConfig
-from sonarloc.fit.synth import Reflector, pan_scan, rotation_scan
+from sonarloc.fit.synth import Reflector, pan_scan, rotation_scan, simulate_readings
 from sonarloc.io.scancsv import ScanReadings
 
 FIELDS = ("t_s", "x_m", "y_m", "yaw_rad", "tof_us", "sensor")
@@ -112,3 +113,77 @@ def test_fit_scan_equals_the_segment_list_path(seed):
     got = fit_scan(scan, cfg).landmarks
     assert _bits(got) == _bits(want)
     assert all(isinstance(s, Segment) for s in segs)
+
+
+def _echo_sensors(readings: ScanReadings) -> tuple[int, ...]:
+    return tuple(sorted({int(s) for s in readings.sensor[np.isfinite(readings.tof_us)]}))
+
+
+@pytest.mark.parametrize("ids", [(0, 0), (7, 7), (3, 5), (2, 40), (-1, 0)])
+def test_landmark_sensors_are_those_with_echoes(ids):
+    # one transducer, or two taking turns on one pan: each landmark names the
+    # transducers whose echoes it was fitted to
+    scan = pan_scan([Reflector.polar(1.5, -15.0, 0.67), Reflector.polar(2.0, 20.0, 0.15)],
+                    np.random.default_rng(4), -40, 40, 0.3)
+    sensor = np.where(np.arange(len(scan)) % 2 == 0, ids[0], ids[1])
+    scan = ScanReadings(scan.t_s, scan.x_m, scan.y_m, scan.yaw_rad, scan.tof_us, sensor)
+    segs = list(Segmenter().feed(scan))
+    assert len(segs) == 2
+    lms = fit_segments(segs)
+    assert [lm.sensors for lm in lms] == [_echo_sensors(s.readings) for s in segs]
+    assert {lm.sensors for lm in lms} == {tuple(sorted(set(ids)))}
+
+
+def test_bad_readings_and_short_segments_leave_the_others_alone():
+    # readings the fitter must drop (NaN pose, inf / negative TOF) and a segment with two
+    # echoes (not fitted) among others: the others' landmarks are those of their clean
+    # readings alone, to the last bit, but for the count of dropped readings
+    rng = np.random.default_rng(8)
+    segs = list(Segmenter().feed(pan_scan([Reflector.polar(1.5, -15.0, 0.67),
+                                           Reflector.polar(2.0, 20.0, 0.15)],
+                                          rng, -40, 40, 0.3)))
+    a, b = (s.arrays() for s in segs)
+    bad = [np.array(c, dtype=float) for c in a]
+    bad[1][3], bad[4][5], bad[4][9] = np.nan, np.inf, -1.0
+    short = tuple(c[np.flatnonzero(np.isfinite(b[4]))[:2]] for c in b)
+    got = fit_segments([tuple(bad), short, b])
+    want = fit_segments([tuple(np.delete(c, [3, 5, 9]) for c in bad), b])
+    assert got[1].status.value == "too_few_points"
+    assert got[0].extra.pop("n_bad_input") == 3 and want[0].extra.pop("n_bad_input") == 0
+    assert _bits([got[0], got[2]]) == _bits(want)
+
+
+def test_landmark_extras_agree_with_its_fields_and_readings():
+    # a pan (two points and a wall, from the origin) and a drive past a wall (moving:
+    # the odometry term) in one call: the SDs in extra are those of the covariance,
+    # the counts those of the readings, the odometry term only on the moving segment
+    rng = np.random.default_rng(12)
+    segs = list(Segmenter().feed(pan_scan([Reflector.polar(1.5, -25.0, 0.67),
+                                           Reflector.polar(1.2, 0.0, 0.67),
+                                           Reflector.polar(2.0, 25.0, 0.15)],
+                                          rng, -50, 50, 0.3)))
+    t = np.arange(200) * 0.02
+    drive = simulate_readings(t, np.linspace(-0.6, 0.6, 200), 0.0,
+                              np.pi / 2 + np.deg2rad(12.0) * np.sin(2 * np.pi * t / 1.3),
+                              [Reflector.line(1.5, np.deg2rad(93.0), 0.15)], rng)
+    segs += list(Segmenter().feed(drive))
+    lms = fit_segments(segs)
+    moved = [bool(np.ptp(s.readings.x_m) > 0.02) for s in segs]
+    assert sum(moved) >= 1 and not all(moved)
+    for s, lm, m in zip(segs, lms, moved, strict=True):
+        tof = s.readings.tof_us
+        assert lm.extra["n_noecho"] == int(np.isnan(tof).sum())
+        assert lm.extra["n_spikes"] == int(np.isfinite(tof).sum()) - lm.n_readings
+        assert ("odom_range_sd_m" in lm.extra) == ("odom_bearing_sd_deg" in lm.extra) == m
+        assert lm.extra["kappa_sd_us"] == pytest.approx(math.sqrt(lm.cov[2, 2]), rel=1e-9)
+        if lm.kind == "point":   # SDs along and across the line of sight
+            u = np.array([math.cos(lm.bearing_rad), math.sin(lm.bearing_rad)])
+            v = np.array([-u[1], u[0]])
+            sd_r, sd_b = math.sqrt(u @ lm.cov[:2, :2] @ u), \
+                math.sqrt(v @ lm.cov[:2, :2] @ v) / lm.range_m
+        elif not m:               # a wall seen from the origin: (rho, alpha) = (r, phi)
+            sd_r, sd_b = math.sqrt(lm.cov[0, 0]), math.sqrt(lm.cov[1, 1])
+        else:
+            continue
+        assert lm.extra["range_sd_m"] == pytest.approx(sd_r, rel=1e-6)
+        assert lm.extra["bearing_sd_deg"] == pytest.approx(math.degrees(sd_b), rel=1e-6)
