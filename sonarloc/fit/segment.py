@@ -862,37 +862,42 @@ class Segmenter:
         tl, xl, yl, yawl, sl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.sl
         last_t = s.last[0]
         mx, my = s.mid
-        sensors = s.sensors
+        sensors, rows = s.sensors, s.rows
         max_gap, away, miss = self._max_gap, self._away, self._miss
         censor, lim, miss_angle = self._censor, self.config.miss_limit, self._miss_angle
         atan2, floor, pi = math.atan2, math.floor, math.pi
+        # the segment's counters as locals, written back before a close and at the end
+        oldest, trailing, misses = self._oldest_last, s.trailing, s.misses
+        why = ""
         for j in range(i, e):
             t = tl[j]
-            if t - self._oldest_last > max_gap:    # the gap test of _step
+            if t - oldest > max_gap:    # the gap test of _step
                 if t - last_t > max_gap:
-                    ch.at = j
-                    self._close(s, "gap")
-                    self._oldest_last = math.inf
-                    return e
-                self._oldest_last = last_t
+                    why = "gap"
+                    break
+                oldest = self._oldest_last = last_t
             yaw, sensor = yawl[j], sl[j]
             # the off-axis angle of _off_axis (the swept test) and of the miss test (whose
             # cheap pre-test only skips landmarks beyond the miss width: not needed here)
             a = atan2(my - yl[j], mx - xl[j]) - yaw
             off = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
             if off > away and sensor in sensors:
-                ch.at = j
-                self._close(s, "swept")
-                return e
+                why = "swept"
+                break
             if off <= miss:
-                if sensor in sensors and s.trailing < censor:
-                    s.rows.append(j)
-                    s.trailing += 1
-                s.misses += 1
-                if (s.misses >= lim and off >= miss_angle) or s.misses >= 4 * lim:
-                    ch.at = j
-                    self._close(s, "misses")
-                    return e
+                if sensor in sensors and trailing < censor:
+                    rows.append(j)
+                    trailing += 1
+                misses += 1
+                if (misses >= lim and off >= miss_angle) or misses >= 4 * lim:
+                    why = "misses"
+                    break
+        s.trailing, s.misses = trailing, misses
+        if why:
+            ch.at = j
+            self._close(s, why)
+            if why == "gap":
+                self._oldest_last = math.inf
         return e
 
     def _chain(self, ch: _Chunk) -> np.ndarray:

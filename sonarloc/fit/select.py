@@ -86,7 +86,6 @@ score of 1.7)."""
 SURPRISE = 16.0
 """An event whose probability under a fit is below exp(-SURPRISE/2) (a 4-sigma event)
 says the fit's model does not explain the data."""
-"""Difference of -2 log-likelihood for another beam tier to replace the Gaussian one."""
 
 MOTION_BASELINE_M = 0.02
 """Transducer displacement within a segment above which point and line are both fitted."""

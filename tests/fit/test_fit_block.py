@@ -187,3 +187,22 @@ def test_landmark_extras_agree_with_its_fields_and_readings():
             continue
         assert lm.extra["range_sd_m"] == pytest.approx(sd_r, rel=1e-6)
         assert lm.extra["bearing_sd_deg"] == pytest.approx(math.degrees(sd_b), rel=1e-6)
+
+
+def test_fit_scan_equals_the_segment_list_path_with_cuts():
+    # the world simulator's ring16 drive through the room: 16 transducers, a moving
+    # robot, walls running into corners cut in two (split_unresolved on the block)
+    from conftest import MAPS
+
+    from sonarloc.maps.geojson import load_map
+    from sonarloc.world.rig import rig_by_name
+    from sonarloc.world.simulate import simulate_scan
+
+    scan = simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
+                         duration_s=20.0, seed=5).readings
+    cfg = FitConfig()
+    segs = list(Segmenter().feed(scan))
+    want = _resolve(segs, fit_segments(segs, cfg), cfg)
+    got = fit_scan(scan, cfg).landmarks
+    assert sum("split_of" in lm.extra for lm in got) >= 2
+    assert _bits(got) == _bits(want)
