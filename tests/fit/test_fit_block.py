@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import MAPS
 
 from sonarloc.fit.landmarks import _resolve, fit_scan, fit_segments
 from sonarloc.fit.lsq import FitConfig
@@ -192,8 +193,6 @@ def test_landmark_extras_agree_with_its_fields_and_readings():
 def test_fit_scan_equals_the_segment_list_path_with_cuts():
     # the world simulator's ring16 drive through the room: 16 transducers, a moving
     # robot, walls running into corners cut in two (split_unresolved on the block)
-    from conftest import MAPS
-
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import rig_by_name
     from sonarloc.world.simulate import simulate_scan
