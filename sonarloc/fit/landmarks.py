@@ -147,6 +147,11 @@ def _add_odometry_covariance(batch: SegmentBatch, sel: Selection, cfg: FitConfig
         raise ValueError(f"`odometry_sd_deg_per_m` must be non-negative, got {sd_deg_per_m!r}")
     if sd == 0.0:
         return
+    if not batch.moving:
+        # no segment moved (pans): every share is zero (added all the same, as the
+        # general path does: a -0.0 entry becomes 0.0)
+        sel.cov += 0.0
+        return
     for kind in ("point", "line"):
         for tier in set(sel.tier[sel.kind == kind]):
             idx = np.flatnonzero((sel.kind == kind) & (sel.tier == tier))
@@ -277,6 +282,13 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     params = np.zeros((B, 3))
     cov = np.zeros((B, 3, 3))
     span = np.zeros(B)
+    lo, hi = sel.arc[:, 0], sel.arc[:, 1]
+    outside = np.abs(M.wrap_angle(local[:, 1] - 0.5 * (lo + hi))) - 0.5 * (hi - lo)
+    # the span is read only by the PARTIAL test, for minima outside the arc: computed
+    # there (with the geometry of a moving sensor where any segment of its group moved,
+    # as for the whole group)
+    far = outside > math.radians(1.0)
+    moves = (batch.px.any(1) | batch.py.any(1)) if batch.moving else np.zeros(B, dtype=bool)
     for kind in ("point", "line"):
         idx = np.flatnonzero(sel.kind == kind)
         if idx.size == 0:
@@ -287,16 +299,18 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         # clear arm, a flat curve (strong plane) does not
         for tier in set(sel.tier[idx]):
             jdx = idx[sel.tier[idx] == tier]
+            moving = bool(moves[jdx].any())
+            jdx = jdx[far[jdx]]
+            if jdx.size == 0:
+                continue
             geo = M.geometry(kind, local[jdx, 0:1], local[jdx, 1:2], batch.px[jdx],
-                             batch.py[jdx], batch.yaw[jdx])
+                             batch.py[jdx], batch.yaw[jdx], moving=moving)
             g, _, _ = M.beam_delay_factor(geo.theta, str(tier), mod, derivative=False)
             d = np.minimum(local[jdx, 2:3] * g, 1e6)
             u = sel.used[jdx]
             span[jdx] = (np.max(np.where(u, d, -np.inf), axis=1)
                          - np.min(np.where(u, d, np.inf), axis=1))
     sd = np.sqrt(np.maximum(np.einsum("bkk->bk", sel.cov), 0.0))
-    lo, hi = sel.arc[:, 0], sel.arc[:, 1]
-    outside = np.abs(M.wrap_angle(local[:, 1] - 0.5 * (lo + hi))) - 0.5 * (hi - lo)
     finite = np.all(np.isfinite(params), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
     n_used = sel.n_used
     rms = np.sqrt((sel.resid ** 2 * sel.used).sum(1) / np.maximum(n_used, 1))

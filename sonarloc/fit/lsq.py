@@ -21,6 +21,8 @@ reweighting round, and the detection probabilities of :mod:`sonarloc.fit.model`.
 from __future__ import annotations
 
 import functools
+import importlib
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -584,14 +586,29 @@ def _evaluate_core(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array
     return F_other, F, grad, H, e, s2
 
 
+def _c_einsum() -> Any:
+    """``np.einsum`` without its Python wrapper: numpy's C function, which ``np.einsum``
+    calls as it is when ``optimize`` is off (the same sums, ~1 us less per call; a
+    float32 model pass makes 20)."""
+    for name in ("numpy._core.multiarray", "numpy.core.multiarray"):
+        try:
+            return importlib.import_module(name).c_einsum
+        except (ImportError, AttributeError):
+            continue
+    return np.einsum      # pragma: no cover
+
+
+_einsum = _c_einsum()
+
+
 def _dot_rows(u: FloatArray, v: FloatArray) -> Array:
     """Row-wise dot products (B,) of (B, N) arrays, in their precision, as float64."""
-    return np.einsum("bn,bn->b", u, v).astype(float)
+    return _einsum("bn,bn->b", u, v).astype(float)
 
 
 def _sum_rows(u: FloatArray) -> Array:
     """Row sums (B,) of a (B, N) array, in its precision, as float64."""
-    return np.einsum("bn->b", u).astype(float)
+    return _einsum("bn->b", u).astype(float)
 
 
 def _truncation_ratio32(z: FloatArray, m: FloatArray, dm: FloatArray, s: float
@@ -716,12 +733,12 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     res = (y - tau * r).astype(f32)
     res -= delay
     e = res * w
-    F = np.einsum("bn,bn->b", e, e, dtype=np.float64)
-    dF = 2.0 * np.einsum("bn,bn->b", l0, usef, dtype=np.float64)
+    F = _einsum("bn,bn->b", e, e, dtype=np.float64)
+    dF = 2.0 * _einsum("bn,bn->b", l0, usef, dtype=np.float64)
     F -= dF
     F_other = F
     if s2_other is not None:
-        F_other = np.einsum("bn,bn->b", res * res, usef / s2_other, dtype=np.float64) - dF
+        F_other = _einsum("bn,bn->b", res * res, usef / s2_other, dtype=np.float64) - dF
     grad = np.zeros((B, 3))
     H = np.zeros((B, 3, 3))
     ik = 1.0 / (K[:, 0] * sa)                           # d z / d kappa
@@ -780,7 +797,7 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         zn += zc
         lpn = M.log_sf32(-zn)                           # log P(no echo) = log Phi(z)
         nvf = nv.astype(f32)
-        dFn = 2.0 * np.einsum("bn,bn->b", lpn, nvf, dtype=np.float64)
+        dFn = 2.0 * _einsum("bn,bn->b", lpn, nvf, dtype=np.float64)
         F = F - dFn
         F_other = F_other - dFn if s2_other is not None else F
         if want_derivs:
@@ -885,7 +902,9 @@ def tof_jacobian_at(geo: M.Geometry, K: Array, g: Array, dg: Array, z: Array | N
 
 def _kappa_penalty(K: Array, cfg: FitConfig) -> tuple[Array, Array, Array]:
     """Soft box prior: (-2 log prior, its derivative by K, its curvature by K)."""
-    if np.isfinite(cfg.kappa_soft_log_sd):
+    if (math.isfinite(cfg.kappa_soft_log_sd)
+            and not (K.size and K.min() >= cfg.kappa_lo_us and K.max() <= cfg.kappa_hi_us)):
+        # (inside the box in kappa is inside it in log kappa: the log is monotonic)
         lk = np.log(K)
         lo, hi = np.log(cfg.kappa_lo_us), np.log(cfg.kappa_hi_us)
         if not (lk.size and lk.min() >= lo and lk.max() <= hi):    # some outside the box
@@ -1291,6 +1310,11 @@ class _State:
             getattr(self, name)[idx] = getattr(other, name)
 
 
+_STEP_MAX = np.array([0.17, 3.0])
+"""Largest step of (phi [rad], log kappa) in one Fisher-scoring step (10 deg, x20)."""
+_STEP_MIN = -_STEP_MAX
+
+
 def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             cfg: FitConfig, rounds: int, stop_above: Array | None = None) -> _State:
     """Damped Fisher scoring from ``p``; a step is taken only if it lowers the objective.
@@ -1331,12 +1355,12 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             Ha = H[act]
             Ha[:, 2, :] *= kap[:, None]
             Ha[:, :, 2] *= kap[:, None]
-            dg = np.einsum("bkk->bk", Ha)                 # a view: damp in place
+            dg = _einsum("bkk->bk", Ha)                   # a view: damp in place
             dg += lam[act, None] * np.maximum(dg, 1e-12)
             delta = _solve3(Ha, -ga) if cfg.float32 else _solve_pivoted(Ha, -ga)
             delta = np.where(np.isfinite(delta), delta, 0.0)
             # converged where the expected decrease (Newton decrement) is negligible
-            done[act[-np.einsum("bk,bk->b", ga, delta) < tol]] = True
+            done[act[-_einsum("bk,bk->b", ga, delta) < tol]] = True
             if stop_above is not None and (rnd > 0 or it >= STOP_CHECK_ITER):
                 hopeless = act[F[act] > stop_F[act]]
                 done[hopeless] = True
@@ -1347,9 +1371,9 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
             if keep.size < 0.7 * act.size:      # compact to the active segments
                 act, delta = act[keep], delta[keep]
                 sub, ys, us, s2s = _take(sub, keep), ys[keep], us[keep], s2s[keep]
-            # keep steps physical: bearing moves at most 10 deg per step
-            delta[:, 1] = np.clip(delta[:, 1], -0.17, 0.17)
-            delta[:, 2] = np.clip(delta[:, 2], -3.0, 3.0)      # kappa at most x20 per step
+            # keep steps physical: bearing moves at most 10 deg per step, kappa x20
+            step = delta[:, 1:]
+            np.minimum(np.maximum(step, _STEP_MIN, out=step), _STEP_MAX, out=step)
             q = p[act].copy()
             q[:, :2] += delta[:, :2]
             q[:, 0] = np.maximum(q[:, 0], 1e-3)
@@ -1780,7 +1804,17 @@ def _take(batch: SegmentBatch, idx: NDArray[np.int64], wd: int | None = None,
     """The segments ``idx`` of ``batch``; with ``wd`` / ``wn``, only the first ``wd``
     echo and ``wn`` no-echo columns (copied, not the whole rows)."""
     d, n = slice(wd), slice(wn)
-    return SegmentBatch(batch.px[idx, d], batch.py[idx, d], batch.yaw[idx, d],
-                        batch.tof_us[idx, d], batch.valid[idx, d], batch.ne_px[idx, n],
-                        batch.ne_py[idx, n], batch.ne_yaw[idx, n], batch.ne_valid[idx, n],
-                        batch.ref_xy[idx], batch.ref_yaw[idx], batch.ref_t_s[idx])
+    sub = SegmentBatch(batch.px[idx, d], batch.py[idx, d], batch.yaw[idx, d],
+                       batch.tof_us[idx, d], batch.valid[idx, d], batch.ne_px[idx, n],
+                       batch.ne_py[idx, n], batch.ne_yaw[idx, n], batch.ne_valid[idx, n],
+                       batch.ref_xy[idx], batch.ref_yaw[idx], batch.ref_t_s[idx])
+    # what the batch has worked out holds for its segments: a stationary batch's are
+    # stationary, float32 angles are the rows of its own (the fitter's steps take
+    # subsets of the active segments every few iterations)
+    known = batch.__dict__
+    if known.get("moving") is False:
+        sub.__dict__["moving"] = False
+    for name, cols in (("yaw32", d), ("ne_yaw32", n)):
+        if name in known:
+            sub.__dict__[name] = known[name][idx, cols]
+    return sub

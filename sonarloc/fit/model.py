@@ -809,6 +809,12 @@ def _log_erfc_poly() -> tuple[float, ...]:
     return tuple(float(v) for v in cheb.cheb2poly(c)[::-1])
 
 
+@functools.lru_cache(maxsize=1)
+def _log_erfc_poly32() -> tuple[np.float32, ...]:
+    """:func:`_log_erfc_poly` as float32 scalars (converted once, not per call)."""
+    return tuple(np.float32(c) for c in _log_erfc_poly())
+
+
 def log_sf32(z: NDArray[np.float32]) -> NDArray[np.float32]:
     """log Phi(-z) (the log survival function of the standard normal) in float32,
     branch-free, for any z (no underflow: the upper tail from its log form).
@@ -823,11 +829,12 @@ def log_sf32(z: NDArray[np.float32]) -> NDArray[np.float32]:
     a = np.abs(z) * f32(np.sqrt(0.5))                  # erfc argument |z| / sqrt 2
     t = f32(1.0) / (f32(1.0) + f32(0.5) * a)
     v = f32(2.0) * t - f32(1.0)
-    coef = _log_erfc_poly()
-    acc = np.full_like(a, f32(coef[0]))
-    for c in coef[1:]:
+    c0, *coef = _log_erfc_poly32()
+    acc = v * c0                                       # Horner's rule from c0 v
+    for c in coef[:-1]:
+        acc += c
         acc *= v
-        acc += f32(c)
+    acc += coef[-1]
     le = np.log(t)
     a *= a
     le -= a
