@@ -700,13 +700,26 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     zc = ((lnk - np.log(mod.detection_limit_us)) / sa).astype(f32)      # (B, 1)
     waveform = tier == "waveform"
 
-    # echoes
+    # detection margins z of the echoes and of the no-echo readings
     lng, dlng = _off_axis32(tier, mod, phi, batch.yaw32, batch.yaw, batch.yaw_bounds[:2],
                             want_derivs)
     z = lng * f32(1.0 / sa)
     z += zc
-    l0 = M.log_sf32(z)                                  # log P(echo) = log Phi(-z)
-    m0 = np.exp(f32(-0.5) * z * z - ln_sqrt_2pi - l0)   # phi(z) / Phi(-z)
+    nv = batch.ne_valid
+    noecho = bool(nv.shape[1] and nv.any())
+    zz = z
+    if noecho:
+        lgn, dzn = _off_axis32(tier, mod, phi, batch.ne_yaw32, batch.ne_yaw,
+                               batch.yaw_bounds[2:], want_derivs, sa)   # d zn / d theta
+        zn = lgn * f32(1.0 / sa)
+        zn += zc
+        # the normal tails of both in one pass (elementwise: the same numbers as two)
+        zz = np.concatenate([z, -zn], axis=1)
+    # log P(echo) = log Phi(-z), log P(no echo) = log Phi(zn); phi / Phi of each
+    lp = M.log_sf32(zz)
+    mills = np.exp(f32(-0.5) * zz * zz - ln_sqrt_2pi - lp)
+    nd = z.shape[1]
+    l0, m0 = lp[:, :nd], mills[:, :nd]
     curv = m0 - z
     curv *= m0                                          # d m0 / dz = m0 (m0 - z)
     if waveform:
@@ -789,20 +802,15 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     prior = _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
     F = F + prior
     F_other = F_other + prior if s2_other is not None else F
-    nv = batch.ne_valid
-    if nv.shape[1] and nv.any():
-        lgn, dzn = _off_axis32(tier, mod, phi, batch.ne_yaw32, batch.ne_yaw,
-                               batch.yaw_bounds[2:], want_derivs, sa)   # d zn / d theta
-        zn = lgn * f32(1.0 / sa)
-        zn += zc
-        lpn = M.log_sf32(-zn)                           # log P(no echo) = log Phi(z)
+    if noecho:
+        lpn = lp[:, nd:]                                # log P(no echo) = log Phi(zn)
         nvf = nv.astype(f32)
         dFn = 2.0 * _einsum("bn,bn->b", lpn, nvf, dtype=np.float64)
         F = F - dFn
         F_other = F_other - dFn if s2_other is not None else F
         if want_derivs:
             assert dzn is not None
-            mn = np.exp(f32(-0.5) * zn * zn - ln_sqrt_2pi - lpn)    # phi(z) / Phi(z)
+            mn = mills[:, nd:]                          # phi(zn) / Phi(zn)
             Wn = zn + mn
             Wn *= mn
             Wn *= nvf                                   # curvature of -log Phi(z)
