@@ -288,7 +288,9 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     # there (with the geometry of a moving sensor where any segment of its group moved,
     # as for the whole group)
     far = outside > math.radians(1.0)
-    moves = (batch.px.any(1) | batch.py.any(1)) if batch.moving else np.zeros(B, dtype=bool)
+    moves = np.zeros(B, dtype=bool)
+    if batch.moving:
+        moves = np.any(batch.px != 0.0, axis=1) | np.any(batch.py != 0.0, axis=1)
     for kind in ("point", "line"):
         idx = np.flatnonzero(sel.kind == kind)
         if idx.size == 0:
