@@ -433,6 +433,32 @@ def _mixed_pans(rng, n):
     return pack_segments(segs), np.array(truth)
 
 
+def test_subsets_keep_what_the_batch_worked_out(rng):
+    from sonarloc.fit.lsq import SegmentBatch, _take
+
+    def fresh(b):      # the same arrays, nothing worked out yet
+        return SegmentBatch(*(getattr(b, f) for f in (
+            "px", "py", "yaw", "tof_us", "valid", "ne_px", "ne_py", "ne_yaw", "ne_valid",
+            "ref_xy", "ref_yaw", "ref_t_s")))
+
+    pans, _ = _mixed_pans(rng, 6)
+    assert not pans.moving and pans.yaw32.dtype == np.float32 and pans.ne_yaw32.size
+    sub = _take(pans, np.array([4, 1, 1]), 30, 20)
+    assert {"moving", "yaw32", "ne_yaw32"} <= set(sub.__dict__)
+    ref = fresh(sub)
+    assert sub.moving is ref.moving is False
+    assert sub.yaw32.tobytes() == ref.yaw32.tobytes()
+    assert sub.ne_yaw32.tobytes() == ref.ne_yaw32.tobytes()
+    # a moving batch's subset works its stillness out again (its rows may all be still)
+    px = pans.px.copy()
+    px[0, 0] = 0.05
+    moving = SegmentBatch(px, *(getattr(pans, f) for f in (
+        "py", "yaw", "tof_us", "valid", "ne_px", "ne_py", "ne_yaw", "ne_valid", "ref_xy",
+        "ref_yaw", "ref_t_s")))
+    assert moving.moving
+    assert not _take(moving, np.array([2, 3])).moving and _take(moving, np.array([0])).moving
+
+
 def test_fast_preset_covariance_is_calibrated(rng):
     # Monte Carlo: fast() stops before convergence; its covariance (Fisher matrix at the
     # result plus the pending Newton step's outer product) must still say how large the

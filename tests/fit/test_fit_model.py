@@ -228,6 +228,17 @@ def test_log_sf32_matches_log_ndtr_everywhere():
     assert np.all(np.isfinite(got)) and np.all(got <= 0.0)
 
 
+def test_log_sf32_is_elementwise(rng):
+    # the float32 model pass puts the echoes' and the no-echo readings' margins through
+    # one call: each entry's value must not depend on the others (to the last bit)
+    z = (rng.normal(size=(7, 23)) * 6.0).astype(np.float32)
+    zn = (rng.normal(size=(7, 11)) * 6.0).astype(np.float32)
+    both = M.log_sf32(np.concatenate([z, -zn], axis=1))
+    assert both[:, :23].tobytes() == M.log_sf32(z).tobytes()
+    assert both[:, 23:].tobytes() == M.log_sf32(-zn).tobytes()
+    assert both[2:3, 5:9].tobytes() == M.log_sf32(z[2:3, 5:9].copy()).tobytes()
+
+
 def test_truncation_ratio32_matches_exact_ratio():
     from scipy.special import log_ndtr
 
