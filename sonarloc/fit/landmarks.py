@@ -412,51 +412,167 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     consecutive echoes (each part keeping ``min_echoes`` echoes), fit both parts,
     and keep the best cut if both parts are ``OK`` and -2 log-likelihood drops by more
     than the BIC price of three more parameters; the two landmarks then replace the
-    one (``extra["split_of"]`` = the segment id). Returns the landmarks in order.
+    one (``extra["split_of"]`` = the segment id). Cuts that would leave a part holding
+    a hopeless one of a tried cut are not fitted (:data:`CUT_HOPELESS_P`). Returns the
+    landmarks in order.
     """
     return [lm for g in _split_groups(segments, landmarks, config, n_cuts) for lm in g]
 
 
+CUT_HOPELESS_P = 1e-8
+"""A part of a cut whose fit finds a plausible reflector (kappa in the range of real
+ones, no weak wall) but with a TOF chi-square p-value below this rules out the cuts that
+would leave a part holding it: a part must fit with p > 0.01, and one holding these
+readings fits no better (its chi-square is at least theirs, up to the fits' local
+minima: hence the margin, and no verdict from a fit with an implausible kappa, which has
+found no reflector). Measured on a moving ring's drive (benchmarks/bench_fit.py section
+4, second table: 242 segments cut, 63 split), cutting each in the middle first and
+then in the middle of what is left: the same 63 splits at the same cuts from 42% of
+the cuts; of the segments that split, the better half at the middle cut had p >= 3e-5.
+Without the kappa condition two splits were lost (a half fitted as a weak wall or at
+an implausible kappa, p ~1e-64, whose longer part fitted well)."""
+
+CUT_PROBES = 2
+"""Rounds of probing cuts (the middle of the cuts still open) before fitting the rest."""
+
+
+@dataclass
+class _Cuts:
+    """Where an ``UNRESOLVED`` segment is cut: the readings' positions of its echoes, the
+    cuts (echo indices, sorted), and the open range ``lo < cut < hi`` that no hopeless
+    part of a fitted cut rules out."""
+
+    seg: Segment
+    echo: NDArray[np.int64]
+    cuts: list[int]
+    lo: int = -1
+    hi: int = 1 << 62
+
+    def open(self, done: dict[tuple[int, int], tuple[Landmark, Landmark]], i: int
+             ) -> list[int]:
+        """Cuts still open and not fitted yet."""
+        return [c for c in self.cuts if self.lo < c < self.hi and (i, c) not in done]
+
+
+def _cut_plan(seg: Segment, cfg: FitConfig, n_cuts: int) -> _Cuts | None:
+    """The cuts of a segment: ``n_cuts`` evenly spaced and at its four largest steps
+    between consecutive echoes (where one reflector's echoes give way to the other's),
+    each part keeping ``min_echoes`` echoes; None if it has too few echoes."""
+    r = seg.readings
+    echo = np.flatnonzero(np.isfinite(r.tof_us))
+    n = echo.size
+    if n < 2 * cfg.min_echoes:
+        return None
+    even = np.linspace(cfg.min_echoes, n - cfg.min_echoes, n_cuts).astype(int)
+    step = np.abs(np.diff(r.tof_us[echo]))
+    order = np.argsort(-step) + 1
+    jumps = order[(order >= cfg.min_echoes) & (order <= n - cfg.min_echoes)][:4]
+    return _Cuts(seg, echo, np.unique(np.concatenate([even, jumps])).tolist())
+
+
+def _fit_parts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int, int]],
+               cfg: FitConfig, odometry: bool) -> list[Landmark]:
+    """Parts ``(segment, cut, side)`` (side 0: the readings before the cut's echo, 1:
+    from it on), in one batch; the odometry term (the default, as for whole segments of
+    a robot) only if ``odometry`` (it only widens covariances: the parts' costs and
+    chi-squares do not change)."""
+    parts: list[Segment] = []
+    for i, c, side in todo:
+        seg = plans[i].seg
+        pos = int(plans[i].echo[c])
+        if side == 0:
+            parts.append(Segment(seg.readings.select(slice(0, pos)), seg.seg_id,
+                                 seg.closed_by, (seg.occluded[0], False)))
+        else:
+            parts.append(Segment(seg.readings.select(slice(pos, None)), seg.seg_id,
+                                 seg.closed_by, (False, seg.occluded[1])))
+    return fit_segments(parts, cfg, None if odometry else 0.0) if parts else []
+
+
+def _fit_cuts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int]], cfg: FitConfig,
+              odometry: bool) -> list[tuple[Landmark, Landmark]]:
+    """Both parts of each cut ``(segment, cut)`` of ``todo`` (:func:`_fit_parts`)."""
+    fits = _fit_parts(plans, [(i, c, side) for i, c in todo for side in (0, 1)], cfg,
+                      odometry)
+    return list(zip(fits[0::2], fits[1::2], strict=True))
+
+
+def _hopeless(lm: Landmark, cfg: FitConfig) -> bool:
+    """A part no longer part can rescue (:data:`CUT_HOPELESS_P`): a plausible reflector
+    (the kappa tests of the statuses passed) that fits the TOFs that badly."""
+    kappa = float(lm.params[2])
+    return (_fit_p(lm) < CUT_HOPELESS_P
+            and 0.5 * cfg.kappa_lo_us <= kappa <= 2.0 * cfg.kappa_hi_us
+            and not (lm.kind == "line" and kappa > 3.0 * KAPPA_WALL_US))
+
+
+def _fits_alone(lm: Landmark) -> bool:
+    """A part of a cut that may stand as a landmark: ``OK`` and fitting well on its own (a
+    stricter test than for whole segments: cutting at the best of several places
+    favours chance fits)."""
+    return lm.ok and _fit_p(lm) > 0.01
+
+
 def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                   config: FitConfig | None = None, n_cuts: int = 8) -> list[list[Landmark]]:
-    """:func:`split_unresolved`, the result of each segment in its own list."""
+    """:func:`split_unresolved`, the result of each segment in its own list.
+
+    The cuts are fitted without the odometry term: the middle one of each segment
+    first, then (:data:`CUT_PROBES` rounds) the middle of those a hopeless part has
+    not ruled out (:data:`CUT_HOPELESS_P`), then the rest of those. The cuts whose
+    parts both pass are then fitted again with the term, best total cost first, until
+    one still passes: the term only widens covariances, so it can only fail a part,
+    and the winner is the one fitting every cut with it would give."""
     cfg = config or FitConfig()
-    cand: list[tuple[int, Segment, Segment]] = []
+    plans: dict[int, _Cuts] = {}
     for i, (seg, lm) in enumerate(zip(segments, landmarks, strict=True)):
-        if lm.status is not FitStatus.UNRESOLVED:
-            continue
-        r = seg.readings
-        echo = np.flatnonzero(np.isfinite(r.tof_us))
-        n = echo.size
-        if n < 2 * cfg.min_echoes:
-            continue
-        # evenly spaced cuts, and cuts at the largest steps between consecutive echoes
-        # (where one reflector's echoes give way to the other's)
-        even = np.linspace(cfg.min_echoes, n - cfg.min_echoes, n_cuts).astype(int)
-        step = np.abs(np.diff(r.tof_us[echo]))
-        order = np.argsort(-step) + 1
-        jumps = order[(order >= cfg.min_echoes) & (order <= n - cfg.min_echoes)][:4]
-        cuts = np.unique(np.concatenate([even, jumps]))
-        for c in cuts.tolist():
-            pos = int(echo[c])
-            cand.append((i, Segment(r.select(slice(0, pos)), seg.seg_id, seg.closed_by,
-                                    (seg.occluded[0], False)),
-                         Segment(r.select(slice(pos, None)), seg.seg_id, seg.closed_by,
-                                 (False, seg.occluded[1]))))
-    if not cand:
+        if lm.status is FitStatus.UNRESOLVED:
+            plan = _cut_plan(seg, cfg, n_cuts)
+            if plan is not None:
+                plans[i] = plan
+    if not plans:
         return [[lm] for lm in landmarks]
-    fits = fit_segments([c[1] for c in cand] + [c[2] for c in cand], cfg)
-    half = len(cand)
+    fits: dict[tuple[int, int], tuple[Landmark, Landmark]] = {}
+    probe = [(i, p.cuts[len(p.cuts) // 2]) for i, p in plans.items()]
+    for _ in range(CUT_PROBES):
+        fits.update(zip(probe, _fit_cuts(plans, probe, cfg, odometry=False), strict=True))
+        nxt = []
+        for i, c in probe:
+            p, (a, b) = plans[i], fits[i, c]
+            if _hopeless(a, cfg):     # every later cut's first part holds this one
+                p.hi = min(p.hi, c)
+            if _hopeless(b, cfg):     # every earlier cut's second part holds this one
+                p.lo = max(p.lo, c)
+            left = p.open(fits, i)
+            if left and (p.lo, p.hi) != (-1, 1 << 62):   # ruled some out: probe again
+                nxt.append((i, left[len(left) // 2]))
+        probe = nxt
+    # the rest: the part with fewer echoes first, the other only if that one passes
+    rest = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items()
+            for c in p.open(fits, i)]
+    first = dict(zip(rest, _fit_parts(plans, rest, cfg, odometry=False), strict=True))
+    other = [(i, c, 1 - side) for (i, c, side), lm in first.items() if _fits_alone(lm)]
+    for (i, c, side), lm in zip(other, _fit_parts(plans, other, cfg, odometry=False),
+                                strict=True):
+        fits[i, c] = (lm, first[i, c, 1 - side]) if side == 0 else (first[i, c, 0], lm)
+    # each segment's passing cuts (still open), best total first (ties: the earlier cut)
+    ranked: dict[int, list[tuple[float, int]]] = {}
+    for (i, c), (a, b) in sorted(fits.items()):
+        if plans[i].lo < c < plans[i].hi and _fits_alone(a) and _fits_alone(b):
+            ranked.setdefault(i, []).append(
+                (float(a.extra["cost"]) + float(b.extra["cost"]), c))  # type: ignore[arg-type]
+    for v in ranked.values():
+        v.sort()
     best: dict[int, tuple[float, Landmark, Landmark]] = {}
-    for k, (i, _, _) in enumerate(cand):
-        a, b = fits[k], fits[half + k]
-        # each part must fit well on its own (a stricter test than for whole segments:
-        # cutting at the best of several places favours chance fits)
-        if not (a.ok and b.ok and _fit_p(a) > 0.01 and _fit_p(b) > 0.01):
-            continue
-        total = float(a.extra["cost"]) + float(b.extra["cost"])  # type: ignore[arg-type]
-        if i not in best or total < best[i][0]:
-            best[i] = (total, a, b)
+    while ranked:
+        heads = [(i, v[0][1]) for i, v in ranked.items()]
+        for (i, _), (a, b) in zip(heads, _fit_cuts(plans, heads, cfg, odometry=True),
+                                  strict=True):
+            total = ranked[i].pop(0)[0]
+            if _fits_alone(a) and _fits_alone(b):
+                best[i] = (total, a, b)
+            if i in best or not ranked[i]:
+                del ranked[i]
     out: list[list[Landmark]] = []
     for i, lm in enumerate(landmarks):
         if i in best:
@@ -474,7 +590,9 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
 
 
 def _fit_p(lm: Landmark) -> float:
-    """p-value of a landmark's TOF chi-square."""
+    """p-value of a landmark's TOF chi-square (1 without one: a fallback)."""
+    if "chi2" not in lm.extra:
+        return 1.0
     return float(_chi2_sf(float(lm.extra["chi2"]),  # type: ignore[arg-type]
                           max(lm.n_readings - 3, 1)))
 
