@@ -12,6 +12,7 @@ from conftest import MAPS
 from sonarloc.fit.landmarks import (
     CUT_STAGED_MIN,
     _cut_plan,
+    _fit_p,
     _fits_alone,
     _split_groups,
     fit_segments,
@@ -20,6 +21,7 @@ from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.pair import resolve_pair_groups
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter
+from sonarloc.fit.select import KAPPA_WALL_US
 
 
 def test_probed_cuts_split_as_fitting_every_cut_does():
@@ -37,7 +39,7 @@ def test_probed_cuts_split_as_fitting_every_cut_does():
     groups = resolve_pair_groups(segs, fit_segments(segs, cfg), cfg)
     todo = [k for k, g in enumerate(groups)
             if len(g) == 1 and g[0].status is FitStatus.UNRESOLVED]
-    plans = [_cut_plan(segs[k], cfg, 8) for k in todo]
+    plans = [_cut_plan(segs[k], groups[k][0], cfg, 8) for k in todo]
     assert sum(len(p.cuts) for p in plans if p is not None) >= CUT_STAGED_MIN   # staged
     got = _split_groups([segs[k] for k in todo], [groups[k][0] for k in todo], cfg)
     n_split = 0
@@ -81,9 +83,10 @@ def _plain_split(seg: Segment, whole: Landmark, cfg: FitConfig
                   Segment(r.select(slice(pos, None)), seg.seg_id, seg.closed_by,
                           (False, seg.occluded[1]))]
     fits = fit_segments(parts, cfg)
+    weak = whole.kind == "line" and whole.kappa_us > 3.0 * KAPPA_WALL_US
     best: tuple[float, Landmark, Landmark] | None = None
     for a, b in zip(fits[0::2], fits[1::2], strict=True):
-        if _fits_alone(a) and _fits_alone(b):
+        if _fits_alone(a, weak) and _fits_alone(b, weak):
             total = float(a.extra["cost"]) + float(b.extra["cost"])
             if best is None or total < best[0]:
                 best = (total, a, b)
@@ -91,3 +94,23 @@ def _plain_split(seg: Segment, whole: Landmark, cfg: FitConfig
             best[1].n_readings + best[2].n_readings):
         return None
     return best[1], best[2]
+
+
+def _part(kind: str, kappa: float, chi2: float = 10.0, n: int = 12,
+          status: FitStatus = FitStatus.OK) -> Landmark:
+    return Landmark(kind, np.array([1.0, 0.5, kappa]), np.eye(3) * 1e-4, 1.2, 0.4, n,
+                    3.0, (0.0, 0.0, 0.0), status, extra={"chi2": chi2})
+
+
+def test_a_part_must_fit_alone_and_a_weak_walls_points_be_strong():
+    assert _fit_p(_part("point", 0.67, chi2=30.0)) < 0.01 < _fit_p(_part("point", 0.67))
+    assert _fits_alone(_part("point", 0.67), weak_wall=False)
+    assert not _fits_alone(_part("point", 0.67, chi2=30.0), weak_wall=False)
+    assert not _fits_alone(_part("point", 0.67, status=FitStatus.FLAT), weak_wall=False)
+    # a segment fitted as a wall too weak for one: a weak point part is that wall seen
+    # from part of the path; a strong one (a corner, a pole) is what the test suspects
+    weak = 3.5 * KAPPA_WALL_US
+    assert _fits_alone(_part("point", weak), weak_wall=False)
+    assert not _fits_alone(_part("point", weak), weak_wall=True)
+    assert _fits_alone(_part("point", 0.15), weak_wall=True)
+    assert _fits_alone(_part("line", 0.15), weak_wall=True)
