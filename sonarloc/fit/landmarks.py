@@ -404,7 +404,8 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
 
 
 def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
-                     config: FitConfig | None = None, n_cuts: int = 8) -> list[Landmark]:
+                     config: FitConfig | None = None, n_cuts: int = 8,
+                     odometry_sd_deg_per_m: float | None = None) -> list[Landmark]:
     """Try to split segments that no single landmark explains into two landmarks.
 
     For each ``UNRESOLVED`` segment with at least ``2 * min_echoes`` echoes, cut it in
@@ -414,9 +415,11 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     than the BIC price of three more parameters; the two landmarks then replace the
     one (``extra["split_of"]`` = the segment id). Cuts that would leave a part holding
     a hopeless one of a tried cut are not fitted (:data:`CUT_HOPELESS_P`). Returns the
-    landmarks in order.
+    landmarks in order. ``odometry_sd_deg_per_m``: that of :func:`fit_segments`, for
+    the parts (the same as the whole segments were fitted with).
     """
-    return [lm for g in _split_groups(segments, landmarks, config, n_cuts) for lm in g]
+    return [lm for g in _split_groups(segments, landmarks, config, n_cuts,
+                                      odometry_sd_deg_per_m) for lm in g]
 
 
 CUT_HOPELESS_P = 1e-8
@@ -484,11 +487,11 @@ def _cut_plan(seg: Segment, whole: Landmark, cfg: FitConfig, n_cuts: int
 
 
 def _fit_parts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int, int]],
-               cfg: FitConfig, odometry: bool) -> list[Landmark]:
+               cfg: FitConfig, odometry_sd: float | None) -> list[Landmark]:
     """Parts ``(segment, cut, side)`` (side 0: the readings before the cut's echo, 1:
-    from it on), in one batch; the odometry term (the default, as for whole segments of
-    a robot) only if ``odometry`` (it only widens covariances: the parts' costs and
-    chi-squares do not change)."""
+    from it on), in one batch; ``odometry_sd``: :func:`fit_segments`'
+    ``odometry_sd_deg_per_m`` (0: no odometry term; it only widens covariances: the
+    parts' costs and chi-squares do not change)."""
     parts: list[Segment] = []
     for i, c, side in todo:
         seg = plans[i].seg
@@ -499,22 +502,22 @@ def _fit_parts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int, int]],
         else:
             parts.append(Segment(seg.readings.select(slice(pos, None)), seg.seg_id,
                                  seg.closed_by, (False, seg.occluded[1])))
-    return fit_segments(parts, cfg, None if odometry else 0.0) if parts else []
+    return fit_segments(parts, cfg, odometry_sd) if parts else []
 
 
 def _fit_cuts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int]], cfg: FitConfig,
-              odometry: bool) -> list[tuple[Landmark, Landmark]]:
+              odometry_sd: float | None) -> list[tuple[Landmark, Landmark]]:
     """Both parts of each cut ``(segment, cut)`` of ``todo`` (:func:`_fit_parts`)."""
     fits = _fit_parts(plans, [(i, c, side) for i, c in todo for side in (0, 1)], cfg,
-                      odometry)
+                      odometry_sd)
     return list(zip(fits[0::2], fits[1::2], strict=True))
 
 
-def _fit_all(plans: dict[int, _Cuts], cfg: FitConfig
+def _fit_all(plans: dict[int, _Cuts], cfg: FitConfig, odometry_sd: float | None
              ) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
     """Both parts of every cut, with the odometry term, in one batch (few cuts)."""
     todo = [(i, c) for i, p in plans.items() for c in p.cuts]
-    return dict(zip(todo, _fit_cuts(plans, todo, cfg, odometry=True), strict=True))
+    return dict(zip(todo, _fit_cuts(plans, todo, cfg, odometry_sd), strict=True))
 
 
 def _search(plans: dict[int, _Cuts], cfg: FitConfig
@@ -527,7 +530,7 @@ def _search(plans: dict[int, _Cuts], cfg: FitConfig
     fits: dict[tuple[int, int], tuple[Landmark, Landmark]] = {}
     probe = [(i, p.cuts[len(p.cuts) // 2]) for i, p in plans.items()]
     for _ in range(CUT_PROBES):
-        fits.update(zip(probe, _fit_cuts(plans, probe, cfg, odometry=False), strict=True))
+        fits.update(zip(probe, _fit_cuts(plans, probe, cfg, 0.0), strict=True))
         nxt = []
         for i, c in probe:
             p, (a, b) = plans[i], fits[i, c]
@@ -541,10 +544,10 @@ def _search(plans: dict[int, _Cuts], cfg: FitConfig
         probe = nxt
     rest = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items()
             for c in p.open(fits, i)]
-    first = dict(zip(rest, _fit_parts(plans, rest, cfg, odometry=False), strict=True))
+    first = dict(zip(rest, _fit_parts(plans, rest, cfg, 0.0), strict=True))
     other = [(i, c, 1 - side) for (i, c, side), lm in first.items()
              if _fits_alone(lm, plans[i].weak_wall)]
-    for (i, c, side), lm in zip(other, _fit_parts(plans, other, cfg, odometry=False),
+    for (i, c, side), lm in zip(other, _fit_parts(plans, other, cfg, 0.0),
                                 strict=True):
         fits[i, c] = (lm, first[i, c, 1 - side]) if side == 0 else (first[i, c, 0], lm)
     return fits
@@ -576,7 +579,8 @@ def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
 
 
 def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
-                  config: FitConfig | None = None, n_cuts: int = 8) -> list[list[Landmark]]:
+                  config: FitConfig | None = None, n_cuts: int = 8,
+                  odometry_sd_deg_per_m: float | None = None) -> list[list[Landmark]]:
     """:func:`split_unresolved`, the result of each segment in its own list.
 
     Few cuts (:data:`CUT_STAGED_MIN`) are all fitted at once. Otherwise
@@ -594,7 +598,7 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     if not plans:
         return [[lm] for lm in landmarks]
     staged = sum(len(p.cuts) for p in plans.values()) >= CUT_STAGED_MIN
-    fits = _search(plans, cfg) if staged else _fit_all(plans, cfg)
+    fits = _search(plans, cfg) if staged else _fit_all(plans, cfg, odometry_sd_deg_per_m)
     # each segment's passing cuts (still open), best total first (ties: the earlier cut)
     ranked: dict[int, list[tuple[float, int]]] = {}
     for (i, c), (a, b) in sorted(fits.items()):
@@ -607,7 +611,7 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     best: dict[int, tuple[float, Landmark, Landmark]] = {}
     while ranked:
         heads = [(i, v[0][1]) for i, v in ranked.items()]
-        checked = (_fit_cuts(plans, heads, cfg, odometry=True) if staged
+        checked = (_fit_cuts(plans, heads, cfg, odometry_sd_deg_per_m) if staged
                    else [fits[h] for h in heads])
         for (i, _), (a, b) in zip(heads, checked, strict=True):
             total = ranked[i].pop(0)[0]
@@ -665,7 +669,7 @@ def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
     seg = Segmenter(segmenter, cfg.module)
     segments = seg.feed_block(scan)
     return FitReport(_resolve(segments, fit_segments(segments, cfg, odometry_sd_deg_per_m),
-                              cfg), seg.stats)
+                              cfg, odometry_sd_deg_per_m), seg.stats)
 
 
 class OnlineFitter:
@@ -698,11 +702,11 @@ class OnlineFitter:
 
     def _fit(self, closed: list[Segment]) -> list[Landmark]:
         return _resolve(closed, fit_segments(closed, self.config, self.odometry_sd_deg_per_m),
-                        self.config)
+                        self.config, self.odometry_sd_deg_per_m)
 
 
-def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitConfig
-             ) -> list[Landmark]:
+def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitConfig,
+             odometry_sd_deg_per_m: float | None = None) -> list[Landmark]:
     """Overlapping reflectors: the two-reflector model where one landmark is strained
     (:func:`sonarloc.fit.pair.resolve_pairs`), then cuts in time for what is still
     ``UNRESOLVED`` (:func:`split_unresolved`: a wall running into a corner)."""
@@ -711,7 +715,7 @@ def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitCon
             if len(res) == 1 and res[0].status is FitStatus.UNRESOLVED]
     if todo:   # one batched call for all that are still unresolved
         parts = _split_groups([segments[i] for i in todo], [groups[i][0] for i in todo],
-                              cfg)
+                              cfg, odometry_sd_deg_per_m=odometry_sd_deg_per_m)
         for i, part in zip(todo, parts, strict=True):
             groups[i] = part
     out = [lm for g in groups for lm in g]

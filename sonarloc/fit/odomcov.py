@@ -20,10 +20,13 @@ covariance. (Until session 9 ``s`` came from refitting the bent segments from th
 that refit stops as soon as its Newton decrement is below the fit's tolerance, which a
 bend small enough to be linear often is at once, so ``s`` was 0 for ~1 in 12 moving
 segments and off by up to ~8x for others; the derivative is within ~10 % of a tightly
-converged central difference for most, docs/FITTING.md, at ~1/9 of the cost.) The default ``sigma_c`` is calibrated on the world simulator's
-default odometry (0.2 % wheel-scale difference, 3 mm/sqrt(m) wheel noise, 0.4 m
-wheelbase: 0.3 deg/m systematic drift, ~0.6 deg/sqrt(m) random): reported SD / actual
-error of walls from a ring16 drive near 1 (bench_fit_quality, part 4). For poses that
+converged central difference for most, docs/FITTING.md, at ~1/9 of the cost.)
+
+The default ``sigma_c`` is calibrated on the world simulator's default odometry (0.2 %
+wheel-scale difference, 3 mm/sqrt(m) wheel noise, 0.4 m wheelbase: 0.3 deg/m systematic
+drift, ~0.6 deg/sqrt(m) random): reported SD / actual error of walls from a ring16 drive
+near 1 (bench_fit_quality, part 4; one short segment's range is the exception, where the
+random heading walk outweighs the curvature). For poses that
 are exact (simulator truth, a stationary pan) use 0; a pan has no motion and gets
 nothing anyway.
 """
@@ -36,7 +39,6 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from sonarloc.fit import model as M
 from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _covariance, _evaluate_s2, _take
 
 Array = NDArray[np.float64]

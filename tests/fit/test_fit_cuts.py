@@ -15,6 +15,7 @@ from sonarloc.fit.landmarks import (
     _fit_p,
     _fits_alone,
     _split_groups,
+    fit_scan,
     fit_segments,
 )
 from sonarloc.fit.lsq import FitConfig
@@ -24,16 +25,20 @@ from sonarloc.fit.segment import Segment, Segmenter
 from sonarloc.fit.select import KAPPA_WALL_US
 
 
-def test_probed_cuts_split_as_fitting_every_cut_does():
-    # a moving ring's drive on odometry poses: where a probe's part is hopeless the
-    # cuts past it are never fitted (here two of the splits are found on the side left
-    # open), and the cuts whose parts pass get the odometry term only when ranked first
+def _ring_drive(duration_s=30.0, seed=2):
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import rig_by_name
     from sonarloc.world.simulate import simulate_scan
 
-    scan = simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
-                         frame="odom", duration_s=30.0, seed=2).readings
+    return simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
+                         frame="odom", duration_s=duration_s, seed=seed).readings
+
+
+def test_probed_cuts_split_as_fitting_every_cut_does():
+    # a moving ring's drive on odometry poses: where a probe's part is hopeless the
+    # cuts past it are never fitted (here two of the splits are found on the side left
+    # open), and the cuts whose parts pass get the odometry term only when ranked first
+    scan = _ring_drive()
     cfg = FitConfig()
     segs = list(Segmenter().feed(scan))
     groups = resolve_pair_groups(segs, fit_segments(segs, cfg), cfg)
@@ -57,10 +62,10 @@ def test_probed_cuts_split_as_fitting_every_cut_does():
             # up to 0.03 SD here)
             sd = np.sqrt(np.diag(ref.cov))
             assert np.all(np.abs(lm.params - ref.params) < 0.1 * sd)
-            # (the odometry term, a refit of poses bent by 1e-3 rad/m, more: up to 5%)
+            # (and the odometry term, the derivative at that fit)
             assert lm.extra.get("odom_bearing_sd_deg", 0.0) == pytest.approx(
                 ref.extra.get("odom_bearing_sd_deg", 0.0), rel=0.1)
-    assert n_split >= 8
+    assert n_split >= 6
 
 
 def _plain_split(seg: Segment, whole: Landmark, cfg: FitConfig
@@ -114,3 +119,20 @@ def test_a_part_must_fit_alone_and_a_weak_walls_points_be_strong():
     assert not _fits_alone(_part("point", weak), weak_wall=True)
     assert _fits_alone(_part("point", 0.15), weak_wall=True)
     assert _fits_alone(_part("line", 0.15), weak_wall=True)
+
+
+def test_cut_parts_take_the_callers_odometry_sd():
+    # fit_scan's odometry SD reaches the parts of cut segments, as it does the whole ones
+    scan = _ring_drive(20.0, seed=4)
+
+    def parts(sd):
+        lms = fit_scan(scan, odometry_sd_deg_per_m=sd).landmarks
+        return {(lm.ref_t_s, lm.n_readings): lm for lm in lms if "split_of" in lm.extra}
+
+    none, default, double = parts(0.0), parts(None), parts(2.0)
+    assert default and all("odom_bearing_sd_deg" not in lm.extra for lm in none.values())
+    both = default.keys() & double.keys()
+    assert len(both) >= len(default) // 2
+    for k in both:
+        assert float(double[k].extra["odom_bearing_sd_deg"]) == pytest.approx(
+            2.0 * float(default[k].extra["odom_bearing_sd_deg"]), rel=1e-6)
