@@ -405,9 +405,9 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 
 # ---------------------------------------------------------------- 4. large CSV
 
-BASELINE_REV = "9d07041"
-"""main at the start of session 7 (2026-11-21; session 6's fit, pair and segmenter speed-ups):
-section 4's "before" column, run from a `git archive` of it."""
+BASELINE_REV = "92ccf69"
+"""main at the start of session 9 (2026-11-26; sessions 6-7's fit, pair and segmenter
+speed-ups): section 4's "before" columns, run from a `git archive` of it."""
 
 _STAGES = r"""
 import json, sys, time
@@ -463,18 +463,23 @@ t4 = time.process_time()
 todo = [k for k, g in enumerate(groups) if len(g) == 1 and g[0].status is FitStatus.UNRESOLVED]
 parts = _split_groups([segs[k] for k in todo], [groups[k][0] for k in todo], cfg)
 t5 = time.process_time()
+for k, p in zip(todo, parts):
+    groups[k] = p
+final = [lm for g in groups for lm in g]
 print(json.dumps({"readings": len(scan), "parse": t1 - t0, "segment": t2 - t1, "fit": t3 - t2,
                   "pairs": t4 - t3, "split": t5 - t4, "segments": len(segs),
                   "unresolved": sum(lm.status is FitStatus.UNRESOLVED for lm in lms),
                   "split_tried": len(todo), "split_done": sum(len(p) == 2 for p in parts),
+                  "landmarks": len(final), "ok": sum(lm.ok for lm in final),
                   "echoes": int((scan.tof_us == scan.tof_us).sum())}))
 """
 
 
-def drive_csv(duration_s: float) -> dict[str, float]:
+def drive_csv(duration_s: float, repeats: int) -> dict[str, float]:
     """Section 4's second table: `sonarloc fit`'s stages on the scan CSV of a moving ring
-    (the room, 16 transducers, poses from odometry: what a robot logs), one fresh
-    process (the fitting side takes tens of seconds)."""
+    (the room, 16 transducers, poses from odometry: what a robot logs), *now* and
+    *before* (:data:`BASELINE_REV`), ``repeats`` fresh processes each, alternating
+    (medians); keys ``now_*`` / ``before_*``."""
     import json
 
     from sonarloc.maps import load_map
@@ -483,12 +488,36 @@ def drive_csv(duration_s: float) -> dict[str, float]:
 
     sim = simulate_scan(load_map(ROOT / "maps" / "room.geojson"), rig_by_name("ring16"),
                         frame="odom", duration_s=duration_s, seed=3)
+    runs: dict[str, list[float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "drive.csv"
         write_scan_csv(path, sim.readings)
-        res = json.loads(_run_root(ROOT, ["-c", _DRIVE_STAGES, str(path)]).stdout)
-    res["duration_s"] = duration_s
-    return {k: float(v) for k, v in res.items()}
+        roots = _roots(Path(tmp))
+        for _ in range(repeats):           # alternating, so both see the same load
+            for name, root in roots.items():
+                res = json.loads(_run_root(root, ["-c", _DRIVE_STAGES, str(path)]).stdout)
+                for k, v in res.items():
+                    runs.setdefault(f"{name}_{k}", []).append(float(v))
+    return {"duration_s": duration_s, "repeats": float(repeats),
+            **{k: float(np.median(v)) for k, v in runs.items()}}
+
+
+def _roots(tmp: Path) -> dict[str, Path]:
+    """Code versions to run: ``now`` (this tree) and ``before`` (a `git archive` of
+    :data:`BASELINE_REV` under ``tmp``, when git can make one)."""
+    roots = {"now": ROOT}
+    base = tmp / "base"
+    if base.is_dir():
+        return {**roots, "before": base}
+    try:
+        arch = subprocess.run(["git", "-C", str(ROOT), "archive", BASELINE_REV, "sonarloc"],
+                              capture_output=True, check=True)
+        base.mkdir()
+        subprocess.run(["tar", "-x", "-C", str(base)], input=arch.stdout, check=True)
+        roots["before"] = base
+    except (OSError, subprocess.CalledProcessError):
+        print("  (no baseline: git archive failed)", file=sys.stderr)
+    return roots
 
 
 _SAME_INPUT = r"""
@@ -598,16 +627,7 @@ def large_csv(n_readings: int, repeats: int, rng: np.random.Generator
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "big.csv"
         write_scan_csv(path, scan)
-        roots = {"now": ROOT}
-        base = Path(tmp) / "base"
-        base.mkdir()
-        try:
-            arch = subprocess.run(["git", "-C", str(ROOT), "archive", BASELINE_REV, "sonarloc"],
-                                  capture_output=True, check=True)
-            subprocess.run(["tar", "-x", "-C", str(base)], input=arch.stdout, check=True)
-            roots["before"] = base
-        except (OSError, subprocess.CalledProcessError):
-            print("  (no baseline: git archive failed)", file=sys.stderr)
+        roots = _roots(Path(tmp))
         walls: dict[str, list[float]] = {k: [] for k in roots}
         cpus: dict[str, list[float]] = {k: [] for k in roots}
         starts: dict[str, list[float]] = {k: [] for k in roots}
@@ -656,7 +676,7 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
         "",
         "CPU seconds of each stage (medians of "
         f"{'1' if q else '3'} in a fresh process per code version), *now* and *before* "
-        f"(main at {BASELINE_REV}, earlier on 2026-11-21, run from a `git archive` of it "
+        f"(main at {BASELINE_REV}, the start of session 9, run from a `git archive` of it "
         "in the same run, alternating with *now*); CPU and wall clock of the whole "
         "command (`python -m sonarloc fit SCAN.csv --json`, medians) and the wall clock of "
         "its start-up (`import sonarloc.commands.fit`). With the machine shared, wall "
@@ -712,25 +732,40 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
             f"{int(csv['n_resolved'])} landmarks differ (kind, parameters, covariance, "
             f"range, bearing, status, n_readings, tier), {int(csv['resolve_reason_diff'])} "
             "in their reason.")
-    if "drive_readings" in csv:
-        d = {k[len("drive_"):]: v for k, v in csv.items() if k.startswith("drive_")}
-        side = d["segment"] + d["fit"] + d["pairs"] + d["split"]
-        lines += [
-            "",
-            f"The same command's stages on a moving ring's scan CSV (the room, `ring16`, "
-            f"{d['duration_s']:.0f} s driven, transducer poses from odometry, as a robot logs "
-            f"them: {int(d['readings'])} readings, {int(d['echoes'])} echoes, "
-            f"{int(d['segments'])} segments, {int(d['unresolved'])} of them `UNRESOLVED` by "
-            f"the single fit; the cuts tried on {int(d['split_tried'])} still unresolved "
-            f"after the pair stage split {int(d['split_done'])}); CPU s, one fresh process, "
-            "*now* only:",
-            "",
-            "| parse | segment | fit + model selection | pairs | cuts of `UNRESOLVED` "
-            "segments | fitting side / parse |",
-            "|---:|---:|---:|---:|---:|---:|",
-            f"| {d['parse']:.2f} | {d['segment']:.2f} | {d['fit']:.2f} | {d['pairs']:.2f} | "
-            f"{d['split']:.2f} | **{side / d['parse']:.0f}** |",
-        ]
+    if "drive_now_readings" in csv:
+        lines += _drive_lines({k[len("drive_"):]: v for k, v in csv.items()
+                               if k.startswith("drive_")})
+    return lines
+
+
+def _drive_lines(d: dict[str, float]) -> list[str]:
+    """Section 4's second table (:func:`drive_csv`)."""
+    n = {k[len("now_"):]: v for k, v in d.items() if k.startswith("now_")}
+    names = [k for k in ("before", "now") if f"{k}_parse" in d]
+    lines = [
+        "",
+        f"The same command's stages on a moving ring's scan CSV (the room, `ring16`, "
+        f"{d['duration_s']:.0f} s driven, transducer poses from odometry, as a robot logs "
+        f"them: {int(n['readings'])} readings, {int(n['echoes'])} echoes, "
+        f"{int(n['segments'])} segments); CPU s, medians of {int(d['repeats'])} fresh "
+        "processes per code version, alternating. "
+        "`UNRESOLVED`: segments no single landmark explains; the cuts are tried on those "
+        "still unresolved after the pair stage.",
+        "",
+        "| code | parse | segment | fit + model selection | pairs | cuts of `UNRESOLVED` "
+        "segments | fitting side / parse | `UNRESOLVED` | cuts tried / made | landmarks "
+        "(OK) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name in names:
+        v = {k[len(name) + 1:]: x for k, x in d.items() if k.startswith(name + "_")}
+        side = v["segment"] + v["fit"] + v["pairs"] + v["split"]
+        kept = (f"{int(v['landmarks'])} ({int(v['ok'])})" if "landmarks" in v else "-")
+        lines.append(
+            f"| {name} | {v['parse']:.2f} | {v['segment']:.2f} | {v['fit']:.2f} | "
+            f"{v['pairs']:.2f} | {v['split']:.2f} | **{side / v['parse']:.0f}** | "
+            f"{int(v['unresolved'])} | {int(v['split_tried'])} / {int(v['split_done'])} | "
+            f"{kept} |")
     return lines
 
 
@@ -904,7 +939,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _drive_part(q: bool) -> dict[str, float]:
     print("drive CSV ...", file=sys.stderr)
-    return {f"drive_{k}": v for k, v in drive_csv(30.0 if q else 300.0).items()}
+    return {f"drive_{k}": v for k, v in drive_csv(30.0 if q else 300.0, 1 if q else 3).items()}
 
 
 def _kept_large_csv(out: Path) -> list[str]:

@@ -37,6 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="print only landmarks whose fit status is ok")
     parser.add_argument("--no-detection-model", action="store_true",
                         help="fit the TOF curve only (ignore what no-echo readings say)")
+    parser.add_argument("--odometry-sd", type=float, metavar="DEG_PER_M", default=None,
+                        help="SD of the poses' heading-drift rate within a segment (the "
+                             "odometry term of moving segments' covariance; default 1.0, "
+                             "calibrated on the simulator's odometry; 0 for exact poses)")
 
 
 def _num(v: float) -> float | None:
@@ -77,8 +81,13 @@ def run(args: argparse.Namespace) -> int:
     elif args.temperature is not None:
         module = ModuleParams(c_mps=float(speed_of_sound_mps(args.temperature)))
     config = FitConfig(module=module, detection=not args.no_detection_model)
+    sd = args.odometry_sd
+    if sd is not None and not (math.isfinite(sd) and sd >= 0.0):
+        print(f"sonarloc fit: --odometry-sd must be a non-negative number, got {sd}",
+              file=sys.stderr)
+        return 2
     scan = read_scan_csv(args.scan)
-    report = fit_scan(scan, config)
+    report = fit_scan(scan, config, odometry_sd_deg_per_m=sd)
     landmarks = [lm for lm in report.landmarks if lm.ok or not args.only_ok]
     if args.json:
         st = report.stats

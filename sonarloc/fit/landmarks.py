@@ -420,7 +420,8 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
 
 
 def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
-                     config: FitConfig | None = None, n_cuts: int = 8) -> list[Landmark]:
+                     config: FitConfig | None = None, n_cuts: int = 8,
+                     odometry_sd_deg_per_m: float | None = None) -> list[Landmark]:
     """Try to split segments that no single landmark explains into two landmarks.
 
     For each ``UNRESOLVED`` segment with at least ``2 * min_echoes`` echoes, cut it in
@@ -428,51 +429,212 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     consecutive echoes (each part keeping ``min_echoes`` echoes), fit both parts,
     and keep the best cut if both parts are ``OK`` and -2 log-likelihood drops by more
     than the BIC price of three more parameters; the two landmarks then replace the
-    one (``extra["split_of"]`` = the segment id). Returns the landmarks in order.
+    one (``extra["split_of"]`` = the segment id). Cuts that would leave a part holding
+    a hopeless one of a tried cut are not fitted (:data:`CUT_HOPELESS_P`). Returns the
+    landmarks in order. ``odometry_sd_deg_per_m``: that of :func:`fit_segments`, for
+    the parts (the same as the whole segments were fitted with).
     """
-    return [lm for g in _split_groups(segments, landmarks, config, n_cuts) for lm in g]
+    return [lm for g in _split_groups(segments, landmarks, config, n_cuts,
+                                      odometry_sd_deg_per_m) for lm in g]
+
+
+CUT_HOPELESS_P = 1e-8
+"""A part of a cut whose fit finds a plausible reflector (kappa in the range of real
+ones, no weak wall) but with a TOF chi-square p-value below this rules out the cuts that
+would leave a part holding it: a part must fit with p > 0.01, and one holding these
+readings fits no better (its chi-square is at least theirs, up to the fits' local
+minima: hence the margin, and no verdict from a fit with an implausible kappa, which has
+found no reflector). Measured on a moving ring's drive (benchmarks/bench_fit.py section
+4, second table: 242 segments cut, 2412 cuts): the same splits at the same cuts as
+fitting every cut, from 2435 of the 4824 parts (64,000 of 194,000 echoes); of the 63
+segments split (before the weak-wall rule of :func:`_fits_alone`), the part of the
+middle cut that would have ruled out the winning cut had p >= 6e-4. Without the kappa
+condition a split was lost and another's cut changed at every threshold tried down to
+1e-15: halves fitted as weak walls (p 1e-64, 1e-86) whose longer parts fitted well."""
+
+CUT_PROBES = 2
+"""Rounds of probing cuts (the middle of the cuts still open) before fitting the rest."""
+
+CUT_STAGED_MIN = 128
+"""Fewer cuts than this (all segments together) are all fitted in one batch, with the
+odometry term: the staged search's five or more batches cost more in per-call overhead
+than they save. Measured (CPU, fresh processes): a continuous rotation's two
+``UNRESOLVED`` segments, 17 cuts, 0.075 s in one batch and 0.11 s staged; a ring16
+drive of 10 s (9 segments, 92 cuts) 0.73 s either way; of 30 s (26 segments, 261 cuts)
+2.3 s in one batch, 1.6 s staged."""
+
+
+@dataclass
+class _Cuts:
+    """Where an ``UNRESOLVED`` segment is cut: the readings' positions of its echoes, the
+    cuts (echo indices, sorted), whether its single fit is a weak wall
+    (:func:`_fits_alone`), and the open range ``lo < cut < hi`` that no hopeless part
+    of a fitted cut rules out."""
+
+    seg: Segment
+    echo: NDArray[np.int64]
+    cuts: list[int]
+    weak_wall: bool
+    lo: int = -1
+    hi: int = 1 << 62
+
+    def open(self, done: dict[tuple[int, int], tuple[Landmark, Landmark]], i: int
+             ) -> list[int]:
+        """Cuts still open and not fitted yet."""
+        return [c for c in self.cuts if self.lo < c < self.hi and (i, c) not in done]
+
+
+def _cut_plan(seg: Segment, whole: Landmark, cfg: FitConfig, n_cuts: int
+              ) -> _Cuts | None:
+    """The cuts of a segment: ``n_cuts`` evenly spaced and at its four largest steps
+    between consecutive echoes (where one reflector's echoes give way to the other's),
+    each part keeping ``min_echoes`` echoes; None if it has too few echoes."""
+    r = seg.readings
+    echo = np.flatnonzero(np.isfinite(r.tof_us))
+    n = echo.size
+    if n < 2 * cfg.min_echoes:
+        return None
+    even = np.linspace(cfg.min_echoes, n - cfg.min_echoes, n_cuts).astype(int)
+    step = np.abs(np.diff(r.tof_us[echo]))
+    order = np.argsort(-step) + 1
+    jumps = order[(order >= cfg.min_echoes) & (order <= n - cfg.min_echoes)][:4]
+    return _Cuts(seg, echo, np.unique(np.concatenate([even, jumps])).tolist(),
+                 whole.kind == "line" and whole.kappa_us > 3.0 * KAPPA_WALL_US)
+
+
+def _fit_parts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int, int]],
+               cfg: FitConfig, odometry_sd: float | None) -> list[Landmark]:
+    """Parts ``(segment, cut, side)`` (side 0: the readings before the cut's echo, 1:
+    from it on), in one batch; ``odometry_sd``: :func:`fit_segments`'
+    ``odometry_sd_deg_per_m`` (0: no odometry term; it only widens covariances: the
+    parts' costs and chi-squares do not change)."""
+    parts: list[Segment] = []
+    for i, c, side in todo:
+        seg = plans[i].seg
+        pos = int(plans[i].echo[c])
+        if side == 0:
+            parts.append(Segment(seg.readings.select(slice(0, pos)), seg.seg_id,
+                                 seg.closed_by, (seg.occluded[0], False)))
+        else:
+            parts.append(Segment(seg.readings.select(slice(pos, None)), seg.seg_id,
+                                 seg.closed_by, (False, seg.occluded[1])))
+    return fit_segments(parts, cfg, odometry_sd) if parts else []
+
+
+def _fit_cuts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int]], cfg: FitConfig,
+              odometry_sd: float | None) -> list[tuple[Landmark, Landmark]]:
+    """Both parts of each cut ``(segment, cut)`` of ``todo`` (:func:`_fit_parts`)."""
+    fits = _fit_parts(plans, [(i, c, side) for i, c in todo for side in (0, 1)], cfg,
+                      odometry_sd)
+    return list(zip(fits[0::2], fits[1::2], strict=True))
+
+
+def _fit_all(plans: dict[int, _Cuts], cfg: FitConfig, odometry_sd: float | None
+             ) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
+    """Both parts of every cut, with the odometry term, in one batch (few cuts)."""
+    todo = [(i, c) for i, p in plans.items() for c in p.cuts]
+    return dict(zip(todo, _fit_cuts(plans, todo, cfg, odometry_sd), strict=True))
+
+
+def _search(plans: dict[int, _Cuts], cfg: FitConfig
+            ) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
+    """The cuts fitted without the odometry term, those a hopeless part rules out
+    (:data:`CUT_HOPELESS_P`) left out: (:data:`CUT_PROBES` rounds) the middle cut of each
+    segment and then the middle of those still open, then of the rest the part with fewer
+    echoes, the other part only where that one fits alone (the cuts whose other part is
+    not fitted are missing)."""
+    fits: dict[tuple[int, int], tuple[Landmark, Landmark]] = {}
+    probe = [(i, p.cuts[len(p.cuts) // 2]) for i, p in plans.items()]
+    for _ in range(CUT_PROBES):
+        fits.update(zip(probe, _fit_cuts(plans, probe, cfg, 0.0), strict=True))
+        nxt = []
+        for i, c in probe:
+            p, (a, b) = plans[i], fits[i, c]
+            if _hopeless(a, cfg):     # every later cut's first part holds this one
+                p.hi = min(p.hi, c)
+            if _hopeless(b, cfg):     # every earlier cut's second part holds this one
+                p.lo = max(p.lo, c)
+            left = p.open(fits, i)
+            if left and (p.lo, p.hi) != (-1, 1 << 62):   # ruled some out: probe again
+                nxt.append((i, left[len(left) // 2]))
+        probe = nxt
+    rest = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items()
+            for c in p.open(fits, i)]
+    first = dict(zip(rest, _fit_parts(plans, rest, cfg, 0.0), strict=True))
+    other = [(i, c, 1 - side) for (i, c, side), lm in first.items()
+             if _fits_alone(lm, plans[i].weak_wall)]
+    for (i, c, side), lm in zip(other, _fit_parts(plans, other, cfg, 0.0),
+                                strict=True):
+        fits[i, c] = (lm, first[i, c, 1 - side]) if side == 0 else (first[i, c, 0], lm)
+    return fits
+
+
+def _hopeless(lm: Landmark, cfg: FitConfig) -> bool:
+    """A part no longer part can rescue (:data:`CUT_HOPELESS_P`): a plausible reflector
+    (the kappa tests of the statuses passed) that fits the TOFs that badly."""
+    kappa = float(lm.params[2])
+    return (_fit_p(lm) < CUT_HOPELESS_P
+            and 0.5 * cfg.kappa_lo_us <= kappa <= 2.0 * cfg.kappa_hi_us
+            and not (lm.kind == "line" and kappa > 3.0 * KAPPA_WALL_US))
+
+
+def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
+    """A part of a cut that may stand as a landmark: ``OK`` and fitting well on its own (a
+    stricter test than for whole segments: cutting at the best of several places
+    favours chance fits); of a segment whose single fit is a weak wall (a line with
+    kappa above ``3 KAPPA_WALL_US``, the status test: a corner or merged echoes?), a
+    point part must be as strong as that test expects of a wall (a corner, a pole).
+
+    A point as weak as the wall is that wall seen from part of the path, not a corner:
+    on a moving ring's drive (benchmarks/bench_fit.py section 4, second table) 19 parts
+    of 14 such splits were points of kappa 4.8-9.8 us on a wall's line (within 15 mm)
+    placed along it with SDs of 0.9-22 cm where the wall has no point (the simulator's
+    truth); the one weak-wall split into two lines is kept."""
+    return (lm.ok and _fit_p(lm) > 0.01
+            and not (weak_wall and lm.kind == "point" and lm.kappa_us > 3.0 * KAPPA_WALL_US))
 
 
 def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
-                  config: FitConfig | None = None, n_cuts: int = 8) -> list[list[Landmark]]:
-    """:func:`split_unresolved`, the result of each segment in its own list."""
+                  config: FitConfig | None = None, n_cuts: int = 8,
+                  odometry_sd_deg_per_m: float | None = None) -> list[list[Landmark]]:
+    """:func:`split_unresolved`, the result of each segment in its own list.
+
+    Few cuts (:data:`CUT_STAGED_MIN`) are all fitted at once. Otherwise
+    :func:`_search` fits those that can win, without the odometry term, and the cuts
+    whose parts both pass are fitted again with it, best total cost first, until one
+    still passes: the term only widens covariances, so it can only fail a part, and
+    the winner is the one fitting every cut with it would give."""
     cfg = config or FitConfig()
-    cand: list[tuple[int, Segment, Segment]] = []
+    plans: dict[int, _Cuts] = {}
     for i, (seg, lm) in enumerate(zip(segments, landmarks, strict=True)):
-        if lm.status is not FitStatus.UNRESOLVED:
-            continue
-        r = seg.readings
-        echo = np.flatnonzero(np.isfinite(r.tof_us))
-        n = echo.size
-        if n < 2 * cfg.min_echoes:
-            continue
-        # evenly spaced cuts, and cuts at the largest steps between consecutive echoes
-        # (where one reflector's echoes give way to the other's)
-        even = np.linspace(cfg.min_echoes, n - cfg.min_echoes, n_cuts).astype(int)
-        step = np.abs(np.diff(r.tof_us[echo]))
-        order = np.argsort(-step) + 1
-        jumps = order[(order >= cfg.min_echoes) & (order <= n - cfg.min_echoes)][:4]
-        cuts = np.unique(np.concatenate([even, jumps]))
-        for c in cuts.tolist():
-            pos = int(echo[c])
-            cand.append((i, Segment(r.select(slice(0, pos)), seg.seg_id, seg.closed_by,
-                                    (seg.occluded[0], False)),
-                         Segment(r.select(slice(pos, None)), seg.seg_id, seg.closed_by,
-                                 (False, seg.occluded[1]))))
-    if not cand:
+        if lm.status is FitStatus.UNRESOLVED:
+            plan = _cut_plan(seg, lm, cfg, n_cuts)
+            if plan is not None:
+                plans[i] = plan
+    if not plans:
         return [[lm] for lm in landmarks]
-    fits = fit_segments([c[1] for c in cand] + [c[2] for c in cand], cfg)
-    half = len(cand)
+    staged = sum(len(p.cuts) for p in plans.values()) >= CUT_STAGED_MIN
+    fits = _search(plans, cfg) if staged else _fit_all(plans, cfg, odometry_sd_deg_per_m)
+    # each segment's passing cuts (still open), best total first (ties: the earlier cut)
+    ranked: dict[int, list[tuple[float, int]]] = {}
+    for (i, c), (a, b) in sorted(fits.items()):
+        p = plans[i]
+        if p.lo < c < p.hi and _fits_alone(a, p.weak_wall) and _fits_alone(b, p.weak_wall):
+            ranked.setdefault(i, []).append(
+                (float(a.extra["cost"]) + float(b.extra["cost"]), c))  # type: ignore[arg-type]
+    for v in ranked.values():
+        v.sort()
     best: dict[int, tuple[float, Landmark, Landmark]] = {}
-    for k, (i, _, _) in enumerate(cand):
-        a, b = fits[k], fits[half + k]
-        # each part must fit well on its own (a stricter test than for whole segments:
-        # cutting at the best of several places favours chance fits)
-        if not (a.ok and b.ok and _fit_p(a) > 0.01 and _fit_p(b) > 0.01):
-            continue
-        total = float(a.extra["cost"]) + float(b.extra["cost"])  # type: ignore[arg-type]
-        if i not in best or total < best[i][0]:
-            best[i] = (total, a, b)
+    while ranked:
+        heads = [(i, v[0][1]) for i, v in ranked.items()]
+        checked = (_fit_cuts(plans, heads, cfg, odometry_sd_deg_per_m) if staged
+                   else [fits[h] for h in heads])
+        for (i, _), (a, b) in zip(heads, checked, strict=True):
+            total = ranked[i].pop(0)[0]
+            if _fits_alone(a, plans[i].weak_wall) and _fits_alone(b, plans[i].weak_wall):
+                best[i] = (total, a, b)
+            if i in best or not ranked[i]:
+                del ranked[i]
     out: list[list[Landmark]] = []
     for i, lm in enumerate(landmarks):
         if i in best:
@@ -490,7 +652,9 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
 
 
 def _fit_p(lm: Landmark) -> float:
-    """p-value of a landmark's TOF chi-square."""
+    """p-value of a landmark's TOF chi-square (1 without one: a fallback)."""
+    if "chi2" not in lm.extra:
+        return 1.0
     return float(_chi2_sf(float(lm.extra["chi2"]),  # type: ignore[arg-type]
                           max(lm.n_readings - 3, 1)))
 
@@ -521,7 +685,7 @@ def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
     seg = Segmenter(segmenter, cfg.module)
     segments = seg.feed_block(scan)
     return FitReport(_resolve(segments, fit_segments(segments, cfg, odometry_sd_deg_per_m),
-                              cfg), seg.stats)
+                              cfg, odometry_sd_deg_per_m), seg.stats)
 
 
 class OnlineFitter:
@@ -554,11 +718,11 @@ class OnlineFitter:
 
     def _fit(self, closed: list[Segment]) -> list[Landmark]:
         return _resolve(closed, fit_segments(closed, self.config, self.odometry_sd_deg_per_m),
-                        self.config)
+                        self.config, self.odometry_sd_deg_per_m)
 
 
-def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitConfig
-             ) -> list[Landmark]:
+def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitConfig,
+             odometry_sd_deg_per_m: float | None = None) -> list[Landmark]:
     """Overlapping reflectors: the two-reflector model where one landmark is strained
     (:func:`sonarloc.fit.pair.resolve_pairs`), then cuts in time for what is still
     ``UNRESOLVED`` (:func:`split_unresolved`: a wall running into a corner)."""
@@ -567,7 +731,7 @@ def _resolve(segments: Sequence[Segment], landmarks: list[Landmark], cfg: FitCon
             if len(res) == 1 and res[0].status is FitStatus.UNRESOLVED]
     if todo:   # one batched call for all that are still unresolved
         parts = _split_groups([segments[i] for i in todo], [groups[i][0] for i in todo],
-                              cfg)
+                              cfg, odometry_sd_deg_per_m=odometry_sd_deg_per_m)
         for i, part in zip(todo, parts, strict=True):
             groups[i] = part
     out = [lm for g in groups for lm in g]

@@ -76,3 +76,31 @@ def test_fit_all_no_echo_gives_empty_list(tmp_path, run_cli):
     p.write_text("t_s,x_m,y_m,yaw_deg,tof_us\n" + "".join(f"{i*0.1},0,0,{i},\n" for i in range(20)))
     out = json.loads(run_cli("fit", str(p), "--json", check=True).stdout)
     assert out["landmarks"] == []
+
+
+def test_fit_odometry_sd_widens_moving_walls_only(tmp_path, rng, run_cli):
+    # a side-looking transducer driving 1.2 m past a wall: its covariance carries the
+    # odometry term at the given SD (none at 0), a bad SD is a one-line error
+    from sonarloc.fit.synth import simulate_readings
+
+    n = 200
+    t = np.arange(n) * 0.02
+    yaw = np.full(n, np.pi / 2) + np.deg2rad(12.0) * np.sin(2 * np.pi * t / 1.3)
+    scan = simulate_readings(t, np.linspace(-0.6, 0.6, n), 0.0, yaw,
+                             [Reflector.line(1.5, np.deg2rad(93.0), 0.15)], rng)
+    path = tmp_path / "drive.csv"
+    write_scan_csv(path, scan)
+
+    def wall(*extra):
+        lms = json.loads(run_cli("fit", str(path), "--json", *extra, check=True).stdout)
+        return max(lms["landmarks"], key=lambda lm: lm["n_readings"])
+
+    exact, default, double = wall("--odometry-sd", "0"), wall(), wall("--odometry-sd", "2")
+    assert exact["kind"] == default["kind"] == double["kind"] == "line"
+    var = [np.array(w["cov"])[1, 1] for w in (exact, default, double)]
+    assert var[0] < var[1] < var[2]
+    # variances add: the term at 2 deg/m is four times that at the default 1 deg/m
+    assert var[2] - var[0] == pytest.approx(4.0 * (var[1] - var[0]), rel=1e-6)
+    bad = run_cli("fit", str(path), "--odometry-sd", "-1")
+    assert bad.returncode == 2 and "--odometry-sd" in bad.stderr
+    assert bad.stderr.count("\n") == 1

@@ -13,13 +13,14 @@ from sonarloc.fit.lsq import FitConfig, fit_batch, pack_segments
 from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings
 
 
-def _drive_by(rng, n=200):
-    # a side-looking transducer driving 1.2 m past a wall 1.5 m away, tilted 3 deg
+def _drive_by(rng, n=200, length_m=1.2, pole=False):
+    # a side-looking transducer driving past a wall 1.5 m away, tilted 3 deg (or a pole)
     t = np.arange(n) * 0.02
-    x = np.linspace(-0.6, 0.6, n)
+    x = np.linspace(-0.5 * length_m, 0.5 * length_m, n)
     yaw = np.full(n, np.pi / 2) + np.deg2rad(12.0) * np.sin(2 * np.pi * t / 1.3)
-    wall = Reflector.line(1.5, np.deg2rad(93.0), 0.15)
-    return simulate_readings(t, x, 0.0, yaw, [wall], rng)
+    ref = (Reflector.polar(1.2, 95.0, 0.67) if pole
+           else Reflector.line(1.5, np.deg2rad(93.0), 0.15))
+    return simulate_readings(t, x, 0.0, yaw, [ref], rng)
 
 
 def test_bend_zero_is_identity_and_pans_get_nothing(rng):
@@ -60,3 +61,23 @@ def test_landmarks_carry_the_odometry_term(rng):
     assert np.allclose(w0.params, w1.params)            # only the covariance changes
     with pytest.raises(ValueError, match="odometry_sd_deg_per_m"):
         fit_segments([scan], odometry_sd_deg_per_m=-1.0)
+
+
+@pytest.mark.parametrize("kind", ["line", "point"])
+def test_sensitivity_is_the_derivative_of_the_optimum(rng, kind):
+    # against a tightly converged central difference of refits, on short segments (0.3 m
+    # driven, 40 readings); a refit at the fit's own tolerance barely moves for a bend
+    # small enough to be linear (the way before session 9: bearing SDs ~0.7x, ranges
+    # down to 0.01x of these)
+    scans = [_drive_by(rng, 40, 0.3, pole=kind == "point") for _ in range(8)]
+    batch = pack_segments([(s.t_s, s.x_m, s.y_m, s.yaw_rad, s.tof_us) for s in scans])
+    fit = fit_batch(batch, kind, "gauss")
+    assert fit.converged.all()
+    cov = odomcov.odometry_covariance(batch, fit, FitConfig(), 1.0)
+    tight = FitConfig(tolerance=1e-12, iterations=200)
+    eps = 3e-3
+    plus, minus = (fit_batch(odomcov.bend(batch, e), kind, "gauss", tight, start=fit)
+                   for e in (eps, -eps))
+    ref_sd = np.abs(plus.local - minus.local) / (2 * eps) * math.radians(1.0)
+    assert np.sqrt(cov[:, 1, 1]) == pytest.approx(ref_sd[:, 1], rel=0.05)     # bearing
+    assert np.sqrt(cov[:, 0, 0]) == pytest.approx(ref_sd[:, 0], rel=0.25)     # range
