@@ -104,3 +104,30 @@ def test_fit_odometry_sd_widens_moving_walls_only(tmp_path, rng, run_cli):
     bad = run_cli("fit", str(path), "--odometry-sd", "-1")
     assert bad.returncode == 2 and "--odometry-sd" in bad.stderr
     assert bad.stderr.count("\n") == 1
+
+
+_BLAS_PROBE = """
+import os, sys
+import sonarloc.cli as cli
+before = "numpy" in sys.modules
+cli.build_parser(only="fit")      # what `sonarloc fit` imports, in its order
+print(before, os.environ.get("OPENBLAS_NUM_THREADS"), os.environ.get("OMP_NUM_THREADS"))
+"""
+
+
+@pytest.mark.parametrize(("preset", "want"), [(None, "1"), ("3", "3")])
+def test_fit_command_sets_one_blas_thread_before_numpy_loads(preset, want):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2])
+    if preset is not None:        # the user's choice is kept
+        env["OPENBLAS_NUM_THREADS"] = preset
+    out = subprocess.run([sys.executable, "-c", _BLAS_PROBE], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    # numpy (which reads the setting when it loads BLAS) comes with the command's module
+    assert out == ["False", want, "1"]
