@@ -558,3 +558,28 @@ def test_lockstep_starts_backtrack_on_their_own_and_take_their_paths_alone(rng, 
         ref = minimize(lambda v: float(np.asarray(seg.cost(P._unscale(v[None, :])))[0]),
                        starts[j], method="BFGS", options={"gtol": 1e-3, "maxiter": 400})
         assert cs[j] <= ref.fun + 0.1
+
+
+def test_covariance_only_of_accepted_pairs_each_its_own(rng):
+    # the Hessian and kappa profiles are evaluated only for accepted pairs (no test
+    # reads them): a rejected pair's covariance is NaN, and each accepted pair of a
+    # group gets the covariance of its own search alone (up to the rounding of the sums)
+    cfg = FitConfig()
+    scans = []
+    for sep, k in ((16.0, 0.67), (24.0, 0.67), (0.0, 0.67), (18.0, 0.15), (20.0, 0.67)):
+        refl = [Reflector.polar(1.5, -sep / 2, k)] + ([Reflector.polar(1.5005, sep / 2, k)]
+                                                       if sep else [])
+        scans.append(pan_scan(refl, rng, -40, 40, 0.3))
+    batch = pack_segments([(s.t_s, s.x_m, s.y_m, s.yaw_rad, s.tof_us) for s in scans])
+    segs = [P._Segment(batch, b, cfg, "gauss") for b in range(len(scans))]
+    singles = list(fit_batch(batch, "point", "gauss").local)
+    together = P._fit_pairs(segs, singles)
+    assert sum(pf.accepted for pf in together) >= 2
+    assert any(pf.gain > P.MIN_GAIN and not pf.accepted for pf in together)
+    for seg, single, pf in zip(segs, singles, together, strict=True):
+        if not pf.accepted:
+            assert np.isnan(pf.cov).all() and not pf.ambiguous
+            continue
+        alone = P._fit_pairs([seg], [single])[0]
+        assert np.all(np.isfinite(pf.cov))
+        np.testing.assert_allclose(pf.cov, alone.cov, rtol=1e-6, atol=1e-15)
