@@ -977,16 +977,28 @@ def _grid_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_], Jc: NDArray[np.intp
             B[q][tr] = tail[cc[:, None], jb[None, :] if per_node else 0, n_a]
         direct = np.concatenate([direct, tr[~split]])
     if direct.size:                                   # not a split: the direct sums
-        gd, yd, okd = g[direct], yy[direct], ok_e[direct]
-        m = (gd[:, ja] <= gd[:, jb]) & okd[:, None, :]
-        for out, mask, j in ((A, m, ja), (B, ~m & okd[:, None, :], jb)):
-            w = mask.astype(float)
-            gg, yv = gd[:, j], (yd[:, j] if yd.shape[1] > 1 else yd)
-            wg, wy = w * gg, w * yv
-            for q, val in enumerate((mask.sum(2), wg.sum(2), (wg * gg).sum(2),
-                                     wy.sum(2), (wg * yv).sum(2), (wy * yv).sum(2))):
-                out[q][direct] = val
+        sa, sb = _direct_sums(g[direct], yy[direct], ok_e[direct])
+        for q in range(6):
+            A[q][direct] = sa[:, ja, jb, q]
+            B[q][direct] = sb[:, jb, ja, q]
     return (A[0], A[1], A[2], A[3], A[4], A[5]), (B[0], B[1], B[2], B[3], B[4], B[5])
+
+
+def _direct_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_]) -> tuple[Array, Array]:
+    """:func:`_grid_sums` of every ordered node pair written out, as matrix products:
+    (C, J, J, 6) sums over the echoes A takes at node a paired with node b (``[:, a,
+    b]``: g at a <= g at b) and over those B takes at node b paired with node a (``[:,
+    b, a]``: g at b < g at a), each of (1, g, g^2, y, g y, y^2) at the taking node. A
+    product per node evaluates all its pairs at once (the pairs' masked sums over
+    (C, P, n) arrays cost about three times as much; a moving segment's delay factors
+    reach the cap, so its assignments are no split)."""
+    y = yy if yy.shape[1] > 1 else np.broadcast_to(yy, g.shape)
+    w = ok_e[:, None, :].astype(float)
+    gw, yw = g * w, y * w
+    V = np.stack([np.broadcast_to(w, g.shape), gw, gw * g, yw, gw * y, yw * y], axis=3)
+    takes_a = (g[:, :, None, :] <= g[:, None, :, :]).astype(float)   # (C, a, b, n)
+    takes_b = (g[:, :, None, :] < g[:, None, :, :]).astype(float)    # (C, b, a, n)
+    return np.matmul(takes_a, V), np.matmul(takes_b, V)
 
 
 def _pick_starts(full: Array, grid: _Grid, n_starts: int) -> list[Array]:
