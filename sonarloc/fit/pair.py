@@ -991,14 +991,22 @@ def _direct_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_]) -> tuple[Array, A
     b, a]``: g at b < g at a), each of (1, g, g^2, y, g y, y^2) at the taking node. A
     product per node evaluates all its pairs at once (the pairs' masked sums over
     (C, P, n) arrays cost about three times as much; a moving segment's delay factors
-    reach the cap, so its assignments are no split)."""
+    reach the cap, so its assignments are no split). The assignments are formed for
+    blocks of nodes of about :data:`GRID_CHUNK` elements (C, block, J, n)."""
+    C, J, n = g.shape
     y = yy if yy.shape[1] > 1 else np.broadcast_to(yy, g.shape)
     w = ok_e[:, None, :].astype(float)
     gw, yw = g * w, y * w
     V = np.stack([np.broadcast_to(w, g.shape), gw, gw * g, yw, gw * y, yw * y], axis=3)
-    takes_a = (g[:, :, None, :] <= g[:, None, :, :]).astype(float)   # (C, a, b, n)
-    takes_b = (g[:, :, None, :] < g[:, None, :, :]).astype(float)    # (C, b, a, n)
-    return np.matmul(takes_a, V), np.matmul(takes_b, V)
+    sa, sb = np.zeros((C, J, J, 6)), np.zeros((C, J, J, 6))
+    step = max(GRID_CHUNK // max(C * J * n, 1), 1)
+    for lo in range(0, J, step):
+        at = slice(lo, lo + step)
+        takes_a = (g[:, at, None, :] <= g[:, None, :, :]).astype(float)  # (C, a, b, n)
+        takes_b = (g[:, at, None, :] < g[:, None, :, :]).astype(float)   # (C, b, a, n)
+        sa[:, at] = np.matmul(takes_a, V[:, at])
+        sb[:, at] = np.matmul(takes_b, V[:, at])
+    return sa, sb
 
 
 def _pick_starts(full: Array, grid: _Grid, n_starts: int) -> list[Array]:
