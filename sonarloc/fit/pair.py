@@ -98,7 +98,8 @@ class PairFit:
     """Result of the two-reflector fit (:func:`resolve_pair_groups`) for one segment.
 
     ``local``: (2, 3) ``(r [m], phi [rad], kappa [us])`` of the components seen from the
-    reference pose (ordered by bearing); ``cov``: (2, 3, 3) their marginal covariances;
+    reference pose (ordered by bearing); ``cov``: (2, 3, 3) their marginal covariances
+    (NaN unless accepted);
     ``cost_single``/``cost_pair``: robust -2 log-likelihood of the best one- and two-
     reflector models; ``support``: (2,) cost increase when either component is removed;
     ``n_first``: (2,) readings at which each is the first echo (responsibilities);
@@ -976,16 +977,36 @@ def _grid_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_], Jc: NDArray[np.intp
             B[q][tr] = tail[cc[:, None], jb[None, :] if per_node else 0, n_a]
         direct = np.concatenate([direct, tr[~split]])
     if direct.size:                                   # not a split: the direct sums
-        gd, yd, okd = g[direct], yy[direct], ok_e[direct]
-        m = (gd[:, ja] <= gd[:, jb]) & okd[:, None, :]
-        for out, mask, j in ((A, m, ja), (B, ~m & okd[:, None, :], jb)):
-            w = mask.astype(float)
-            gg, yv = gd[:, j], (yd[:, j] if yd.shape[1] > 1 else yd)
-            wg, wy = w * gg, w * yv
-            for q, val in enumerate((mask.sum(2), wg.sum(2), (wg * gg).sum(2),
-                                     wy.sum(2), (wg * yv).sum(2), (wy * yv).sum(2))):
-                out[q][direct] = val
+        sa, sb = _direct_sums(g[direct], yy[direct], ok_e[direct])
+        for q in range(6):
+            A[q][direct] = sa[:, ja, jb, q]
+            B[q][direct] = sb[:, jb, ja, q]
     return (A[0], A[1], A[2], A[3], A[4], A[5]), (B[0], B[1], B[2], B[3], B[4], B[5])
+
+
+def _direct_sums(g: Array, yy: Array, ok_e: NDArray[np.bool_]) -> tuple[Array, Array]:
+    """:func:`_grid_sums` of every ordered node pair written out, as matrix products:
+    (C, J, J, 6) sums over the echoes A takes at node a paired with node b (``[:, a,
+    b]``: g at a <= g at b) and over those B takes at node b paired with node a (``[:,
+    b, a]``: g at b < g at a), each of (1, g, g^2, y, g y, y^2) at the taking node. A
+    product per node evaluates all its pairs at once (the pairs' masked sums over
+    (C, P, n) arrays cost about three times as much; a moving segment's delay factors
+    reach the cap, so its assignments are no split). The assignments are formed for
+    blocks of nodes of about :data:`GRID_CHUNK` elements (C, block, J, n)."""
+    C, J, n = g.shape
+    y = yy if yy.shape[1] > 1 else np.broadcast_to(yy, g.shape)
+    w = ok_e[:, None, :].astype(float)
+    gw, yw = g * w, y * w
+    V = np.stack([np.broadcast_to(w, g.shape), gw, gw * g, yw, gw * y, yw * y], axis=3)
+    sa, sb = np.zeros((C, J, J, 6)), np.zeros((C, J, J, 6))
+    step = max(GRID_CHUNK // max(C * J * n, 1), 1)
+    for lo in range(0, J, step):
+        at = slice(lo, lo + step)
+        takes_a = (g[:, at, None, :] <= g[:, None, :, :]).astype(float)  # (C, a, b, n)
+        takes_b = (g[:, at, None, :] < g[:, None, :, :]).astype(float)   # (C, b, a, n)
+        sa[:, at] = np.matmul(takes_a, V[:, at])
+        sb[:, at] = np.matmul(takes_b, V[:, at])
+    return sa, sb
 
 
 def _pick_starts(full: Array, grid: _Grid, n_starts: int) -> list[Array]:
@@ -1142,42 +1163,34 @@ def _search_pairs(ev: _Segment, idx: NDArray[np.intp] | None, segs: Sequence[_Se
     # without either component (the other kept as fitted)
     c_one = np.asarray(ev.cost([np.concatenate([comps[1], comps[0]])],
                                own(np.concatenate([every, every]))))
-    gain = c1 - c_arr
-    # the covariance (Hessian and kappa profiles: most of the cost) only where the
-    # evidence can carry the pair
-    promising = np.flatnonzero(gain > bar)
-    H = np.full((C, 6, 6), np.nan)
-    profile_sd: list[list[float] | None] = [None] * C
-    if promising.size:
-        H[promising] = _hessian_batch(ev, best_x[promising], own(promising))
-        sds = _profile_bearing_sds_batch(
-            ev, best_x[promising], np.array([optima[c][0][0] for c in promising.tolist()]),
-            own(promising))
-        for c, sd in zip(promising.tolist(), sds, strict=True):
-            profile_sd[c] = sd
     out = []
     for c, seg in enumerate(segs):
         n_c = seg.y.size
         without = [float(c_one[c] - c_arr[c]), float(c_one[C + c] - c_arr[c])]
-        out.append(_decide(seg, float(c1[c]), optima[c], float(c_arr[c]),
-                           resp[c, :, :n_c], resid[c, :n_c], without, H[c],
-                           profile_sd[c], float(price[c]), float(bar[c]), bool(screened[c])))
+        out.append(_decide(seg, float(c1[c]), optima[c], float(c_arr[c]), resp[c, :, :n_c],
+                           resid[c, :n_c], without, float(price[c]), bool(screened[c])))
+    # the covariance (Hessian and kappa profiles: most of the cost) only of the accepted
+    # pairs: no test reads it
+    acc = np.flatnonzero([pf.accepted for pf in out])
+    if acc.size:
+        H = _hessian_batch(ev, best_x[acc], own(acc))
+        sds = _profile_bearing_sds_batch(
+            ev, best_x[acc], np.array([optima[c][0][0] for c in acc.tolist()]), own(acc))
+        for j, c in enumerate(acc.tolist()):
+            out[c] = _covariance(out[c], segs[c], optima[c], H[j], sds[j])
     return out
 
 
 def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair: float,
-            resp: Array, resid: Array, without: list[float], H: Array,
-            profile_sd: list[float] | None, price: float, bar: float, screened: bool
+            resp: Array, resid: Array, without: list[float], price: float, screened: bool
             ) -> PairFit:
-    """The pair's covariance, ambiguity, support tests and decision for one segment
-    (``resp`` (2, n), ``resid`` (n,) of the best optimum; ``H`` its Hessian, NaN unless
-    promising)."""
+    """The pair's support tests and decision for one segment (``resp`` (2, n), ``resid``
+    (n,) of the best optimum); the covariance is NaN here (:func:`_covariance` adds it
+    to the accepted ones: no test reads it)."""
     cfg = seg.cfg
-    best_c, best_x = optima[0]
-    comps = _unscale(best_x)
+    comps = _unscale(optima[0][1])
     n_first = resp.sum(1)
     gain = c1 - c_pair
-    promising = gain > bar
     pick = np.argmax(resp, axis=0)
     r2 = resid * resid
     chi2 = np.array([float(r2[pick == 0].sum()), float(r2[pick == 1].sum())])
@@ -1185,34 +1198,6 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
     for k in range(2):
         q = comps[k][0]
         local[k] = (q[0], _wrap_scalar(float(q[1])), math.exp(q[2]))
-    if promising:
-        dof = max(seg.y.size - 6, 1)
-        cov_s = _inverse(0.5 * H) * max(float(chi2.sum()) / dof, 1.0)
-        T = np.diag(np.tile(_SCALE, 2))
-        cov = T @ cov_s @ T
-        cov_out = np.zeros((2, 3, 3))
-        for k in range(2):
-            Jk = np.diag([1.0, 1.0, local[k, 2]])    # ln kappa -> kappa
-            cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
-    else:     # no Hessian (NaN): not evaluated where the evidence cannot carry the pair
-        cov_out = np.full((2, 3, 3), np.nan)
-    ambiguous: dict[int, str] = {}
-    if promising:
-        assert profile_sd is not None
-        for k in range(2):
-            cov_out[k, 1, 1] = max(cov_out[k, 1, 1], profile_sd[k] ** 2)
-    # other optima that fit as well with other bearings: the bearings are ambiguous;
-    # the covariance is widened to cover them
-    for c, x in optima[1:] if promising else []:
-        if c - best_c >= AMBIGUOUS_DCOST:
-            continue
-        for k in range(2):
-            d = math.radians(float(x[3 * k + 1] - best_x[3 * k + 1]))
-            if abs(d) > max(AMBIGUOUS_SD * math.sqrt(cov_out[k, 1, 1]), math.radians(1.0)):
-                ambiguous.setdefault(k, f"bearings {math.degrees(local[k, 1]):.1f} and "
-                                        f"{math.degrees(local[k, 1] + d):.1f} deg, -2 log-"
-                                        f"likelihood {c - best_c:.1f} apart")
-                cov_out[k, 1, 1] = max(cov_out[k, 1, 1], d * d)
     sep = abs(math.degrees(float(M.wrap_angle(local[1, 1] - local[0, 1]))))
     side_lobe = bool(local[:, 2].max() > SIDE_LOBE_KAPPA_US
                      and local[:, 2].min() < SIDE_LOBE_STRONG_US
@@ -1262,8 +1247,38 @@ def _decide(seg: _Segment, c1: float, optima: list[tuple[float, Array]], c_pair:
         j = int(np.argmin(off))
         hidden[k] = (math.degrees(float(off[j])) if off[j] > math.radians(1.0)
                      else (0.0 if pick[j] == k else math.nan))
-    return PairFit(local, cov_out, float(c1), c_pair, support, n_first, price, accepted,
-                   basis, chi2, ambiguous, hidden)
+    return PairFit(local, np.full((2, 3, 3), np.nan), float(c1), c_pair, support, n_first,
+                   price, accepted, basis, chi2, {}, hidden)
+
+
+def _covariance(pf: PairFit, seg: _Segment, optima: list[tuple[float, Array]], H: Array,
+                profile_sd: list[float]) -> PairFit:
+    """``pf`` with the covariance of its components (the Hessian ``H`` of the best
+    optimum, scaled by the residual chi-square, bearings widened to their kappa
+    profile's spread ``profile_sd`` [rad]) and their ambiguity: other optima that fit
+    as well with other bearings widen the bearing's variance to cover them."""
+    best_c, best_x = optima[0]
+    dof = max(seg.y.size - 6, 1)
+    cov_s = _inverse(0.5 * H) * max(float(pf.chi2.sum()) / dof, 1.0)
+    T = np.diag(np.tile(_SCALE, 2))
+    cov = T @ cov_s @ T
+    cov_out = np.zeros((2, 3, 3))
+    for k in range(2):
+        Jk = np.diag([1.0, 1.0, pf.local[k, 2]])    # ln kappa -> kappa
+        cov_out[k] = Jk @ cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] @ Jk
+        cov_out[k, 1, 1] = max(cov_out[k, 1, 1], profile_sd[k] ** 2)
+    ambiguous: dict[int, str] = {}
+    for c, x in optima[1:]:
+        if c - best_c >= AMBIGUOUS_DCOST:
+            continue
+        for k in range(2):
+            d = math.radians(float(x[3 * k + 1] - best_x[3 * k + 1]))
+            if abs(d) > max(AMBIGUOUS_SD * math.sqrt(cov_out[k, 1, 1]), math.radians(1.0)):
+                ambiguous.setdefault(k, f"bearings {math.degrees(pf.local[k, 1]):.1f} and "
+                                        f"{math.degrees(pf.local[k, 1] + d):.1f} deg, -2 log-"
+                                        f"likelihood {c - best_c:.1f} apart")
+                cov_out[k, 1, 1] = max(cov_out[k, 1, 1], d * d)
+    return replace(pf, cov=cov_out, ambiguous=ambiguous)
 
 
 def _wrap_scalar(a: float) -> float:

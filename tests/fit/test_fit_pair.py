@@ -558,3 +558,53 @@ def test_lockstep_starts_backtrack_on_their_own_and_take_their_paths_alone(rng, 
         ref = minimize(lambda v: float(np.asarray(seg.cost(P._unscale(v[None, :])))[0]),
                        starts[j], method="BFGS", options={"gtol": 1e-3, "maxiter": 400})
         assert cs[j] <= ref.fun + 0.1
+
+
+def test_covariance_only_of_accepted_pairs_each_its_own(rng):
+    # the Hessian and kappa profiles are evaluated only for accepted pairs (no test
+    # reads them): a rejected pair's covariance is NaN, and each accepted pair of a
+    # group gets the covariance of its own search alone (up to the rounding of the sums)
+    cfg = FitConfig()
+    scans = []
+    for sep, k in ((16.0, 0.67), (24.0, 0.67), (0.0, 0.67), (18.0, 0.15), (20.0, 0.67)):
+        refl = [Reflector.polar(1.5, -sep / 2, k)] + ([Reflector.polar(1.5005, sep / 2, k)]
+                                                       if sep else [])
+        scans.append(pan_scan(refl, rng, -40, 40, 0.3))
+    batch = pack_segments([(s.t_s, s.x_m, s.y_m, s.yaw_rad, s.tof_us) for s in scans])
+    segs = [P._Segment(batch, b, cfg, "gauss") for b in range(len(scans))]
+    singles = list(fit_batch(batch, "point", "gauss").local)
+    together = P._fit_pairs(segs, singles)
+    assert sum(pf.accepted for pf in together) >= 2
+    assert any(pf.gain > P.MIN_GAIN and not pf.accepted for pf in together)
+    for seg, single, pf in zip(segs, singles, together, strict=True):
+        if not pf.accepted:
+            assert np.isnan(pf.cov).all() and not pf.ambiguous
+            continue
+        alone = P._fit_pairs([seg], [single])[0]
+        assert np.all(np.isfinite(pf.cov))
+        np.testing.assert_allclose(pf.cov, alone.cov, rtol=1e-6, atol=1e-15)
+
+
+def test_direct_grid_sums_in_node_blocks_are_the_written_out_sums(rng, monkeypatch):
+    # _direct_sums forms the assignments for blocks of nodes: any block size gives the
+    # masked sums of every ordered pair (A at a where g_a <= g_b, ties at the cap
+    # included; B at b where g_b < g_a), real echoes only
+    C, J, n = 2, 7, 11
+    g = rng.uniform(0.5, 3.0, (C, J, n))
+    g[:, :, 3] = 5.0                                  # a tie at every pair
+    yy = rng.normal(0.0, 1.0, (C, J, n))
+    ok_e = rng.uniform(size=(C, n)) < 0.8
+    for chunk in (1, 3 * n, 10 ** 9):
+        monkeypatch.setattr(P, "GRID_CHUNK", chunk)
+        sa, sb = P._direct_sums(g, yy, ok_e)
+        for c in range(C):
+            for a in range(J):
+                for b in range(J):
+                    for out, k, mine in ((sa, a, (g[c, a] <= g[c, b]) & ok_e[c]),
+                                         (sb, b, (g[c, b] < g[c, a]) & ok_e[c])):
+                        G, Y = g[c, k][mine], yy[c, k][mine]
+                        want = [G.size, G.sum(), (G * G).sum(), Y.sum(), (G * Y).sum(),
+                                (Y * Y).sum()]
+                        np.testing.assert_allclose(out[c, a, b] if out is sa else
+                                                   out[c, b, a], want, rtol=1e-12,
+                                                   atol=1e-12)
