@@ -36,6 +36,11 @@ from sonarloc.io.scancsv import ScanReadings
 
 Array = NDArray[np.float64]
 
+WEAK_WALL_KAPPA_US = 3.0 * KAPPA_WALL_US
+"""Kappa [us] above which a wall fit is ``UNRESOLVED`` (walls echo strongly at normal
+incidence: a weak "wall" is a corner or merged echoes); the cut stage's weak-wall rules
+(:func:`_fits_alone`, :func:`_hopeless`) use the same bound."""
+
 OCCLUDED_KAPPA_LOG_SD = 0.35
 """Relative SD of kappa above which a segment occluded on both sides (by nearer echoes)
 is ``FLAT``: wall and pole differ by a factor 4.5 in kappa (ln 1.5), so telling them
@@ -339,7 +344,7 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     overlap = np.array(["overlap" in ex for ex in sel.extra], dtype=bool)
     check_l = (~finite | (n_used < cfg.min_echoes) | overlap | occluded
                | ~((0.5 * cfg.kappa_lo_us <= kap) & (kap <= 2.0 * cfg.kappa_hi_us))
-               | ((sel.kind == "line") & (kap > 3.0 * KAPPA_WALL_US))
+               | ((sel.kind == "line") & (kap > WEAK_WALL_KAPPA_US))
                | (p_fit < cfg.min_fit_p) | ((outside > math.radians(1.0)) & (span > 3.0))
                | (kap < 1.5 * cfg.kappa_lo_us) | (sd[:, 1] > flat_sd)).tolist()
     out = []
@@ -364,7 +369,7 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             status = FitStatus.UNRESOLVED
             reason = (f"kappa {local_l[j][2]:.3g} us is outside any real reflector's range "
                       f"({cfg.kappa_lo_us:g}..{cfg.kappa_hi_us:g} us): merged or misread echoes?")
-        elif kind_l[j] == "line" and local_l[j][2] > 3.0 * KAPPA_WALL_US:
+        elif kind_l[j] == "line" and local_l[j][2] > WEAK_WALL_KAPPA_US:
             status = FitStatus.UNRESOLVED
             reason = (f"a wall with kappa {local_l[j][2]:.2f} us: walls echo strongly at normal "
                       "incidence (kappa ~0.15 us); corner or merged echoes?")
@@ -499,7 +504,7 @@ def _cut_plan(seg: Segment, whole: Landmark, cfg: FitConfig, n_cuts: int
     order = np.argsort(-step) + 1
     jumps = order[(order >= cfg.min_echoes) & (order <= n - cfg.min_echoes)][:4]
     return _Cuts(seg, echo, np.unique(np.concatenate([even, jumps])).tolist(),
-                 whole.kind == "line" and whole.kappa_us > 3.0 * KAPPA_WALL_US)
+                 whole.kind == "line" and whole.kappa_us > WEAK_WALL_KAPPA_US)
 
 
 def _fit_parts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int, int]],
@@ -575,7 +580,7 @@ def _hopeless(lm: Landmark, cfg: FitConfig) -> bool:
     kappa = float(lm.params[2])
     return (_fit_p(lm) < CUT_HOPELESS_P
             and 0.5 * cfg.kappa_lo_us <= kappa <= 2.0 * cfg.kappa_hi_us
-            and not (lm.kind == "line" and kappa > 3.0 * KAPPA_WALL_US))
+            and not (lm.kind == "line" and kappa > WEAK_WALL_KAPPA_US))
 
 
 def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
@@ -591,7 +596,7 @@ def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
     placed along it with SDs of 0.9-22 cm where the wall has no point (the simulator's
     truth); the one weak-wall split into two lines is kept."""
     return (lm.ok and _fit_p(lm) > 0.01
-            and not (weak_wall and lm.kind == "point" and lm.kappa_us > 3.0 * KAPPA_WALL_US))
+            and not (weak_wall and lm.kind == "point" and lm.kappa_us > WEAK_WALL_KAPPA_US))
 
 
 def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
