@@ -188,9 +188,14 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
     poses; ``ref_t_s``/``ref_pose`` are those of the segment's last echo.
     """
     cfg = config or FitConfig()
-    n = len(segments)
-    if n == 0:
+    if len(segments) == 0:
         return []
+    return _select_segments(segments, cfg).landmarks(cfg, odometry_sd_deg_per_m)
+
+
+def _select_segments(segments: Sequence[SegmentLike], cfg: FitConfig) -> _Selected:
+    """The fits and model choices of :func:`fit_segments` (one or more segments)."""
+    n = len(segments)
     if isinstance(segments, SegmentBlock):   # already end to end
         r = segments.readings
         lengths = np.diff(segments.bounds)
@@ -205,15 +210,58 @@ def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = Non
         sensor = np.concatenate([p[5] for p in parts], dtype=np.int64, casting="unsafe")
         info = [(s.seg_id, s.closed_by, s.occluded) if isinstance(s, Segment) else None
                 for s in segments]
-    return _fit_packed(np.repeat(np.arange(n), lengths), t, x, y, yaw, tof, sensor, info,
-                       cfg, odometry_sd_deg_per_m)
+    return _select_packed(np.repeat(np.arange(n), lengths), t, x, y, yaw, tof, sensor,
+                          info, cfg)
 
 
-def _fit_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Array,
-                tof: Array, sensor: NDArray[np.int64],
-                info: Sequence[tuple[int, str, tuple[bool, bool]] | None], cfg: FitConfig,
-                odometry_sd_deg_per_m: float | None) -> list[Landmark]:
-    """:func:`fit_segments` of segments end to end: reading ``k`` belongs to segment
+@dataclass
+class _Selected:
+    """Segments fitted and their models chosen, before the odometry term and the
+    statuses (:func:`_select_packed`): the landmarks of any of them, with or without
+    the term (it only widens covariances; fits, costs and chi-squares stay)."""
+
+    fallback: list[Landmark | None]   # per segment: its landmark if it has < 3 echoes
+    row: NDArray[np.int64]            # per segment: its row of batch/sel (-1: fallback)
+    batch: SegmentBatch | None        # None: no segment has 3 echoes
+    sel: Selection | None
+    meta: list[dict[str, object]]     # per row, as the arguments of _landmarks
+    sensors: list[tuple[int, ...]]
+    n_echo: NDArray[np.int64]
+    n_noecho: NDArray[np.int64]
+
+    def landmarks(self, cfg: FitConfig, odometry_sd_deg_per_m: float | None,
+                  which: Sequence[int] | None = None) -> list[Landmark]:
+        """The landmarks of segments ``which`` (all: None), in that order. All of them at
+        once add the odometry term to ``sel`` in place: the last call; a part of them
+        takes a copy, and can be asked for again (with another ``odometry_sd``)."""
+        seg = np.arange(self.row.size) if which is None else np.asarray(which, dtype=np.int64)
+        rows = self.row[seg]
+        take = rows[rows >= 0]
+        lms: list[Landmark] = []
+        if take.size:
+            assert self.batch is not None and self.sel is not None
+            whole = which is None
+            batch = self.batch if whole else _take(self.batch, take)
+            sel = self.sel if whole else self.sel.subset(take)
+            _add_odometry_covariance(batch, sel, cfg, odometry_sd_deg_per_m)
+            r = take.tolist()
+            lms = _landmarks(batch, sel, cfg, [self.meta[j] for j in r],
+                             [self.sensors[j] for j in r], self.n_echo[take],
+                             self.n_noecho[take])
+        it = iter(lms)
+        out: list[Landmark] = []
+        for i, k in zip(seg.tolist(), rows.tolist(), strict=True):
+            lm = next(it) if k >= 0 else self.fallback[i]
+            assert lm is not None    # (a segment not fitted has a fallback)
+            out.append(lm)
+        return out
+
+
+def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Array,
+                   tof: Array, sensor: NDArray[np.int64],
+                   info: Sequence[tuple[int, str, tuple[bool, bool]] | None],
+                   cfg: FitConfig) -> _Selected:
+    """:func:`_select_segments` of segments end to end: reading ``k`` belongs to segment
     ``seg[k]`` (non-decreasing, (N,)); ``info``: each segment's ``(seg_id, closed_by,
     occluded)`` (None: not a :class:`Segment`)."""
     n = len(info)
@@ -246,19 +294,21 @@ def _fit_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Array
                                f"{n_echo[i]} echo(es); at least 3 are needed for "
                                "(range, bearing, kappa)", cfg, meta[i])
     todo = np.flatnonzero(n_echo >= 3)
+    row = np.full(n, -1, dtype=np.int64)
+    row[todo] = np.arange(todo.size)
+    if todo.size < n:   # the readings of those, renumbered
+        keep = row[seg] >= 0
+        t, x, y, yaw, tof = (a[keep] for a in (t, x, y, yaw, tof))
+        seg, sensor, echo = row[seg[keep]], sensor[keep], echo[keep]
+    batch, sel = None, None
+    sensors: list[tuple[int, ...]] = []
     if todo.size:
-        if todo.size < n:   # the readings of those, renumbered
-            remap = np.full(n, -1, dtype=np.int64)
-            remap[todo] = np.arange(todo.size)
-            keep = remap[seg] >= 0
-            t, x, y, yaw, tof = (a[keep] for a in (t, x, y, yaw, tof))
-            seg, sensor, echo = remap[seg[keep]], sensor[keep], echo[keep]
         batch = pack_flat(seg, t, x, y, yaw, tof, n_segments=todo.size)
+        sel = select_models(batch, cfg)
         # transducers that contributed echoes, per segment (each has echoes)
         s_echo = sensor[echo]
         s_lo = int(s_echo.min())
         width = int(s_echo.max()) - s_lo + 1
-        sensors: list[tuple[int, ...]]
         if width == 1:      # one transducer (the sort below takes milliseconds)
             sensors = [(s_lo,)] * todo.size
         else:
@@ -267,13 +317,8 @@ def _fit_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Array
             vals = (keys % width + s_lo).tolist()
             sensors = [tuple(vals[a:b]) for a, b in zip(cut[:-1].tolist(), cut[1:].tolist(),
                                                          strict=True)]
-        sel = select_models(batch, cfg)
-        _add_odometry_covariance(batch, sel, cfg, odometry_sd_deg_per_m)
-        lms = _landmarks(batch, sel, cfg, [meta[i] for i in todo.tolist()], sensors,
-                         n_echo[todo], n_noecho[todo])
-        for j, i in enumerate(todo.tolist()):
-            out[i] = lms[j]
-    return [lm for lm in out if lm is not None]
+    return _Selected(out, row, batch, sel,
+                     [meta[i] for i in todo.tolist()], sensors, n_echo[todo], n_noecho[todo])
 
 
 def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
@@ -461,7 +506,7 @@ CUT_PROBES = 2
 """Rounds of probing cuts (the middle of the cuts still open) before fitting the rest."""
 
 CUT_STAGED_MIN = 128
-"""Fewer cuts than this (all segments together) are all fitted in one batch, with the
+"""Fewer cuts than this (all segments together) are all fitted in one batch, without the
 odometry term: the staged search's five or more batches cost more in per-call overhead
 than they save. Measured (CPU, fresh processes): a continuous rotation's two
 ``UNRESOLVED`` segments, 17 cuts, 0.075 s in one batch and 0.11 s staged; a ring16
@@ -507,71 +552,60 @@ def _cut_plan(seg: Segment, whole: Landmark, cfg: FitConfig, n_cuts: int
                  whole.kind == "line" and whole.kappa_us > WEAK_WALL_KAPPA_US)
 
 
-def _fit_parts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int, int]],
-               cfg: FitConfig, odometry_sd: float | None) -> list[Landmark]:
-    """Parts ``(segment, cut, side)`` (side 0: the readings before the cut's echo, 1:
-    from it on), in one batch; ``odometry_sd``: :func:`fit_segments`'
-    ``odometry_sd_deg_per_m`` (0: no odometry term; it only widens covariances: the
-    parts' costs and chi-squares do not change)."""
-    parts: list[Segment] = []
-    for i, c, side in todo:
-        seg = plans[i].seg
-        pos = int(plans[i].echo[c])
-        if side == 0:
-            parts.append(Segment(seg.readings.select(slice(0, pos)), seg.seg_id,
-                                 seg.closed_by, (seg.occluded[0], False)))
-        else:
-            parts.append(Segment(seg.readings.select(slice(pos, None)), seg.seg_id,
-                                 seg.closed_by, (False, seg.occluded[1])))
-    return fit_segments(parts, cfg, odometry_sd) if parts else []
+_Part = tuple[int, int, int]
+"""A part of a cut: ``(segment, cut, side)``; side 0: the readings before the cut's echo,
+1: from it on."""
 
 
-def _fit_cuts(plans: dict[int, _Cuts], todo: Sequence[tuple[int, int]], cfg: FitConfig,
-              odometry_sd: float | None) -> list[tuple[Landmark, Landmark]]:
-    """Both parts of each cut ``(segment, cut)`` of ``todo`` (:func:`_fit_parts`)."""
-    fits = _fit_parts(plans, [(i, c, side) for i, c in todo for side in (0, 1)], cfg,
-                      odometry_sd)
-    return list(zip(fits[0::2], fits[1::2], strict=True))
+class _Parts:
+    """Fitted parts of cuts: each one's landmark without the odometry term (what the
+    search ranks cuts by: the term only widens covariances, costs and chi-squares do
+    not change) and, for those asked for, with it, from the same fits (no refit)."""
 
+    def __init__(self) -> None:
+        self.bare: dict[_Part, Landmark] = {}
+        self._fits: dict[_Part, tuple[_Selected, int]] = {}
 
-def _fit_all(plans: dict[int, _Cuts], cfg: FitConfig, odometry_sd: float | None
-             ) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
-    """Both parts of every cut, with the odometry term, in one batch (few cuts)."""
-    todo = [(i, c) for i, p in plans.items() for c in p.cuts]
-    return dict(zip(todo, _fit_cuts(plans, todo, cfg, odometry_sd), strict=True))
+    def fit(self, plans: dict[int, _Cuts], todo: Sequence[_Part], cfg: FitConfig) -> None:
+        """Fit parts ``todo`` in one batch."""
+        if not todo:
+            return
+        parts: list[Segment] = []
+        for i, c, side in todo:
+            seg = plans[i].seg
+            pos = int(plans[i].echo[c])
+            if side == 0:
+                parts.append(Segment(seg.readings.select(slice(0, pos)), seg.seg_id,
+                                     seg.closed_by, (seg.occluded[0], False)))
+            else:
+                parts.append(Segment(seg.readings.select(slice(pos, None)), seg.seg_id,
+                                     seg.closed_by, (False, seg.occluded[1])))
+        fitted = _select_segments(parts, cfg)
+        self.bare.update(zip(todo, fitted.landmarks(cfg, 0.0, range(len(todo))), strict=True))
+        self._fits.update((part, (fitted, k)) for k, part in enumerate(todo))
 
+    def cuts(self, plans: dict[int, _Cuts], todo: Sequence[tuple[int, int]],
+             cfg: FitConfig) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
+        """Fit both parts of cuts ``todo``; their landmarks without the term."""
+        self.fit(plans, [(i, c, side) for i, c in todo for side in (0, 1)], cfg)
+        return {(i, c): (self.bare[i, c, 0], self.bare[i, c, 1]) for i, c in todo}
 
-def _search(plans: dict[int, _Cuts], cfg: FitConfig
-            ) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
-    """The cuts fitted without the odometry term, those a hopeless part rules out
-    (:data:`CUT_HOPELESS_P`) left out: (:data:`CUT_PROBES` rounds) the middle cut of each
-    segment and then the middle of those still open, then of the rest the part with fewer
-    echoes, the other part only where that one fits alone (the cuts whose other part is
-    not fitted are missing)."""
-    fits: dict[tuple[int, int], tuple[Landmark, Landmark]] = {}
-    probe = [(i, p.cuts[len(p.cuts) // 2]) for i, p in plans.items()]
-    for _ in range(CUT_PROBES):
-        fits.update(zip(probe, _fit_cuts(plans, probe, cfg, 0.0), strict=True))
-        nxt = []
-        for i, c in probe:
-            p, (a, b) = plans[i], fits[i, c]
-            if _hopeless(a, cfg):     # every later cut's first part holds this one
-                p.hi = min(p.hi, c)
-            if _hopeless(b, cfg):     # every earlier cut's second part holds this one
-                p.lo = max(p.lo, c)
-            left = p.open(fits, i)
-            if left and (p.lo, p.hi) != (-1, 1 << 62):   # ruled some out: probe again
-                nxt.append((i, left[len(left) // 2]))
-        probe = nxt
-    rest = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items()
-            for c in p.open(fits, i)]
-    first = dict(zip(rest, _fit_parts(plans, rest, cfg, 0.0), strict=True))
-    other = [(i, c, 1 - side) for (i, c, side), lm in first.items()
-             if _fits_alone(lm, plans[i].weak_wall)]
-    for (i, c, side), lm in zip(other, _fit_parts(plans, other, cfg, 0.0),
-                                strict=True):
-        fits[i, c] = (lm, first[i, c, 1 - side]) if side == 0 else (first[i, c, 0], lm)
-    return fits
+    def with_odometry(self, todo: Sequence[tuple[int, int]], cfg: FitConfig,
+                      odometry_sd: float | None
+                      ) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
+        """Both (fitted) parts of cuts ``todo`` with the odometry term, their statuses
+        tested again with it: one call per batch that fitted any of them."""
+        keys = [(i, c, side) for i, c in todo for side in (0, 1)]
+        by_batch: dict[int, tuple[_Selected, list[_Part], list[int]]] = {}
+        for key in keys:
+            fitted, k = self._fits[key]
+            entry = by_batch.setdefault(id(fitted), (fitted, [], []))
+            entry[1].append(key)
+            entry[2].append(k)
+        out: dict[_Part, Landmark] = {}
+        for fitted, group, rows in by_batch.values():
+            out.update(zip(group, fitted.landmarks(cfg, odometry_sd, rows), strict=True))
+        return {(i, c): (out[i, c, 0], out[i, c, 1]) for i, c in todo}
 
 
 def _hopeless(lm: Landmark, cfg: FitConfig) -> bool:
@@ -599,16 +633,52 @@ def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
             and not (weak_wall and lm.kind == "point" and lm.kappa_us > WEAK_WALL_KAPPA_US))
 
 
+def _search(plans: dict[int, _Cuts], cfg: FitConfig) -> tuple[
+        _Parts, dict[tuple[int, int], tuple[Landmark, Landmark]]]:
+    """The cuts fitted, those a hopeless part rules out (:data:`CUT_HOPELESS_P`) left
+    out: (:data:`CUT_PROBES` rounds) the middle cut of each segment and then the middle
+    of those still open, then of the rest the part with fewer echoes, the other part
+    only where that one fits alone (the cuts whose other part is not fitted are
+    missing). Returns the fits and the cuts' landmarks without the odometry term."""
+    parts = _Parts()
+    fits: dict[tuple[int, int], tuple[Landmark, Landmark]] = {}
+    probe = [(i, p.cuts[len(p.cuts) // 2]) for i, p in plans.items()]
+    for _ in range(CUT_PROBES):
+        fits.update(parts.cuts(plans, probe, cfg))
+        nxt = []
+        for i, c in probe:
+            p, (a, b) = plans[i], fits[i, c]
+            if _hopeless(a, cfg):     # every later cut's first part holds this one
+                p.hi = min(p.hi, c)
+            if _hopeless(b, cfg):     # every earlier cut's second part holds this one
+                p.lo = max(p.lo, c)
+            left = p.open(fits, i)
+            if left and (p.lo, p.hi) != (-1, 1 << 62):   # ruled some out: probe again
+                nxt.append((i, left[len(left) // 2]))
+        probe = nxt
+    rest = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items()
+            for c in p.open(fits, i)]
+    parts.fit(plans, rest, cfg)
+    other = [(i, c, 1 - side) for i, c, side in rest
+             if _fits_alone(parts.bare[i, c, side], plans[i].weak_wall)]
+    parts.fit(plans, other, cfg)
+    fits.update(((i, c), (parts.bare[i, c, 0], parts.bare[i, c, 1])) for i, c, _ in other)
+    return parts, fits
+
+
 def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                   config: FitConfig | None = None, n_cuts: int = 8,
                   odometry_sd_deg_per_m: float | None = None) -> list[list[Landmark]]:
     """:func:`split_unresolved`, the result of each segment in its own list.
 
-    Few cuts (:data:`CUT_STAGED_MIN`) are all fitted at once. Otherwise
-    :func:`_search` fits those that can win, without the odometry term, and the cuts
-    whose parts both pass are fitted again with it, best total cost first, until one
-    still passes: the term only widens covariances, so it can only fail a part, and
-    the winner is the one fitting every cut with it would give."""
+    The cuts are fitted without the odometry term: all at once if few
+    (:data:`CUT_STAGED_MIN`), else those that can win (:func:`_search`). Cuts whose
+    parts both pass are ranked by total cost, and the first whose parts still pass with
+    the term wins (the term only widens covariances, so it can only fail a part: the
+    winner is the one fitting every cut with it would give). The term is added to the
+    fits made (:class:`_Parts`), not by fitting them again (as until session 10: one
+    more round of fits, 0.31 of the 6.1 s CPU of the cut stage of a moving ring's 300 s
+    drive, benchmarks/bench_fit.py section 4)."""
     cfg = config or FitConfig()
     plans: dict[int, _Cuts] = {}
     for i, (seg, lm) in enumerate(zip(segments, landmarks, strict=True)):
@@ -618,8 +688,11 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                 plans[i] = plan
     if not plans:
         return [[lm] for lm in landmarks]
-    staged = sum(len(p.cuts) for p in plans.values()) >= CUT_STAGED_MIN
-    fits = _search(plans, cfg) if staged else _fit_all(plans, cfg, odometry_sd_deg_per_m)
+    if sum(len(p.cuts) for p in plans.values()) >= CUT_STAGED_MIN:
+        parts, fits = _search(plans, cfg)
+    else:   # the staged search's five or more batches would cost more than they save
+        parts = _Parts()
+        fits = parts.cuts(plans, [(i, c) for i, p in plans.items() for c in p.cuts], cfg)
     # each segment's passing cuts (still open), best total first (ties: the earlier cut)
     ranked: dict[int, list[tuple[float, int]]] = {}
     for (i, c), (a, b) in sorted(fits.items()):
@@ -627,19 +700,15 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
         if p.lo < c < p.hi and _fits_alone(a, p.weak_wall) and _fits_alone(b, p.weak_wall):
             ranked.setdefault(i, []).append(
                 (float(a.extra["cost"]) + float(b.extra["cost"]), c))  # type: ignore[arg-type]
-    for v in ranked.values():
-        v.sort()
+    checked = parts.with_odometry([(i, c) for i, v in ranked.items() for _, c in v], cfg,
+                                  odometry_sd_deg_per_m)
     best: dict[int, tuple[float, Landmark, Landmark]] = {}
-    while ranked:
-        heads = [(i, v[0][1]) for i, v in ranked.items()]
-        checked = (_fit_cuts(plans, heads, cfg, odometry_sd_deg_per_m) if staged
-                   else [fits[h] for h in heads])
-        for (i, _), (a, b) in zip(heads, checked, strict=True):
-            total = ranked[i].pop(0)[0]
+    for i, v in ranked.items():
+        for total, c in sorted(v):
+            a, b = checked[i, c]
             if _fits_alone(a, plans[i].weak_wall) and _fits_alone(b, plans[i].weak_wall):
                 best[i] = (total, a, b)
-            if i in best or not ranked[i]:
-                del ranked[i]
+                break
     out: list[list[Landmark]] = []
     for i, lm in enumerate(landmarks):
         if i in best:

@@ -131,6 +131,13 @@ class Selection:
         for f in _FIELDS:
             getattr(self, f)[idx] = getattr(fit, f)
 
+    def subset(self, idx: NDArray[np.int64]) -> Selection:
+        """Rows ``idx`` (any kinds and tiers) as a new selection: arrays and ``extra``
+        dicts copied, so adding to one leaves the other as it was."""
+        c = [getattr(self, f)[idx] for f in _FIELDS]
+        return Selection(self.kind[idx], self.tier[idx], c[0], c[1], c[2], c[3], c[4], c[5],
+                         c[6], c[7], c[8], c[9], [dict(self.extra[j]) for j in idx.tolist()])
+
     def rows(self, idx: NDArray[np.int64]) -> BatchFit:
         """Rows ``idx`` as a BatchFit (they must share kind and tier)."""
         kinds, tiers = set(self.kind[idx]), set(self.tier[idx])

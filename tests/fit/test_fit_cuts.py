@@ -14,6 +14,7 @@ from sonarloc.fit.landmarks import (
     _cut_plan,
     _fit_p,
     _fits_alone,
+    _select_segments,
     _split_groups,
     fit_scan,
     fit_segments,
@@ -37,7 +38,7 @@ def _ring_drive(duration_s=30.0, seed=2):
 def test_probed_cuts_split_as_fitting_every_cut_does():
     # a moving ring's drive on odometry poses: where a probe's part is hopeless the
     # cuts past it are never fitted (here two of the splits are found on the side left
-    # open), and the cuts whose parts pass get the odometry term only when ranked first
+    # open), and the cuts whose parts pass get the odometry term added to those fits
     scan = _ring_drive()
     cfg = FitConfig()
     segs = list(Segmenter().feed(scan))
@@ -136,3 +137,31 @@ def test_cut_parts_take_the_callers_odometry_sd():
     for k in both:
         assert float(double[k].extra["odom_bearing_sd_deg"]) == pytest.approx(
             2.0 * float(default[k].extra["odom_bearing_sd_deg"]), rel=1e-6)
+
+
+def test_landmarks_of_some_fits_are_those_of_all():
+    # the cut stage adds the odometry term to the parts it ranks, out of the batch that
+    # fitted them: the landmarks of a subset, with or without the term and asked for in
+    # any order and again, are those of the whole batch (and the whole batch's, asked
+    # for last, are fit_segments')
+    cfg = FitConfig()
+    segs = list(Segmenter().feed(_ring_drive(20.0, seed=4)))
+    fitted = _select_segments(segs, cfg)
+    some = list(range(len(segs) - 1, -1, -3))
+    plain = fitted.landmarks(cfg, 0.0, some)
+    term = fitted.landmarks(cfg, None, some)
+    again = fitted.landmarks(cfg, 0.0, some)
+    whole = fitted.landmarks(cfg, None)
+    ref, ref0 = fit_segments(segs, cfg), fit_segments(segs, cfg, 0.0)
+    assert [lm.status for lm in whole] == [lm.status for lm in ref]
+    assert any("odom_bearing_sd_deg" in lm.extra for lm in term)
+    for k, a, b, c in zip(some, plain, term, again, strict=True):
+        for got, want in ((a, ref0[k]), (c, ref0[k]), (b, ref[k]), (whole[k], ref[k])):
+            assert (got.kind, got.status, got.reason, got.n_readings) == (
+                want.kind, want.status, want.reason, want.n_readings)
+            np.testing.assert_array_equal(got.params, want.params)
+            # (the term's derivative is a float32 difference: batched with other
+            # segments its last bits move, ~1e-8 relative)
+            np.testing.assert_allclose(got.cov, want.cov, rtol=1e-6, atol=0.0)
+            assert got.extra.get("odom_bearing_sd_deg", 0.0) == pytest.approx(
+                want.extra.get("odom_bearing_sd_deg", 0.0), rel=1e-6)
