@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -28,6 +29,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("sonarloc.commands.bench", "run the benchmarks, gather speed-against-error tables"),
     "rosbag": ("sonarloc.commands.rosbag", "ROS bags: import Range/Odometry, export poses"),
 }
+
+
+BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def one_blas_thread() -> None:
+    """One BLAS thread unless the user chose otherwise (before numpy loads BLAS, which
+    reads the setting: the CLI imports no numpy before a command's module).
+
+    The fitter's and the EKF's linear algebra is batched 3x3 to 6x6 systems, where threads
+    cannot help and OpenBLAS's idle ones spin between the many small calls: `sonarloc fit`
+    on bench_fit section 4's scan 2.66 -> 2.29 s CPU, the landmarks the same
+    (docs/FITTING.md); `sonarloc drive` the same output, its CPU time within the noise
+    (medians of 3 on the shared 2 cores: 20.6 s with one thread, 19.3 s with two)."""
+    for var in BLAS_THREAD_VARS:
+        os.environ.setdefault(var, "1")
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -51,6 +68,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    one_blas_thread()
     args_list = list(sys.argv[1:] if argv is None else argv)
     first = next((a for a in args_list if not a.startswith("-")), None)
     parser = build_parser(only=first if first in COMMANDS else "")

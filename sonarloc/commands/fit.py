@@ -8,30 +8,20 @@ forward model (range, bearing, reflecting strength kappa) and prints the landmar
 
 from __future__ import annotations
 
-import os
+import argparse
+import json
+import math
+import sys
+from typing import Any
 
-# One BLAS thread unless the user chose otherwise: the fitter's linear algebra is batched
-# 3x3 and 6x6 systems, where threads cannot help and OpenBLAS's idle ones spin between
-# the many small calls (bench_fit section 4's scan: ~0.3 s of ~2.7 s CPU for the whole
-# command, on 2 cores). Read when numpy loads BLAS, so it holds where the command's
-# module is imported first, as `sonarloc fit` does (the CLI imports no numpy before).
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import numpy as np
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import math  # noqa: E402
-import sys  # noqa: E402
-from typing import Any  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from sonarloc.fit.landmarks import fit_scan  # noqa: E402
-from sonarloc.fit.lsq import FitConfig  # noqa: E402
-from sonarloc.fit.result import Landmark  # noqa: E402
-from sonarloc.io.scancsv import read_scan_csv  # noqa: E402
-from sonarloc.physics.sound import speed_of_sound_mps  # noqa: E402
-from sonarloc.physics.tof import ModuleParams  # noqa: E402
+from sonarloc.fit.landmarks import fit_scan
+from sonarloc.fit.lsq import FitConfig
+from sonarloc.fit.result import Landmark
+from sonarloc.io.scancsv import read_scan_csv
+from sonarloc.physics.sound import speed_of_sound_mps
+from sonarloc.physics.tof import ModuleParams
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -789,9 +789,17 @@ def to_frame(kind: str, local: ArrayLike, local_cov: ArrayLike, ref_xy: ArrayLik
 _SF_DEGREE = 9
 """Degree of the polynomial of :func:`log_sf32` (error of log erfc < 3e-7, float32's)."""
 
+_LOG_ERFC_POLY = (
+    0.00033377548741319484, -0.0002079289176496348, -0.0020488139472272134,
+    0.0017765992797309745, 0.008703864001330795, -0.00987378730693407,
+    -0.04687490055170361, 0.047343109384155854, 0.6726422179287886, -0.6717940761316655)
+"""The coefficients of :func:`log_sf32`: :func:`fit_log_erfc_poly`'s result, as
+constants (the fit's least squares cost every process that fits ~40 ms CPU with
+OpenBLAS's default threads, as a library user's may run, 2 ms with one thread;
+tests/fit/test_fit_model.py checks these are its result)."""
 
-@functools.lru_cache(maxsize=1)
-def _log_erfc_poly() -> tuple[float, ...]:
+
+def fit_log_erfc_poly(degree: int = _SF_DEGREE) -> tuple[float, ...]:
     """Power-basis coefficients (highest first) of ``p(v)``, ``v = 2 t - 1``,
     ``t = 1 / (1 + a / 2)``, with ``log erfc(a) = log t - a^2 + p(v)`` for ``a >= 0``.
 
@@ -805,14 +813,11 @@ def _log_erfc_poly() -> tuple[float, ...]:
     t = 0.5 + 0.5 * np.cos(np.pi * (np.arange(4000) + 0.5) / 4000)
     t = t[t > 1e-6]
     a = 2.0 / t - 2.0
-    c = cheb.chebfit(2.0 * t - 1.0, np.log(erfcx(a)) - np.log(t), _SF_DEGREE)
+    c = cheb.chebfit(2.0 * t - 1.0, np.log(erfcx(a)) - np.log(t), degree)
     return tuple(float(v) for v in cheb.cheb2poly(c)[::-1])
 
 
-@functools.lru_cache(maxsize=1)
-def _log_erfc_poly32() -> tuple[np.float32, ...]:
-    """:func:`_log_erfc_poly` as float32 scalars (converted once, not per call)."""
-    return tuple(np.float32(c) for c in _log_erfc_poly())
+_LOG_ERFC_POLY32 = tuple(np.float32(c) for c in _LOG_ERFC_POLY)
 
 
 def log_sf32(z: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -829,7 +834,7 @@ def log_sf32(z: NDArray[np.float32]) -> NDArray[np.float32]:
     a = np.abs(z) * f32(np.sqrt(0.5))                  # erfc argument |z| / sqrt 2
     t = f32(1.0) / (f32(1.0) + f32(0.5) * a)
     v = f32(2.0) * t - f32(1.0)
-    c0, *coef = _log_erfc_poly32()
+    c0, *coef = _LOG_ERFC_POLY32
     acc = v * c0                                       # Horner's rule from c0 v
     for c in coef[:-1]:
         acc += c

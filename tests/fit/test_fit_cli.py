@@ -107,16 +107,18 @@ def test_fit_odometry_sd_widens_moving_walls_only(tmp_path, rng, run_cli):
 
 
 _BLAS_PROBE = """
-import os, sys
+import contextlib, io, os, sys
 import sonarloc.cli as cli
 before = "numpy" in sys.modules
-cli.build_parser(only="fit")      # what `sonarloc fit` imports, in its order
+with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):
+    cli.main([sys.argv[1], "--help"])    # imports the command's module
 print(before, os.environ.get("OPENBLAS_NUM_THREADS"), os.environ.get("OMP_NUM_THREADS"))
 """
 
 
-@pytest.mark.parametrize(("preset", "want"), [(None, "1"), ("3", "3")])
-def test_fit_command_sets_one_blas_thread_before_numpy_loads(preset, want):
+@pytest.mark.parametrize(("command", "preset", "want"),
+                         [("fit", None, "1"), ("fit", "3", "3"), ("drive", None, "1")])
+def test_commands_set_one_blas_thread_before_numpy_loads(command, preset, want):
     import os
     import subprocess
     import sys
@@ -127,7 +129,7 @@ def test_fit_command_sets_one_blas_thread_before_numpy_loads(preset, want):
     env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2])
     if preset is not None:        # the user's choice is kept
         env["OPENBLAS_NUM_THREADS"] = preset
-    out = subprocess.run([sys.executable, "-c", _BLAS_PROBE], env=env, capture_output=True,
-                         text=True, check=True).stdout.split()
-    # numpy (which reads the setting when it loads BLAS) comes with the command's module
+    out = subprocess.run([sys.executable, "-c", _BLAS_PROBE, command], env=env,
+                         capture_output=True, text=True, check=True).stdout.split()
+    # set before numpy (which reads it when it loads BLAS) comes with the command
     assert out == ["False", want, "1"]

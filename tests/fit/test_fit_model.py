@@ -228,6 +228,15 @@ def test_log_sf32_matches_log_ndtr_everywhere():
     assert np.all(np.isfinite(got)) and np.all(got <= 0.0)
 
 
+def test_log_sf32_coefficients_are_the_fit():
+    # shipped as constants (the fit costs ~45 ms per process): they must be its result,
+    # and the same float32 numbers the model uses
+    fitted = M.fit_log_erfc_poly()
+    np.testing.assert_allclose(M._LOG_ERFC_POLY, fitted, rtol=1e-9, atol=1e-15)
+    assert np.array(M._LOG_ERFC_POLY32).tobytes() == np.float32(fitted).tobytes()
+    assert len(M.fit_log_erfc_poly(M._SF_DEGREE - 1)) == len(fitted) - 1
+
+
 def test_log_sf32_is_elementwise(rng):
     # the float32 model pass puts the echoes' and the no-echo readings' margins through
     # one call: each entry's value must not depend on the others (to the last bit)
