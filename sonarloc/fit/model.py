@@ -118,7 +118,7 @@ def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLi
             dR_dphi = np.zeros(())
         shape = np.broadcast_shapes(np.shape(R), theta.shape)
         one, zero = np.ones(()), np.zeros(())
-        b = [np.broadcast_to(a, shape) for a in (R, theta, one, dR_dphi, zero, one)]
+        b = [_broadcast(a, shape) for a in (R, theta, one, dR_dphi, zero, one)]
         return Geometry(b[0], b[1], b[2], b[3], b[4], b[5], moving=moving)
     c, s = np.cos(phi), np.sin(phi)
     qx = r * c - px
@@ -135,8 +135,15 @@ def geometry(kind: str, r: ArrayLike, phi: ArrayLike, px: ArrayLike, py: ArrayLi
     dtheta_dphi = r * (qx * c + qy * s) * inv
     theta = _wrap_fast(bearing - yaw)
     shape = np.broadcast_shapes(R.shape, theta.shape)
-    b = [np.broadcast_to(a, shape) for a in (R, theta, dR_dr, dR_dphi, dtheta_dr, dtheta_dphi)]
+    b = [_broadcast(a, shape) for a in (R, theta, dR_dr, dR_dphi, dtheta_dr, dtheta_dphi)]
     return Geometry(b[0], b[1], b[2], b[3], b[4], b[5], moving=True)
+
+
+def _broadcast(a: Array, shape: tuple[int, ...]) -> Array:
+    """``np.broadcast_to(a, shape)``, or ``a`` itself where it has that shape already (the
+    call costs ~10 us, and a moving fit's model pass makes several: ~0.2 s of a moving
+    ring's 300 s drive's fit stage)."""
+    return a if a.shape == shape else np.broadcast_to(a, shape)
 
 
 def beam_delay_factor(theta: ArrayLike, tier: str, params: ModuleParams,
@@ -450,7 +457,7 @@ def echo_terms(kappa: ArrayLike, g: ArrayLike, z: ArrayLike | None, params: Modu
             return EchoTerms(zeros, zeros, zeros, zeros, m, dm, var)
         d = u * scale
         return EchoTerms(zeros, zeros, zeros, zeros, d, np.full(u.shape, scale), (s * d) ** 2)
-    zf: Array = np.broadcast_to(np.asarray(z, dtype=float), u.shape)
+    zf: Array = _broadcast(np.asarray(z, dtype=float), u.shape)
     act = zf > -_Z_HIGH
     n_act = int(np.count_nonzero(act))
     waveform = tier == "waveform"
