@@ -178,14 +178,15 @@ def _odometry_chi2(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                    sd_deg_per_m: float | None, seg: NDArray[np.int64], t: Array, x: Array,
                    y: Array, sensor: NDArray[np.int64], echo: NDArray[np.bool_]) -> Array:
     """The TOF chi-square the status test reads (B,): of moving segments with the
-    odometry's pose error profiled out (:func:`sonarloc.fit.odomcov.odometry_chi2`,
-    recorded as ``extra["chi2_odom"]``), else the fit's. ``seg, t, x, y, sensor,
-    echo``: the batch's readings, flat."""
+    odometry's random pose error profiled out (:func:`sonarloc.fit.odomcov.odometry_chi2`,
+    recorded as ``extra["chi2_odom"]``), else the fit's; the random walks' share is
+    added to the covariances (and to ``odom_range_sd_m`` / ``odom_bearing_sd_deg``).
+    ``seg, t, x, y, sensor, echo``: the batch's readings, flat."""
     sd = _odometry_sd(sd_deg_per_m)
     if sd == 0.0 or not batch.moving:
         return sel.chi2
     chi2 = sel.chi2.copy()
-    travel = odomcov.path_from_reference(seg, t, x, y, sensor, batch.size)[echo]
+    travel = odomcov.travel_from_start(seg, t, x, y, sensor, batch.size)[echo]
     ref = np.zeros(batch.size)
     np.maximum.at(ref, seg[echo], travel)          # the last echo's (time order)
     to_ref = np.zeros(batch.valid.shape)

@@ -94,7 +94,7 @@ def odometry_covariance(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
     return out
 
 
-# --- the odometry's random pose error in the chi-square test ------------------------
+# --- the odometry's random pose error: the status test and the covariance -----------
 
 WHEEL_NOISE_M_PER_SQRT_M = 0.003
 """Wheel-travel noise of the simulator's default odometry [m/sqrt(m) per wheel]
@@ -117,16 +117,16 @@ WALK_TERMS = 4
 Brownian path's variance on its interval)."""
 
 
-def path_from_reference(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array,
+def travel_from_start(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array,
                         sensor: NDArray[np.int64], n_segments: int) -> Array:
     """Distance travelled [m] from each segment's first reading to each reading (flat
     readings sorted by segment, each segment in time order).
 
     Odometry errors grow with the distance the wheels travelled, not with the chord
-    to the reference; a ring's readings come from several transducers whose mounts
-    differ, so the travel is the segment's mean speed (the path of each transducer
-    between its own consecutive readings, over their time) times the time to the
-    reading."""
+    to the reference (a segment of a ring's drive may span a turn, its path several
+    times its chord). A ring's consecutive readings come from transducers whose mounts
+    differ, so the travel is the segment's mean speed (each transducer's path between
+    its own consecutive readings, over their time) times the time from its start."""
     order = np.lexsort((t_s, sensor, seg))
     same = (seg[order][1:] == seg[order][:-1]) & (sensor[order][1:] == sensor[order][:-1])
     step = np.hypot(np.diff(x_m[order]), np.diff(y_m[order]))
@@ -157,26 +157,32 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     and the random walks' share of the covariance of the local ``(r, phi, kappa)``
     (B, 3, 3).
 
-    ``travel`` (B, Nd): distance travelled from each echo to the reference
-    (:func:`path_from_reference`). Relative to the reference, odometry bends the path
-    by a heading error growing along it: a constant curvature error (SD
-    ``curvature_sd_deg_per_m``, the systematic drift of :func:`odometry_covariance`)
-    and a random walk of the heading and of the distance driven, with the intensities
-    of the simulator's default odometry (:data:`HEADING_WALK_RAD2_PER_M`,
-    :data:`ALONG_WALK_M2_PER_M`; derived from its wheel noise and wheelbase, not
-    fitted), scaled by ``(curvature_sd_deg_per_m / CURVATURE_SD_DEG_PER_M)^2``. A
-    reading's heading is off by the heading error where it was taken, its position
-    rotated about the reference by the mean heading error on the way and moved along
-    the chord by the distance error. Each walk is expanded in :data:`WALK_TERMS`
-    Karhunen-Loeve modes with unit-normal weights; the whitened TOF sensitivities
-    ``A`` to those weights (pose Jacobian of the model at the fit) give, with the
-    fit's Jacobian ``J``, the chi-square minimised over the weights (under their prior)
-    and a linear change of the fit: the drop of the minimum when the weights join
-    (linearised at the fit); the
-    correlated path error is the random part the constant curvature misses. The walks
-    move the fit too: their share of the covariance is ``S S^T``, ``S`` the fit's linear
-    response to the weights (TOF Fisher matrix). Segments without motion keep
-    ``fit.chi2`` and get no share.
+    ``travel`` (B, Nd): distance travelled from each echo to the reference (from
+    :func:`travel_from_start`). Relative to the reference, odometry bends the path by a
+    heading error growing along it. Model: a constant curvature error (SD
+    ``curvature_sd_deg_per_m``, as in :func:`odometry_covariance`) plus random walks of
+    the heading and of the distance driven, with the intensities of the world
+    simulator's default odometry (:data:`HEADING_WALK_RAD2_PER_M`,
+    :data:`ALONG_WALK_M2_PER_M`: derived from its wheel noise and wheelbase, not fitted
+    to any result) times ``(curvature_sd_deg_per_m / CURVATURE_SD_DEG_PER_M)^2``, so 0
+    means exact poses. A reading's heading is off by the heading error where it was
+    taken, its position rotated about the reference by the mean heading error on the
+    way there and moved along the chord by the distance error. Each walk is expanded in
+    :data:`WALK_TERMS` Karhunen-Loeve modes with standard-normal weights.
+
+    With ``A`` the whitened TOF sensitivities to the weights (the model's pose
+    Jacobian at the fit) and ``J`` the fit's whitened TOF Jacobian, the chi-square
+    returned is the fit's less the drop of ``min ||e - J^T dp - A^T w||^2 + ||w||^2``
+    when the weights ``w`` join the parameter step ``dp`` (``e`` the standardised
+    residuals; linearised at the fit): what is left when the path may bend as the
+    odometry's error does. The correlated walk, not the constant curvature, is most of
+    the misfit of a single reflector seen over a metre or more (docs/FITTING.md).
+
+    The walks also move the fit: ``S = H^-1 J A^T``, ``H`` the Fisher matrix of the
+    objective the fit minimised (as in :func:`odometry_covariance`), adds ``S S^T`` to
+    the covariance (the curvature's weight left out: that share is
+    :func:`odometry_covariance`'s). Segments without motion keep ``fit.chi2`` and get no
+    share.
     """
     from sonarloc.fit import model as M
     from sonarloc.fit.lsq import tof_jacobian_at
@@ -238,12 +244,16 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     N[:, :3, :3] += 1e-9 * np.eye(3)[None]
     b = np.einsum("bin,bn->bi", G, e)
     both = np.einsum("bi,bi->b", b, np.linalg.solve(N, b[..., None])[..., 0])
-    JJ = N[:, :3, :3]
-    alone = np.einsum("bi,bi->b", b[:, :3], np.linalg.solve(JJ, b[:, :3, None])[..., 0])
+    alone = np.einsum("bi,bi->b", b[:, :3],
+                      np.linalg.solve(N[:, :3, :3], b[:, :3, None])[..., 0])
     drop = both - alone
-    # the fit's linear response to the walks' weights (not the curvature's: that share
-    # is odometry_covariance's)
-    S = np.linalg.solve(JJ, N[:, :3, 4:])                       # (b, 3, m - 1)
+    # the fit's linear response to the walks' weights, -H^-1 dg (H the Fisher matrix of
+    # the objective it minimised, as in odometry_covariance; not the curvature's weight:
+    # that share is odometry_covariance's)
+    objective = cfg if cfg.method == "full" else replace(cfg, detection=False)
+    y = np.where(used[moving], sub.tof_us - 0.5 * mod.count_period_us, 0.0)
+    _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used[moving], None, objective)
+    S = np.einsum("bij,bjk->bik", _covariance(H), N[:, :3, 4:])     # (b, 3, m - 1)
     cov = np.einsum("bik,bjk->bij", S, S)
     good = np.isfinite(drop) & np.all(np.isfinite(cov), axis=(1, 2))
     chi2[moving[good]] = np.maximum(fit.chi2[moving[good]] - drop[good], 0.0)

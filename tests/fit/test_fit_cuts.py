@@ -65,7 +65,9 @@ def test_probed_cuts_split_as_fitting_every_cut_does():
             # (and the odometry term, the derivative at that fit)
             assert lm.extra.get("odom_bearing_sd_deg", 0.0) == pytest.approx(
                 ref.extra.get("odom_bearing_sd_deg", 0.0), rel=0.1)
-    assert n_split >= 6
+    # (6 before the odometry's random walk entered the status test, which leaves fewer
+    # segments UNRESOLVED to cut)
+    assert n_split >= 3
 
 
 def _plain_split(seg: Segment, whole: Landmark, cfg: FitConfig
