@@ -5,12 +5,14 @@ odometry path passes, two merged reflectors still do not."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from sonarloc.fit import odomcov
 from sonarloc.fit.landmarks import fit_segments
 from sonarloc.fit.lsq import FitConfig
+from sonarloc.fit.pair import is_candidate
 from sonarloc.fit.result import FitStatus
 from sonarloc.fit.synth import Reflector, simulate_readings
 from sonarloc.world.robot import Pose2, Robot, Route
@@ -88,3 +90,37 @@ def test_walk_modes_carry_a_brownian_paths_variance():
     np.testing.assert_allclose(mean_var[0, 2], 2.0 / 3.0, rtol=0.02)
     few = sum(v * v for v, _ in modes[:odomcov.WALK_TERMS])
     assert 0.9 * 2.0 < few[0, 2] < 2.0
+
+
+def test_pair_candidates_read_the_odometry_chi2():
+    # an OK point whose jitter-only chi-square is strained but whose odometry-aware one
+    # is not is no two-reflector candidate (the odometry's misfit is no second reflector)
+    seg, _ = _drive(3, [Reflector("point", 1.0, -1.5, 0.67)])
+    cfg = FitConfig()
+    lm = fit_segments([seg], cfg)[0]
+    assert lm.kind == "point" and lm.n_readings >= 2 * cfg.min_echoes
+    assert "chi2_odom" in lm.extra                    # moving: the status test's
+    dof = lm.n_readings - 3
+    jitter_only = {k: v for k, v in lm.extra.items() if k != "chi2_odom"}
+    strained = replace(lm, status=FitStatus.OK, extra={**jitter_only, "chi2": 3.0 * dof,
+                                                       "runs_z": 0.0})
+    assert is_candidate(strained, cfg)
+    explained = replace(strained, extra={**strained.extra, "chi2_odom": 1.0 * dof})
+    assert not is_candidate(explained, cfg)
+
+
+def test_travel_is_the_path_not_the_mount_jumps():
+    # two transducers 0.4 m apart on a robot driving straight at 0.3 m/s, firing in
+    # turn: the travel is 0.3 m/s times the time, not the zigzag between the mounts
+    t = np.arange(20) * 0.05
+    sensor = np.arange(20) % 2
+    x = 0.3 * t
+    y = np.where(sensor == 0, 0.2, -0.2)
+    seg = np.zeros(20, dtype=np.int64)
+    travel = odomcov.travel_from_start(seg, t, x, y, sensor, 1)
+    np.testing.assert_allclose(travel, 0.3 * t, atol=1e-12)
+    # one segment's speed does not leak into another's
+    seg2 = np.r_[seg, np.ones(20, dtype=np.int64)]
+    both = odomcov.travel_from_start(seg2, np.r_[t, t + 5.0], np.r_[x, 2.0 * x],
+                                     np.r_[y, y], np.r_[sensor, sensor], 2)
+    np.testing.assert_allclose(both, np.r_[0.3 * t, 0.6 * t], atol=1e-12)
