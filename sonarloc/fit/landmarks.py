@@ -147,9 +147,7 @@ def _add_odometry_covariance(batch: SegmentBatch, sel: Selection, cfg: FitConfig
     """Add the odometry curvature error's share to the covariances of moving segments
     (:mod:`sonarloc.fit.odomcov`); recorded in ``extra`` as ``odom_range_sd_m`` /
     ``odom_bearing_sd_deg``."""
-    sd = odomcov.CURVATURE_SD_DEG_PER_M if sd_deg_per_m is None else float(sd_deg_per_m)
-    if not (math.isfinite(sd) and sd >= 0.0):
-        raise ValueError(f"`odometry_sd_deg_per_m` must be non-negative, got {sd_deg_per_m!r}")
+    sd = _odometry_sd(sd_deg_per_m)
     if sd == 0.0:
         return
     if not batch.moving:
@@ -166,6 +164,56 @@ def _add_odometry_covariance(batch: SegmentBatch, sel: Selection, cfg: FitConfig
                 ex = sel.extra[int(idx[j])]
                 ex["odom_range_sd_m"] = math.sqrt(extra[j, 0, 0])
                 ex["odom_bearing_sd_deg"] = math.degrees(math.sqrt(extra[j, 1, 1]))
+
+
+def _odometry_sd(sd_deg_per_m: float | None) -> float:
+    """The odometry SD [deg/m] a caller asked for (None: the default), checked."""
+    sd = odomcov.CURVATURE_SD_DEG_PER_M if sd_deg_per_m is None else float(sd_deg_per_m)
+    if not (math.isfinite(sd) and sd >= 0.0):
+        raise ValueError(f"`odometry_sd_deg_per_m` must be non-negative, got {sd_deg_per_m!r}")
+    return sd
+
+
+def _travel_to_ref(batch: SegmentBatch, seg: NDArray[np.int64], t: Array, x: Array,
+                   y: Array, sensor: NDArray[np.int64], echo: NDArray[np.bool_]) -> Array:
+    """Distance travelled from each echo to its segment's reference (last) echo, (B, Nd)
+    as the batch's echo columns (:func:`sonarloc.fit.odomcov.travel_from_start`);
+    ``seg, t, x, y, sensor, echo``: the batch's readings, flat."""
+    travel = odomcov.travel_from_start(seg, t, x, y, sensor, batch.size)[echo]
+    ref = np.zeros(batch.size)
+    np.maximum.at(ref, seg[echo], travel)          # the last echo's (time order)
+    to_ref = np.zeros(batch.valid.shape)
+    to_ref[batch.valid] = ref[seg[echo]] - travel
+    return to_ref
+
+
+def _odometry_chi2(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
+                   sd_deg_per_m: float | None, to_ref: Array | None) -> Array:
+    """The TOF chi-square the status test reads (B,): of moving segments with the
+    odometry's random pose error profiled out (:func:`sonarloc.fit.odomcov.odometry_chi2`,
+    recorded as ``extra["chi2_odom"]``), else the fit's; the random walks' share is
+    added to the covariances (and to ``odom_range_sd_m`` / ``odom_bearing_sd_deg``).
+    ``to_ref``: :func:`_travel_to_ref` (None: no segment moved)."""
+    sd = _odometry_sd(sd_deg_per_m)
+    if sd == 0.0 or not batch.moving or to_ref is None:
+        return sel.chi2
+    chi2 = sel.chi2.copy()
+    for kind in ("point", "line"):
+        for tier in set(sel.tier[sel.kind == kind]):
+            idx = np.flatnonzero((sel.kind == kind) & (sel.tier == tier))
+            c2, cov = odomcov.odometry_chi2(_take(batch, idx), sel.rows(idx), to_ref[idx],
+                                            cfg, sd)
+            chi2[idx] = c2
+            sel.cov[idx] += cov
+            for j in np.flatnonzero(c2 != sel.chi2[idx]).tolist():
+                ex = sel.extra[int(idx[j])]
+                ex["chi2_odom"] = float(c2[j])
+                ex["odom_range_sd_m"] = math.hypot(float(ex.get("odom_range_sd_m", 0.0)),  # type: ignore[arg-type]
+                                                   math.sqrt(cov[j, 0, 0]))
+                ex["odom_bearing_sd_deg"] = math.hypot(
+                    float(ex.get("odom_bearing_sd_deg", 0.0)),  # type: ignore[arg-type]
+                    math.degrees(math.sqrt(cov[j, 1, 1])))
+    return chi2
 
 
 def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = None,
@@ -228,6 +276,7 @@ class _Selected:
     sensors: list[tuple[int, ...]]
     n_echo: NDArray[np.int64]
     n_noecho: NDArray[np.int64]
+    to_ref: Array | None              # (rows, Nd) travel from each echo to the reference
 
     def landmarks(self, cfg: FitConfig, odometry_sd_deg_per_m: float | None,
                   which: Sequence[int] | None = None) -> list[Landmark]:
@@ -244,10 +293,12 @@ class _Selected:
             batch = self.batch if whole else _take(self.batch, take)
             sel = self.sel if whole else self.sel.subset(take)
             _add_odometry_covariance(batch, sel, cfg, odometry_sd_deg_per_m)
+            chi2 = _odometry_chi2(batch, sel, cfg, odometry_sd_deg_per_m,
+                                  None if self.to_ref is None else self.to_ref[take])
             r = take.tolist()
             lms = _landmarks(batch, sel, cfg, [self.meta[j] for j in r],
                              [self.sensors[j] for j in r], self.n_echo[take],
-                             self.n_noecho[take])
+                             self.n_noecho[take], chi2)
         it = iter(lms)
         out: list[Landmark] = []
         for i, k in zip(seg.tolist(), rows.tolist(), strict=True):
@@ -317,14 +368,18 @@ def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Ar
             vals = (keys % width + s_lo).tolist()
             sensors = [tuple(vals[a:b]) for a, b in zip(cut[:-1].tolist(), cut[1:].tolist(),
                                                          strict=True)]
-    return _Selected(out, row, batch, sel,
-                     [meta[i] for i in todo.tolist()], sensors, n_echo[todo], n_noecho[todo])
+    to_ref = (_travel_to_ref(batch, seg, t, x, y, sensor, echo)
+              if batch is not None and batch.moving else None)
+    return _Selected(out, row, batch, sel, [meta[i] for i in todo.tolist()], sensors,
+                     n_echo[todo], n_noecho[todo], to_ref)
 
 
 def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                meta: list[dict[str, object]], sensors: list[tuple[int, ...]],
-               n_echo: NDArray[np.int64], n_noecho: NDArray[np.int64]) -> list[Landmark]:
-    """Landmarks with statuses from the selected fits (vectorised, then one object each)."""
+               n_echo: NDArray[np.int64], n_noecho: NDArray[np.int64],
+               chi2_status: Array | None = None) -> list[Landmark]:
+    """Landmarks with statuses from the selected fits (vectorised, then one object each);
+    ``chi2_status``: the TOF chi-square of the fit test (default the fits'))."""
     B = batch.size
     mod = cfg.module
     local = sel.local.copy()
@@ -368,10 +423,12 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     rms = np.sqrt((sel.resid ** 2 * sel.used).sum(1) / np.maximum(n_used, 1))
     strength = 20.0 * np.log10(mod.detection_limit_us / np.maximum(local[:, 2], 1e-12))
     flat_sd = math.radians(cfg.flat_bearing_sd_deg)
-    p_fit = _chi2_sf(sel.chi2, np.maximum(n_used - 3, 1))
+    chi2_test = sel.chi2 if chi2_status is None else chi2_status
+    p_fit = _chi2_sf(chi2_test, np.maximum(n_used - 3, 1))
     # per-segment values as Python lists (the loop below runs once per segment)
     sd_l, local_l = sd.tolist(), local.tolist()
-    n_used_l, chi2_l, p_fit_l = n_used.tolist(), sel.chi2.tolist(), p_fit.tolist()
+    n_used_l, p_fit_l = n_used.tolist(), p_fit.tolist()
+    chi2_l, chi2_test_l = sel.chi2.tolist(), chi2_test.tolist()
     finite_l, outside_l, span_l = finite.tolist(), outside.tolist(), span.tolist()
     kind_l = np.where(sel.kind == "point", "point", "line").tolist()
     tier_l = [str(t) for t in sel.tier.tolist()]
@@ -420,7 +477,7 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                       "incidence (kappa ~0.15 us); corner or merged echoes?")
         elif p_fit_l[j] < cfg.min_fit_p:
             status = FitStatus.UNRESOLVED
-            reason = (f"no single landmark explains the readings (chi2 {chi2_l[j]:.0f} for "
+            reason = (f"no single landmark explains the readings (chi2 {chi2_test_l[j]:.0f} for "
                       f"{n_used_l[j]} echoes, p = {p_fit_l[j]:.1e}): several reflectors merged?")
         elif outside_l[j] > math.radians(1.0) and span_l[j] > 3.0:
             status = FitStatus.PARTIAL

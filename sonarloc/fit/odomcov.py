@@ -92,3 +92,170 @@ def odometry_covariance(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
     s = np.where(np.isfinite(s), s, 0.0)
     out[moving] = sd * sd * s[:, :, None] * s[:, None, :]
     return out
+
+
+# --- the odometry's random pose error: the status test and the covariance -----------
+
+WHEEL_NOISE_M_PER_SQRT_M = 0.003
+"""Wheel-travel noise of the simulator's default odometry [m/sqrt(m) per wheel]
+(:class:`sonarloc.world.robot.OdometryModel`)."""
+
+WHEELBASE_M = 0.4
+"""Wheelbase of the simulator's default drive [m] (:class:`sonarloc.world.robot.DriveParams`)."""
+
+HEADING_WALK_RAD2_PER_M = 2.0 * WHEEL_NOISE_M_PER_SQRT_M ** 2 / WHEELBASE_M ** 2
+"""Heading random walk of that odometry [rad^2 per m of travel]: the two wheels' travel
+errors are independent, the heading error their difference over the wheelbase (about
+(0.61 deg)^2 per metre)."""
+
+ALONG_WALK_M2_PER_M = WHEEL_NOISE_M_PER_SQRT_M ** 2 / 2.0
+"""Along-track random walk of that odometry [m^2 per m of travel]: the mean of the two
+wheels' travel errors (about (2.1 mm)^2 per metre)."""
+
+WALK_TERMS = 4
+"""Terms of each random walk's Karhunen-Loeve expansion (the first four carry 95 % of a
+Brownian path's variance on its interval)."""
+
+
+def travel_from_start(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array,
+                        sensor: NDArray[np.int64], n_segments: int) -> Array:
+    """Distance travelled [m] from each segment's first reading to each reading (flat
+    readings sorted by segment, each segment in time order).
+
+    Odometry errors grow with the distance the wheels travelled, not with the chord
+    to the reference (a segment of a ring's drive may span a turn, its path several
+    times its chord). A ring's consecutive readings come from transducers whose mounts
+    differ, so the travel is the segment's mean speed (each transducer's path between
+    its own consecutive readings, over their time) times the time from its start."""
+    order = np.lexsort((t_s, sensor, seg))
+    same = (seg[order][1:] == seg[order][:-1]) & (sensor[order][1:] == sensor[order][:-1])
+    step = np.hypot(np.diff(x_m[order]), np.diff(y_m[order]))
+    dt = np.diff(t_s[order])
+    s_seg = seg[order][1:][same]
+    dist = np.bincount(s_seg, step[same], minlength=n_segments)
+    time = np.bincount(s_seg, dt[same], minlength=n_segments)
+    speed = np.where(time > 0.0, dist / np.maximum(time, 1e-12), 0.0)
+    start = np.full(n_segments, np.inf)
+    np.minimum.at(start, seg, t_s)
+    return speed[seg] * (t_s - start[seg])
+
+
+def _walk_modes(s: Array, length: Array, k: int) -> tuple[Array, Array]:
+    """Mode ``k`` (0-based) of a unit-intensity Brownian path on [0, length] started at
+    0 (Karhunen-Loeve): its value at ``s`` and its mean over [0, s] (B, Nd)."""
+    w = (k + 0.5) * math.pi / np.maximum(length, 1e-9)
+    amp = np.sqrt(2.0 * length) / (k + 0.5) / math.pi
+    ws = w * s
+    mean = np.where(ws > 1e-9, (1.0 - np.cos(ws)) / np.maximum(ws, 1e-9), 0.5 * ws)
+    return amp * np.sin(ws), amp * mean
+
+
+def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitConfig,
+                  curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M
+                  ) -> tuple[Array, Array]:
+    """TOF chi-square of moving segments with the odometry's pose error profiled out (B,)
+    and the random walks' share of the covariance of the local ``(r, phi, kappa)``
+    (B, 3, 3).
+
+    ``travel`` (B, Nd): distance travelled from each echo to the reference (from
+    :func:`travel_from_start`). Relative to the reference, odometry bends the path by a
+    heading error growing along it. Model: a constant curvature error (SD
+    ``curvature_sd_deg_per_m``, as in :func:`odometry_covariance`) plus random walks of
+    the heading and of the distance driven, with the intensities of the world
+    simulator's default odometry (:data:`HEADING_WALK_RAD2_PER_M`,
+    :data:`ALONG_WALK_M2_PER_M`: derived from its wheel noise and wheelbase, not fitted
+    to any result) times ``(curvature_sd_deg_per_m / CURVATURE_SD_DEG_PER_M)^2``, so 0
+    means exact poses. A reading's heading is off by the heading error where it was
+    taken, its position rotated about the reference by the mean heading error on the
+    way there and moved along the chord by the distance error. Each walk is expanded in
+    :data:`WALK_TERMS` Karhunen-Loeve modes with standard-normal weights.
+
+    With ``A`` the whitened TOF sensitivities to the weights (the model's pose
+    Jacobian at the fit) and ``J`` the fit's whitened TOF Jacobian, the chi-square
+    returned is the fit's less the drop of ``min ||e - J^T dp - A^T w||^2 + ||w||^2``
+    when the weights ``w`` join the parameter step ``dp`` (``e`` the standardised
+    residuals; linearised at the fit): what is left when the path may bend as the
+    odometry's error does. The correlated walk, not the constant curvature, is most of
+    the misfit of a single reflector seen over a metre or more (docs/FITTING.md).
+
+    The walks also move the fit: ``S = H^-1 J A^T``, ``H`` the Fisher matrix of the
+    objective the fit minimised (as in :func:`odometry_covariance`), adds ``S S^T`` to
+    the covariance (the curvature's weight left out: that share is
+    :func:`odometry_covariance`'s). Segments without motion keep ``fit.chi2`` and get no
+    share.
+    """
+    from sonarloc.fit import model as M
+    from sonarloc.fit.lsq import tof_jacobian_at
+
+    chi2 = fit.chi2.copy()
+    out_cov = np.zeros((batch.size, 3, 3))
+    sd = math.radians(curvature_sd_deg_per_m)
+    if sd <= 0.0 or batch.size == 0:
+        return chi2, out_cov
+    used = fit.used
+    moving = np.flatnonzero(np.max(np.hypot(batch.px, batch.py) * used, axis=1) > 0.02)
+    if moving.size == 0:
+        return chi2, out_cov
+    scale = sd / math.radians(CURVATURE_SD_DEG_PER_M)
+    sub = _take(batch, moving)
+    u = used[moving].astype(float)
+    e = fit.resid[moving] * u
+    p = fit.local[moving]
+    mod = cfg.module
+    tau = M.us_per_m(mod)
+    r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
+    px, py = sub.px, sub.py
+    geo = M.geometry(fit.kind, r, phi, px, py, sub.yaw, moving=True)
+    g, dg, lng = M.beam_delay_factor(geo.theta, fit.tier, mod)
+    z = M.detection_z(K, lng, mod) if cfg.detection else None
+    J, et, tof_sd = tof_jacobian_at(geo, K, g, dg, z, fit.tier, mod)
+    a = et.ddelay_du * K * dg                         # d mean TOF / d theta
+    # pose Jacobian of the mean TOF (whitened, used echoes only)
+    c, s = np.cos(phi), np.sin(phi)
+    if fit.kind == "line":
+        dx, dy = -tau * c + 0.0 * px, -tau * s + 0.0 * py
+    else:
+        qx, qy = r * c - px, r * s - py
+        R2 = np.maximum(qx * qx + qy * qy, 1e-18)
+        Rr = np.sqrt(R2)
+        dx = -tau * qx / Rr + a * qy / R2
+        dy = -tau * qy / Rr - a * qx / R2
+    w = u / tof_sd
+    dx, dy, dyaw = dx * w, dy * w, -a * w
+    chord = np.hypot(px, py)
+    ux, uy = px / np.maximum(chord, 1e-9), py / np.maximum(chord, 1e-9)
+    s_i = np.maximum(travel[moving], chord) * u
+    length = np.max(s_i, axis=1, keepdims=True)
+    rows = []
+    # constant curvature: heading c s, position rotated by c s / 2
+    rows.append(sd * (dyaw * s_i + (-dx * py + dy * px) * 0.5 * s_i))
+    qh = math.sqrt(HEADING_WALK_RAD2_PER_M) * scale
+    qa = math.sqrt(ALONG_WALK_M2_PER_M) * scale
+    for k in range(WALK_TERMS):
+        val, mean = _walk_modes(s_i, length, k)
+        rows.append(qh * (dyaw * val + (-dx * py + dy * px) * mean))
+        rows.append(qa * (dx * ux + dy * uy) * val)
+    A = np.stack(rows, axis=1)                                   # (b, m, Nd)
+    # the chi-square's drop when the weights join the fit's parameters (the fit's own
+    # linear step, which the detection terms and kappa's prior kept it from, taken out)
+    G = np.concatenate([J * u[:, None, :], A], axis=1)
+    N = np.einsum("bin,bjn->bij", G, G)
+    N[:, 3:, 3:] += np.eye(A.shape[1])[None]
+    N[:, :3, :3] += 1e-9 * np.eye(3)[None]
+    b = np.einsum("bin,bn->bi", G, e)
+    both = np.einsum("bi,bi->b", b, np.linalg.solve(N, b[..., None])[..., 0])
+    alone = np.einsum("bi,bi->b", b[:, :3],
+                      np.linalg.solve(N[:, :3, :3], b[:, :3, None])[..., 0])
+    drop = both - alone
+    # the fit's linear response to the walks' weights, -H^-1 dg (H the Fisher matrix of
+    # the objective it minimised, as in odometry_covariance; not the curvature's weight:
+    # that share is odometry_covariance's)
+    objective = cfg if cfg.method == "full" else replace(cfg, detection=False)
+    y = np.where(used[moving], sub.tof_us - 0.5 * mod.count_period_us, 0.0)
+    _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used[moving], None, objective)
+    S = np.einsum("bij,bjk->bik", _covariance(H), N[:, :3, 4:])     # (b, 3, m - 1)
+    cov = np.einsum("bik,bjk->bij", S, S)
+    good = np.isfinite(drop) & np.all(np.isfinite(cov), axis=(1, 2))
+    chi2[moving[good]] = np.maximum(fit.chi2[moving[good]] - drop[good], 0.0)
+    out_cov[moving[good]] = cov[good]
+    return chi2, out_cov

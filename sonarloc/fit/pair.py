@@ -1345,7 +1345,8 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
         return False
     if float(extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z:  # type: ignore[arg-type]
         return True
-    chi2 = max(float(extra.get("chi2", 0.0)), 0.0)  # type: ignore[arg-type]
+    # the status test's chi-square (odometry's pose error profiled out where moving)
+    chi2 = max(float(extra.get("chi2_odom", extra.get("chi2", 0.0))), 0.0)  # type: ignore[arg-type]
     dof = max(n - 3, 1)
     if chi2 <= dof:               # p > 0.3 (at dof = 1; the chi-square's median < dof)
         return False
