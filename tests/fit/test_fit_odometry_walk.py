@@ -124,3 +124,13 @@ def test_travel_is_the_path_not_the_mount_jumps():
     both = odomcov.travel_from_start(seg2, np.r_[t, t + 5.0], np.r_[x, 2.0 * x],
                                      np.r_[y, y], np.r_[sensor, sensor], 2)
     np.testing.assert_allclose(both, np.r_[0.3 * t, 0.6 * t], atol=1e-12)
+
+
+def test_walk_intensities_are_the_simulators_odometry():
+    # derived from the world simulator's default odometry, not tuned: a change there
+    # must be carried here (or the status test models another robot's odometry)
+    from sonarloc.fit import odomcov
+    from sonarloc.world.robot import DriveParams, OdometryModel
+
+    assert odomcov.WHEEL_NOISE_M_PER_SQRT_M == OdometryModel().noise_m_per_sqrt_m
+    assert odomcov.WHEELBASE_M == DriveParams().wheelbase_m
