@@ -142,28 +142,44 @@ def _fallback(seg_arrays: _Cleaned, status: FitStatus, reason: str,
                     sensors=sensors, extra={**extra, "n_noecho": int((~finite).sum())})
 
 
-def _add_odometry_covariance(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
-                             sd_deg_per_m: float | None) -> None:
-    """Add the odometry curvature error's share to the covariances of moving segments
-    (:mod:`sonarloc.fit.odomcov`); recorded in ``extra`` as ``odom_range_sd_m`` /
-    ``odom_bearing_sd_deg``."""
+def _add_odometry_terms(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
+                        sd_deg_per_m: float | None, to_ref: Array | None) -> Array:
+    """The odometry's share of moving segments' fits (:mod:`sonarloc.fit.odomcov`, one
+    :func:`~sonarloc.fit.odomcov.odometry_terms` call per kind and tier): the curvature
+    error's and the random walks' covariances added to ``sel.cov`` (recorded in ``extra``
+    as ``odom_range_sd_m`` / ``odom_bearing_sd_deg``), and the TOF chi-square the status
+    test reads (B,): with the walks profiled out (``extra["chi2_odom"]``), else the fit's.
+    ``to_ref``: :func:`_travel_to_ref` (None: no segment moved)."""
     sd = _odometry_sd(sd_deg_per_m)
     if sd == 0.0:
-        return
-    if not batch.moving:
+        return sel.chi2
+    if not batch.moving or to_ref is None:
         # no segment moved (pans): every share is zero (added all the same, as the
         # general path does: a -0.0 entry becomes 0.0)
         sel.cov += 0.0
-        return
+        return sel.chi2
+    chi2 = sel.chi2.copy()
     for kind in ("point", "line"):
         for tier in set(sel.tier[sel.kind == kind]):
             idx = np.flatnonzero((sel.kind == kind) & (sel.tier == tier))
-            extra = odomcov.odometry_covariance(_take(batch, idx), sel.rows(idx), cfg, sd)
-            sel.cov[idx] += extra
-            for j in np.flatnonzero((extra[:, 0, 0] > 0.0) | (extra[:, 1, 1] > 0.0)).tolist():
+            curv, c2, walk = odomcov.odometry_terms(_take(batch, idx), sel.rows(idx),
+                                                    to_ref[idx], cfg, sd)
+            sel.cov[idx] += curv
+            for j in np.flatnonzero((curv[:, 0, 0] > 0.0) | (curv[:, 1, 1] > 0.0)).tolist():
                 ex = sel.extra[int(idx[j])]
-                ex["odom_range_sd_m"] = math.sqrt(extra[j, 0, 0])
-                ex["odom_bearing_sd_deg"] = math.degrees(math.sqrt(extra[j, 1, 1]))
+                ex["odom_range_sd_m"] = math.sqrt(curv[j, 0, 0])
+                ex["odom_bearing_sd_deg"] = math.degrees(math.sqrt(curv[j, 1, 1]))
+            chi2[idx] = c2
+            sel.cov[idx] += walk
+            for j in np.flatnonzero(c2 != sel.chi2[idx]).tolist():
+                ex = sel.extra[int(idx[j])]
+                ex["chi2_odom"] = float(c2[j])
+                ex["odom_range_sd_m"] = math.hypot(float(ex.get("odom_range_sd_m", 0.0)),  # type: ignore[arg-type]
+                                                   math.sqrt(walk[j, 0, 0]))
+                ex["odom_bearing_sd_deg"] = math.hypot(
+                    float(ex.get("odom_bearing_sd_deg", 0.0)),  # type: ignore[arg-type]
+                    math.degrees(math.sqrt(walk[j, 1, 1])))
+    return chi2
 
 
 def _odometry_sd(sd_deg_per_m: float | None) -> float:
@@ -185,35 +201,6 @@ def _travel_to_ref(batch: SegmentBatch, seg: NDArray[np.int64], t: Array, x: Arr
     to_ref = np.zeros(batch.valid.shape)
     to_ref[batch.valid] = ref[seg[echo]] - travel
     return to_ref
-
-
-def _odometry_chi2(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
-                   sd_deg_per_m: float | None, to_ref: Array | None) -> Array:
-    """The TOF chi-square the status test reads (B,): of moving segments with the
-    odometry's random pose error profiled out (:func:`sonarloc.fit.odomcov.odometry_chi2`,
-    recorded as ``extra["chi2_odom"]``), else the fit's; the random walks' share is
-    added to the covariances (and to ``odom_range_sd_m`` / ``odom_bearing_sd_deg``).
-    ``to_ref``: :func:`_travel_to_ref` (None: no segment moved)."""
-    sd = _odometry_sd(sd_deg_per_m)
-    if sd == 0.0 or not batch.moving or to_ref is None:
-        return sel.chi2
-    chi2 = sel.chi2.copy()
-    for kind in ("point", "line"):
-        for tier in set(sel.tier[sel.kind == kind]):
-            idx = np.flatnonzero((sel.kind == kind) & (sel.tier == tier))
-            c2, cov = odomcov.odometry_chi2(_take(batch, idx), sel.rows(idx), to_ref[idx],
-                                            cfg, sd)
-            chi2[idx] = c2
-            sel.cov[idx] += cov
-            for j in np.flatnonzero(c2 != sel.chi2[idx]).tolist():
-                ex = sel.extra[int(idx[j])]
-                ex["chi2_odom"] = float(c2[j])
-                ex["odom_range_sd_m"] = math.hypot(float(ex.get("odom_range_sd_m", 0.0)),  # type: ignore[arg-type]
-                                                   math.sqrt(cov[j, 0, 0]))
-                ex["odom_bearing_sd_deg"] = math.hypot(
-                    float(ex.get("odom_bearing_sd_deg", 0.0)),  # type: ignore[arg-type]
-                    math.degrees(math.sqrt(cov[j, 1, 1])))
-    return chi2
 
 
 def fit_segments(segments: Sequence[SegmentLike], config: FitConfig | None = None,
@@ -281,8 +268,9 @@ class _Selected:
     def landmarks(self, cfg: FitConfig, odometry_sd_deg_per_m: float | None,
                   which: Sequence[int] | None = None) -> list[Landmark]:
         """The landmarks of segments ``which`` (all: None), in that order. All of them at
-        once add the odometry term to ``sel`` in place: the last call; a part of them
-        takes a copy, and can be asked for again (with another ``odometry_sd``)."""
+        once with the odometry term add it to ``sel`` in place: the last call; without
+        it (``odometry_sd_deg_per_m`` 0) nothing changes, and a part of them takes a
+        copy: both can be asked for again (with another ``odometry_sd``)."""
         seg = np.arange(self.row.size) if which is None else np.asarray(which, dtype=np.int64)
         rows = self.row[seg]
         take = rows[rows >= 0]
@@ -292,9 +280,8 @@ class _Selected:
             whole = which is None
             batch = self.batch if whole else _take(self.batch, take)
             sel = self.sel if whole else self.sel.subset(take)
-            _add_odometry_covariance(batch, sel, cfg, odometry_sd_deg_per_m)
-            chi2 = _odometry_chi2(batch, sel, cfg, odometry_sd_deg_per_m,
-                                  None if self.to_ref is None else self.to_ref[take])
+            chi2 = _add_odometry_terms(batch, sel, cfg, odometry_sd_deg_per_m,
+                                       None if self.to_ref is None else self.to_ref[take])
             r = take.tolist()
             lms = _landmarks(batch, sel, cfg, [self.meta[j] for j in r],
                              [self.sensors[j] for j in r], self.n_echo[take],
@@ -638,7 +625,7 @@ class _Parts:
                 parts.append(Segment(seg.readings.select(slice(pos, None)), seg.seg_id,
                                      seg.closed_by, (False, seg.occluded[1])))
         fitted = _select_segments(parts, cfg)
-        self.bare.update(zip(todo, fitted.landmarks(cfg, 0.0, range(len(todo))), strict=True))
+        self.bare.update(zip(todo, fitted.landmarks(cfg, 0.0), strict=True))
         self._fits.update((part, (fitted, k)) for k, part in enumerate(todo))
 
     def cuts(self, plans: dict[int, _Cuts], todo: Sequence[tuple[int, int]],

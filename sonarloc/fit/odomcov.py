@@ -71,14 +71,32 @@ def odometry_covariance(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
     ``fit``: the segments' fits (one kind and tier). Zero for segments without motion or
     when ``curvature_sd_deg_per_m`` is 0.
     """
+    return _curvature_share(batch, fit, cfg, curvature_sd_deg_per_m)[0]
+
+
+def odometry_terms(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitConfig,
+                   curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M
+                   ) -> tuple[Array, Array, Array]:
+    """:func:`odometry_covariance` and :func:`odometry_chi2` (its chi-square and
+    covariance) of the same fits, the Fisher matrix at the fit evaluated once for both."""
+    cov, fisher = _curvature_share(batch, fit, cfg, curvature_sd_deg_per_m)
+    chi2, walk = odometry_chi2(batch, fit, travel, cfg, curvature_sd_deg_per_m, fisher)
+    return cov, chi2, walk
+
+
+def _curvature_share(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
+                     curvature_sd_deg_per_m: float) -> tuple[Array, Array]:
+    """:func:`odometry_covariance` and the Fisher matrix (B, 3, 3) at the fit of the
+    moving segments it evaluated (zero for the others)."""
     B = batch.size
     out = np.zeros((B, 3, 3))
+    fisher = np.zeros((B, 3, 3))
     sd = math.radians(curvature_sd_deg_per_m)
     if sd <= 0.0 or B == 0:
-        return out
+        return out, fisher
     moving = np.flatnonzero(np.max(np.hypot(batch.px, batch.py) * batch.valid, axis=1) > 0.02)
     if moving.size == 0:
-        return out
+        return out, fisher
     sub = _take(batch, moving)
     fit = fit.take(moving)
     # the objective the fit minimised (its echoes, and the detection terms unless the
@@ -91,7 +109,8 @@ def odometry_covariance(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
     s = -np.einsum("bij,bj->bi", _covariance(H), g1 - g0) / _EPS
     s = np.where(np.isfinite(s), s, 0.0)
     out[moving] = sd * sd * s[:, :, None] * s[:, None, :]
-    return out
+    fisher[moving] = H
+    return out, fisher
 
 
 # --- the odometry's random pose error: the status test and the covariance -----------
@@ -151,8 +170,8 @@ def _walk_modes(s: Array, length: Array, k: int) -> tuple[Array, Array]:
 
 
 def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitConfig,
-                  curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M
-                  ) -> tuple[Array, Array]:
+                  curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M,
+                  fisher: Array | None = None) -> tuple[Array, Array]:
     """TOF chi-square of moving segments with the odometry's pose error profiled out (B,)
     and the random walks' share of the covariance of the local ``(r, phi, kappa)``
     (B, 3, 3).
@@ -182,7 +201,8 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     objective the fit minimised (as in :func:`odometry_covariance`), adds ``S S^T`` to
     the covariance (the curvature's weight left out: that share is
     :func:`odometry_covariance`'s). Segments without motion keep ``fit.chi2`` and get no
-    share.
+    share. ``fisher``: that Fisher matrix (B, 3, 3) where known (:func:`odometry_terms`),
+    else evaluated here.
     """
     from sonarloc.fit import model as M
     from sonarloc.fit.lsq import tof_jacobian_at
@@ -250,9 +270,13 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     # the fit's linear response to the walks' weights, -H^-1 dg (H the Fisher matrix of
     # the objective it minimised, as in odometry_covariance; not the curvature's weight:
     # that share is odometry_covariance's)
-    objective = cfg if cfg.method == "full" else replace(cfg, detection=False)
-    y = np.where(used[moving], sub.tof_us - 0.5 * mod.count_period_us, 0.0)
-    _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used[moving], None, objective)
+    if fisher is None:
+        objective = cfg if cfg.method == "full" else replace(cfg, detection=False)
+        y = np.where(used[moving], sub.tof_us - 0.5 * mod.count_period_us, 0.0)
+        _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used[moving], None,
+                                     objective)
+    else:   # :func:`_curvature_share`'s (its moving segments include these)
+        H = fisher[moving]
     S = np.einsum("bij,bjk->bik", _covariance(H), N[:, :3, 4:])     # (b, 3, m - 1)
     cov = np.einsum("bik,bjk->bij", S, S)
     good = np.isfinite(drop) & np.all(np.isfinite(cov), axis=(1, 2))
