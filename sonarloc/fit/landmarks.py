@@ -37,9 +37,25 @@ from sonarloc.io.scancsv import ScanReadings
 Array = NDArray[np.float64]
 
 WEAK_WALL_KAPPA_US = 3.0 * KAPPA_WALL_US
-"""Kappa [us] above which a wall fit is ``UNRESOLVED`` (walls echo strongly at normal
-incidence: a weak "wall" is a corner or merged echoes); the cut stage's weak-wall rules
-(:func:`_fits_alone`, :func:`_hopeless`) use the same bound."""
+"""Kappa [us] above which a wall fit is ``UNRESOLVED`` where the data say so
+(:func:`weak_wall`: walls echo strongly at normal incidence, a weak "wall" is a corner
+or merged echoes); the cut stage's weak-wall rules (:func:`_fits_alone`,
+:func:`_hopeless`) use the same bound."""
+
+
+def weak_wall(kind: ArrayLike, kappa_us: ArrayLike, kappa_sd_us: ArrayLike) -> NDArray[np.bool_]:
+    """Whether wall fits are weaker than walls (``WEAK_WALL_KAPPA_US``) by more than two
+    SDs of ln kappa (``kappa_sd / kappa``).
+
+    A wall seen at normal incidence only (one transducer facing it squarely, the off-
+    axis angle ~0 throughout) shows no U: its TOFs fix ``To + kappa``, not kappa. Such
+    fits land anywhere in the prior's box (kappa 4 +- 17 us on a moving ring's drive,
+    ``past_wall_ends``); their walls are where the motion puts them and their strength
+    is not known, not weak."""
+    k = np.asarray(kappa_us, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return ((np.asarray(kind) == "line") & (k > WEAK_WALL_KAPPA_US)
+                & (np.log(k / WEAK_WALL_KAPPA_US) > 2.0 * np.asarray(kappa_sd_us) / k))
 
 OCCLUDED_KAPPA_LOG_SD = 0.35
 """Relative SD of kappa above which a segment occluded on both sides (by nearer echoes)
@@ -342,7 +358,7 @@ def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Ar
     sensors: list[tuple[int, ...]] = []
     if todo.size:
         batch = pack_flat(seg, t, x, y, yaw, tof, n_segments=todo.size)
-        sel = select_models(batch, cfg)
+        sel, batch = select_models(batch, cfg)
         # transducers that contributed echoes, per segment (each has echoes)
         s_echo = sensor[echo]
         s_lo = int(s_echo.min())
@@ -433,7 +449,7 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     overlap = np.array(["overlap" in ex for ex in sel.extra], dtype=bool)
     check_l = (~finite | (n_used < cfg.min_echoes) | overlap | occluded
                | ~((0.5 * cfg.kappa_lo_us <= kap) & (kap <= 2.0 * cfg.kappa_hi_us))
-               | ((sel.kind == "line") & (kap > WEAK_WALL_KAPPA_US))
+               | weak_wall(sel.kind, kap, sd[:, 2])
                | (p_fit < cfg.min_fit_p) | ((outside > math.radians(1.0)) & (span > 3.0))
                | (kap < 1.5 * cfg.kappa_lo_us) | (sd[:, 1] > flat_sd)).tolist()
     out = []
@@ -458,10 +474,10 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             status = FitStatus.UNRESOLVED
             reason = (f"kappa {local_l[j][2]:.3g} us is outside any real reflector's range "
                       f"({cfg.kappa_lo_us:g}..{cfg.kappa_hi_us:g} us): merged or misread echoes?")
-        elif kind_l[j] == "line" and local_l[j][2] > WEAK_WALL_KAPPA_US:
+        elif weak_wall(kind_l[j], local_l[j][2], sd_l[j][2]):
             status = FitStatus.UNRESOLVED
-            reason = (f"a wall with kappa {local_l[j][2]:.2f} us: walls echo strongly at normal "
-                      "incidence (kappa ~0.15 us); corner or merged echoes?")
+            reason = (f"a wall with kappa {local_l[j][2]:.2f} +- {sd_l[j][2]:.2f} us: walls echo "
+                      "strongly at normal incidence (kappa ~0.15 us); corner or merged echoes?")
         elif p_fit_l[j] < cfg.min_fit_p:
             status = FitStatus.UNRESOLVED
             reason = (f"no single landmark explains the readings (chi2 {chi2_test_l[j]:.0f} for "
@@ -593,7 +609,7 @@ def _cut_plan(seg: Segment, whole: Landmark, cfg: FitConfig, n_cuts: int
     order = np.argsort(-step) + 1
     jumps = order[(order >= cfg.min_echoes) & (order <= n - cfg.min_echoes)][:4]
     return _Cuts(seg, echo, np.unique(np.concatenate([even, jumps])).tolist(),
-                 whole.kind == "line" and whole.kappa_us > WEAK_WALL_KAPPA_US)
+                 bool(weak_wall(whole.kind, whole.kappa_us, _kappa_sd(whole))))
 
 
 _Part = tuple[int, int, int]
@@ -658,7 +674,7 @@ def _hopeless(lm: Landmark, cfg: FitConfig) -> bool:
     kappa = float(lm.params[2])
     return (_fit_p(lm) < CUT_HOPELESS_P
             and 0.5 * cfg.kappa_lo_us <= kappa <= 2.0 * cfg.kappa_hi_us
-            and not (lm.kind == "line" and kappa > WEAK_WALL_KAPPA_US))
+            and not weak_wall(lm.kind, kappa, _kappa_sd(lm)))
 
 
 def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
@@ -767,6 +783,11 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                 continue
         out.append([lm])
     return out
+
+
+def _kappa_sd(lm: Landmark) -> float:
+    """A landmark's SD of kappa [us] (NaN where not known)."""
+    return float(lm.extra.get("kappa_sd_us", math.nan))  # type: ignore[arg-type]
 
 
 def _fit_p(lm: Landmark) -> float:

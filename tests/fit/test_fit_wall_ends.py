@@ -1,0 +1,55 @@
+"""A wall seen squarely by one transducer up to its end: the no-echo readings past the
+end say nothing about the wall's strength (``select.past_wall_ends``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sonarloc.fit.landmarks import fit_scan, weak_wall
+from sonarloc.fit.result import FitStatus
+from sonarloc.fit.synth import Reflector, simulate_readings
+
+RHO_M = 2.0
+
+
+def _drive_past_wall_end(alpha_deg: float, half_length_m: float, seed: int = 1):
+    """A robot driving 1.2 m along +y with one transducer facing a wall (tilted
+    ``alpha_deg`` to the path) squarely; the wall ends on the way (the foot of the
+    normal leaves it)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 6.0, 0.1)
+    y = -0.6 + 0.2 * t
+    alpha = math.radians(alpha_deg)
+    wall = Reflector.line(RHO_M, alpha, 0.15, half_length_m=half_length_m)
+    return simulate_readings(t, 0.0, y, alpha, [wall], rng)
+
+
+@pytest.mark.parametrize(("alpha_deg", "half_length_m"), [(8.0, 0.35), (-12.0, 0.3),
+                                                          (5.0, 0.25)])
+def test_wall_seen_squarely_to_its_end_is_a_wall_not_a_weak_one(alpha_deg, half_length_m):
+    scan = _drive_past_wall_end(alpha_deg, half_length_m)
+    echo = np.isfinite(scan.tof_us)
+    assert echo.sum() >= 10 and (~echo).sum() >= 10     # the wall ends within the drive
+    lms = fit_scan(scan).landmarks
+    walls = [lm for lm in lms if lm.kind == "line"]
+    assert len(walls) == 1, lms
+    lm = walls[0]
+    # its no-echo readings lie past the wall's end: none of them counted
+    assert lm.extra["n_past_wall_end"] == lm.extra["n_noecho"] > 0
+    assert lm.status is FitStatus.OK, lm.reason
+    sd = np.sqrt(np.diag(lm.cov))
+    assert abs(lm.params[0] - RHO_M) < 4 * sd[0] + 1e-3
+    assert abs(math.degrees(lm.params[1]) - alpha_deg) < math.degrees(4 * sd[1]) + 0.2
+
+
+def test_weak_wall_needs_a_significantly_weak_strength():
+    assert weak_wall("line", 11.0, 0.8)              # 11 us: far weaker than any wall
+    assert not weak_wall("line", 4.3, 17.0)          # the TOFs do not fix kappa
+    assert not weak_wall("line", 0.5, 0.01)          # within walls' range
+    assert not weak_wall("point", 11.0, 0.8)         # points may be weak
+    np.testing.assert_array_equal(
+        weak_wall(np.array(["line", "line", "point"]), [11.0, 4.3, 11.0], [0.8, 17.0, 0.8]),
+        [True, False, False])
