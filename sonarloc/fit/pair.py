@@ -1330,7 +1330,13 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
 
     Point-like results (points, and walls by strength from one viewpoint: the same
     fit) that are ``UNRESOLVED`` or ``FLAT`` with at least ``2 min_echoes`` echoes, and
-    ``OK`` ones whose residuals say the single model is strained.
+    ``OK`` ones whose residuals say the single model is strained: their chi-square, or
+    residuals in blocks (runs test) where the odometry's random walk was not profiled
+    out of the chi-square (``chi2_odom``): the walk itself puts a moving segment's
+    residuals in blocks. On a moving ring's 300 s drive (benchmarks/bench_fit.py
+    section 4) the runs test made 8 more candidates of `OK` moving points, all single
+    reflectors by the simulator's truth, one of them then split into two ``PARTIAL``
+    halves.
     """
     n = lm.n_readings
     if n < 2 * cfg.min_echoes or lm.tier == "conventional":
@@ -1343,7 +1349,8 @@ def is_candidate(lm: Landmark, cfg: FitConfig) -> bool:
         return True
     if status is not FitStatus.OK:
         return False
-    if float(extra.get("runs_z", 0.0)) < CANDIDATE_RUNS_Z:  # type: ignore[arg-type]
+    runs_z = float(extra.get("runs_z", 0.0))  # type: ignore[arg-type]
+    if runs_z < CANDIDATE_RUNS_Z and "chi2_odom" not in extra:
         return True
     # the status test's chi-square (odometry's pose error profiled out where moving)
     chi2 = max(float(extra.get("chi2_odom", extra.get("chi2", 0.0))), 0.0)  # type: ignore[arg-type]

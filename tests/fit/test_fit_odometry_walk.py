@@ -107,6 +107,12 @@ def test_pair_candidates_read_the_odometry_chi2():
     assert is_candidate(strained, cfg)
     explained = replace(strained, extra={**strained.extra, "chi2_odom": 1.0 * dof})
     assert not is_candidate(explained, cfg)
+    # residuals in blocks: the walk makes them so; with it profiled out the chi-square
+    # decides (without it, the runs test still makes a candidate)
+    blocks = replace(explained, extra={**explained.extra, "runs_z": -6.0})
+    assert not is_candidate(blocks, cfg)
+    assert is_candidate(replace(blocks, extra={**jitter_only, "chi2": 1.0 * dof,
+                                               "runs_z": -6.0}), cfg)
 
 
 def test_travel_is_the_path_not_the_mount_jumps():
