@@ -236,3 +236,19 @@ def test_builder_memory_is_bounded():
     assert len(b.points) == 1 and len(b.points[0].log_kappas) <= 255
     result = build_from_log(io.StringIO(""))
     assert result.readings == 0 and result.builder.features() == []
+
+
+@pytest.mark.parametrize(("end_gate_m", "kept"), [(BuildConfig.end_gate_m, True), (0.05, False)])
+def test_vertex_just_inside_a_walls_built_end_is_kept(rng, end_gate_m, kept):
+    # the wall's feet run 7 cm past the vertex at its end (the vertex echoes like the
+    # wall beside it): the vertex is no wall echo fitted as a point
+    b = MapBuilder(BuildConfig(min_observations=3, end_gate_m=end_gate_m))
+    for k in range(8):
+        b.add(line_lm(3.0, math.pi / 2), np.array([0.5 * k, 2.0]),
+              feet=np.array([[0.5 * k, 3.0], [0.5 * k + 0.5, 3.0]]))
+    for _ in range(5):
+        b.add(point_lm(np.array([3.93, 3.0]) + rng.normal(0, 0.002, 2), kappa=0.15),
+              np.array([3.0, 2.0]))
+    kinds = sorted(f.kind for f in b.features())
+    assert (len(kinds) == 2) == kept, kinds
+    assert b.stats["dropped_on_wall"] == (0 if kept else 1)
