@@ -602,13 +602,15 @@ _einsum = _c_einsum()
 
 
 def _dot_rows(u: FloatArray, v: FloatArray) -> Array:
-    """Row-wise dot products (B,) of (B, N) arrays, in their precision, as float64."""
-    return _einsum("bn,bn->b", u, v).astype(float)
+    """Row-wise dot products (B,) of (B, N) arrays, in their precision, as float64; ``u``
+    may be a stack (K, B, N) of such arrays: (K, B), each row's as on its own."""
+    return _einsum("...n,...n->...", u, v).astype(float)
 
 
 def _sum_rows(u: FloatArray) -> Array:
-    """Row sums (B,) of a (B, N) array, in its precision, as float64."""
-    return _einsum("bn->b", u).astype(float)
+    """Row sums (B,) of a (B, N) array, in its precision, as float64; of a stack
+    (K, B, N): (K, B), each row's as on its own."""
+    return _einsum("...n->...", u).astype(float)
 
 
 def _truncation_ratio32(z: FloatArray, m: FloatArray, dm: FloatArray, s: float
@@ -643,25 +645,27 @@ def _use_float32(kind: str, tier: str, batch: SegmentBatch, cfg: FitConfig) -> b
 
 def _off_axis32(tier: str, mod: ModuleParams, phi: Array, yaw32: NDArray[np.float32],
                 yaw: Array, bounds: tuple[float, float], derivative: bool,
-                ddiv: float = 1.0
+                ddiv: float = 1.0, phi_bounds: tuple[float, float] | None = None
                 ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
     """ln g (B, N) and d ln g / d theta / ``ddiv`` (None without ``derivative``) in
     float32 of a stationary batch's readings (theta = phi - yaw): the gauss beam's closed
     form (capped as :func:`sonarloc.fit.model.beam_log_factor`), the piston table's
-    cubic (:meth:`sonarloc.fit.model._HermiteTable.lookup_log32`) for the other tiers."""
+    cubic (:meth:`sonarloc.fit.model._HermiteTable.lookup_log32`) for the other tiers.
+    ``phi_bounds``: (min, max) of ``phi`` if known (a pass has two calls)."""
     f32 = np.float32
     if M.BEAMS[tier] == "piston":
         # theta in float64: next to the piston beam's nulls ln g changes by ~1e5 per
         # rad, so the rounding of yaw (1e-7 rad) would show
         table = M._piston_table(mod.diameter_m, mod.carrier_hz, mod.c_mps)
-        lng_p, dlng_p, _ = table.lookup_log32(_angle_diff(phi, yaw, bounds), derivative,
-                                              ddiv)
+        lng_p, dlng_p, _ = table.lookup_log32(_angle_diff(phi, yaw, bounds, phi_bounds),
+                                              derivative, ddiv)
         return lng_p, dlng_p
     lo, hi = bounds
-    if yaw.size and phi.max() - lo <= np.pi and phi.min() - hi >= -np.pi:
-        th = phi.astype(f32) - yaw32
-    else:
-        th = M._wrap_fast(phi - yaw).astype(f32)
+    wrap = True
+    if yaw.size:
+        p_lo, p_hi = phi_bounds if phi_bounds is not None else (phi.min(), phi.max())
+        wrap = not (p_hi - lo <= np.pi and p_lo - hi >= -np.pi)
+    th = M._wrap_fast(phi - yaw).astype(f32) if wrap else phi.astype(f32) - yaw32
     q, capped = _gauss_log_factor32(th, mod)
     if not derivative:
         return q, None
@@ -701,8 +705,9 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     waveform = tier == "waveform"
 
     # detection margins z of the echoes and of the no-echo readings
+    phi_bounds = (float(phi.min()), float(phi.max())) if B else None
     lng, dlng = _off_axis32(tier, mod, phi, batch.yaw32, batch.yaw, batch.yaw_bounds[:2],
-                            want_derivs)
+                            want_derivs, phi_bounds=phi_bounds)
     z = lng * f32(1.0 / sa)
     z += zc
     nv = batch.ne_valid
@@ -710,7 +715,8 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     zz = z
     if noecho:
         lgn, dzn = _off_axis32(tier, mod, phi, batch.ne_yaw32, batch.ne_yaw,
-                               batch.yaw_bounds[2:], want_derivs, sa)   # d zn / d theta
+                               batch.yaw_bounds[2:], want_derivs, sa,   # d zn / d theta
+                               phi_bounds)
         zn = lgn * f32(1.0 / sa)
         zn += zc
         # the normal tails of both in one pass (elementwise: the same numbers as two)
@@ -775,30 +781,35 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             jk *= f32(scale)
             a = jk * dlng
             a *= K.astype(f32)                          # d mean / d theta
-        W = w * w
-        Gw = w * e
-        Wa, Wj = W * a, W * jk
-
-        sw = _sum_rows(W)
-        H[:, 0, 0] = tau * tau * sw
-        H[:, 0, 1] = tau * _sum_rows(Wa)
-        H[:, 0, 2] = tau * _sum_rows(Wj)
-        H[:, 1, 1] = _dot_rows(Wa, a)
-        H[:, 1, 2] = _dot_rows(Wa, jk)
-        H[:, 2, 2] = _dot_rows(Wj, jk)
-        grad[:, 0] = -tau * _sum_rows(Gw)
-        grad[:, 1] = -_dot_rows(Gw, a)
-        grad[:, 2] = -_dot_rows(Gw, jk)
-        # detection terms of the echoes: d z / d theta = dlng / sa, d z / d kappa = ik
-        dz = dlng * f32(1.0 / sa)
-        Wd = curv * usef                                # curvature of -log Phi(-z)
-        Gd = m0 * usef                                  # -d log P / dz
-        Wdz = Wd * dz
-        H[:, 1, 1] += _dot_rows(Wdz, dz)
-        H[:, 1, 2] += ik * _sum_rows(Wdz)
-        H[:, 2, 2] += ik * ik * _sum_rows(Wd)
-        grad[:, 1] += _dot_rows(Gd, dz)
-        grad[:, 2] += ik * _sum_rows(Gd)
+        # the weighted columns of the Fisher matrix and the gradient in one array, so
+        # that their row sums and dot products take four einsum calls, not fourteen (the
+        # same sums: each row's own, in its order); the float64 additions as before
+        dz = dlng * f32(1.0 / sa)       # detection: d z / d theta = dlng / sa, d / dK = ik
+        S = np.empty((7, *e.shape), dtype=np.result_type(w, e, a, jk, curv, usef, dz))
+        W, Wd, Wa, Gw, Wj, Wdz, Gd = S
+        np.multiply(w, w, out=W)
+        np.multiply(curv, usef, out=Wd)                 # curvature of -log Phi(-z)
+        np.multiply(W, a, out=Wa)
+        np.multiply(w, e, out=Gw)
+        np.multiply(W, jk, out=Wj)
+        np.multiply(Wd, dz, out=Wdz)
+        np.multiply(m0, usef, out=Gd)                   # -d log P / dz
+        sums = _sum_rows(S)
+        dot_a, dot_jk, dot_dz = _dot_rows(S[2:4], a), _dot_rows(S[2:5], jk), _dot_rows(S[5:], dz)
+        H[:, 0, 0] = tau * tau * sums[0]
+        H[:, 0, 1] = tau * sums[2]
+        H[:, 0, 2] = tau * sums[4]
+        H[:, 1, 1] = dot_a[0]
+        H[:, 1, 2] = dot_jk[0]
+        H[:, 2, 2] = dot_jk[2]
+        grad[:, 0] = -tau * sums[3]
+        grad[:, 1] = -dot_a[1]
+        grad[:, 2] = -dot_jk[1]
+        H[:, 1, 1] += dot_dz[0]
+        H[:, 1, 2] += ik * sums[5]
+        H[:, 2, 2] += ik * ik * sums[1]
+        grad[:, 1] += dot_dz[1]
+        grad[:, 2] += ik * sums[6]
     prior = _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
     F = F + prior
     F_other = F_other + prior if s2_other is not None else F
@@ -811,16 +822,19 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         if want_derivs:
             assert dzn is not None
             mn = mills[:, nd:]                          # phi(zn) / Phi(zn)
-            Wn = zn + mn
+            Sn = np.empty((3, *mn.shape), dtype=np.result_type(zn, mn, nvf, dzn))
+            Wn, Wndz, Gn = Sn                           # (stacked as the echoes' S)
+            np.add(zn, mn, out=Wn)
             Wn *= mn
             Wn *= nvf                                   # curvature of -log Phi(z)
-            Gn = mn * nvf                               # d log P / dz
-            Wndz = Wn * dzn
-            H[:, 1, 1] += _dot_rows(Wndz, dzn)
-            H[:, 1, 2] += ik * _sum_rows(Wndz)
-            H[:, 2, 2] += ik * ik * _sum_rows(Wn)
-            grad[:, 1] -= _dot_rows(Gn, dzn)
-            grad[:, 2] -= ik * _sum_rows(Gn)
+            np.multiply(Wn, dzn, out=Wndz)
+            np.multiply(mn, nvf, out=Gn)                # d log P / dz
+            sums_n, dot_n = _sum_rows(Sn), _dot_rows(Sn[1:], dzn)
+            H[:, 1, 1] += dot_n[0]
+            H[:, 1, 2] += ik * sums_n[1]
+            H[:, 2, 2] += ik * ik * sums_n[0]
+            grad[:, 1] -= dot_n[1]
+            grad[:, 2] -= ik * sums_n[2]
     H[:, 1, 0], H[:, 2, 0], H[:, 2, 1] = H[:, 0, 1], H[:, 0, 2], H[:, 1, 2]
     return F_other, F, grad, H, e, s2
 
@@ -864,14 +878,16 @@ def _gram(H: Array, grad: Array, cols: Sequence[Array | None], wH: Array, wg: Ar
                 H[:, m, k] += v
 
 
-def _angle_diff(a: FloatArray, b: FloatArray, b_bounds: tuple[float, float] | None = None
-                ) -> Array:
+def _angle_diff(a: FloatArray, b: FloatArray, b_bounds: tuple[float, float] | None = None,
+                a_bounds: tuple[float, float] | None = None) -> Array:
     """``a - b`` wrapped to [-pi, pi] (broadcast); the bounds of the (small) inputs tell
     when no wrapping is needed, which saves passes over the (large) result.
-    ``b_bounds``: (min, max) of ``b`` if known (see :attr:`SegmentBatch.yaw_bounds`)."""
+    ``b_bounds``, ``a_bounds``: (min, max) of ``b`` (see :attr:`SegmentBatch.yaw_bounds`)
+    and of ``a`` if known."""
     if a.size and b.size:
         bmin, bmax = b_bounds if b_bounds is not None else (b.min(), b.max())
-        if a.max() - bmin <= np.pi and a.min() - bmax >= -np.pi:
+        amin, amax = a_bounds if a_bounds is not None else (a.min(), a.max())
+        if amax - bmin <= np.pi and amin - bmax >= -np.pi:
             return a - b
     return M._wrap_fast(a - b)
 
