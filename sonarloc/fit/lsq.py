@@ -600,6 +600,8 @@ def _c_einsum() -> Any:
 
 _einsum = _c_einsum()
 
+_LOG_SQRT_2PI32 = np.float32(M._LOG_SQRT_2PI)
+
 
 def _dot_rows(u: FloatArray, v: FloatArray) -> Array:
     """Row-wise dot products (B,) of (B, N) arrays, in their precision, as float64; ``u``
@@ -622,18 +624,17 @@ def _truncation_ratio32(z: FloatArray, m: FloatArray, dm: FloatArray, s: float
     polynomials in m and z). For ``s = 0.25`` (the amplitude SD) its log is within
     2.1e-6 of the exact one for every z (float32 rounding: 1e-7); it saves a second
     tail probability per echo."""
-    f32 = np.float32
-    mz = m - z
+    mz = m - z                       # (Python float constants: float32 ops, NEP 50)
     m2 = dm * mz
-    m2 += m * (dm - f32(1.0))
+    m2 += m * (dm - 1.0)
     m3 = m2 * mz
-    m3 += f32(2.0) * dm * (dm - f32(1.0))
+    m3 += 2.0 * dm * (dm - 1.0)
     m3 += m * m2
-    acc = m3 * f32(s ** 3 / 24.0)
-    acc += m2 * f32(s * s / 6.0)
-    acc += dm * f32(s / 2.0)
+    acc = m3 * (s ** 3 / 24.0)
+    acc += m2 * (s * s / 6.0)
+    acc += dm * (s / 2.0)
     acc += m
-    acc *= f32(-s)
+    acc *= -s
     return np.exp(acc)
 
 
@@ -670,9 +671,9 @@ def _off_axis32(tier: str, mod: ModuleParams, phi: Array, yaw32: NDArray[np.floa
     if not derivative:
         return q, None
     dlng = th
-    dlng *= f32(1.0 / np.deg2rad(mod.sigma_deg) ** 2 / ddiv)   # inv_s2 / ddiv
+    dlng *= _gauss_scales32(mod.sigma_deg, ddiv)[1]           # inv_s2 / ddiv
     if capped:
-        dlng[q >= f32(np.log(M._G_MAX))] = 0.0
+        dlng[q >= f32(_LN_G_MAX)] = 0.0
     return q, dlng
 
 
@@ -697,7 +698,6 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     mod = cfg.module
     tau = M.us_per_m(mod)
     sa = M.sigma_a(mod)
-    ln_sqrt_2pi = f32(M._LOG_SQRT_2PI)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
     B = p.shape[0]
     lnk = np.log(np.maximum(K, 1e-300))
@@ -708,7 +708,7 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     phi_bounds = (float(phi.min()), float(phi.max())) if B else None
     lng, dlng = _off_axis32(tier, mod, phi, batch.yaw32, batch.yaw, batch.yaw_bounds[:2],
                             want_derivs, phi_bounds=phi_bounds)
-    z = lng * f32(1.0 / sa)
+    z = lng * (1.0 / sa)             # (Python float constants: float32 ops, NEP 50)
     z += zc
     nv = batch.ne_valid
     noecho = bool(nv.shape[1] and nv.any())
@@ -717,13 +717,13 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         lgn, dzn = _off_axis32(tier, mod, phi, batch.ne_yaw32, batch.ne_yaw,
                                batch.yaw_bounds[2:], want_derivs, sa,   # d zn / d theta
                                phi_bounds)
-        zn = lgn * f32(1.0 / sa)
+        zn = lgn * (1.0 / sa)
         zn += zc
         # the normal tails of both in one pass (elementwise: the same numbers as two)
         zz = np.concatenate([z, -zn], axis=1)
     # log P(echo) = log Phi(-z), log P(no echo) = log Phi(zn); phi / Phi of each
     lp = M.log_sf32(zz)
-    mills = np.exp(f32(-0.5) * zz * zz - ln_sqrt_2pi - lp)
+    mills = np.exp(-0.5 * zz * zz - _LOG_SQRT_2PI32 - lp)
     nd = z.shape[1]
     l0, m0 = lp[:, :nd], mills[:, :nd]
     curv = m0 - z
@@ -733,7 +733,7 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         x = lng + lnk.astype(f32)
         delay, dm_dx, var = M.waveform_delay_table(mod).lookup_log32(x, want_derivs)
         if s2 is None:
-            var += f32(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
+            var += float(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
             s2 = var   # type: ignore[assignment]   # float32 (see Returns)
     else:
         g = np.exp(lng)
@@ -743,8 +743,8 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         delay *= (K * scale).astype(f32)
         if s2 is None:
             v = delay * delay
-            v *= f32(mod.amplitude_fluctuation ** 2)
-            v += f32(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
+            v *= float(mod.amplitude_fluctuation ** 2)
+            v += float(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
             s2 = v     # type: ignore[assignment]   # float32 (see Returns)
     assert s2 is not None
     usef = use.astype(f32)
@@ -771,20 +771,20 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             a = dm_dx * dlng
         else:
             # d mean / d kappa: scale (ratio + (ratio m0 - m1) / s) g
-            m1 = np.exp(z * f32(-sa) - f32(0.5 * sa * sa))      # phi(z+s) / Phi(-z)
+            m1 = np.exp(z * -sa - 0.5 * sa * sa)                # phi(z+s) / Phi(-z)
             m1 *= m0
             jk = ratio * m0
             jk -= m1
-            jk *= f32(1.0 / sa)
+            jk *= 1.0 / sa
             jk += ratio
             jk *= g
-            jk *= f32(scale)
+            jk *= scale
             a = jk * dlng
             a *= K.astype(f32)                          # d mean / d theta
         # the weighted columns of the Fisher matrix and the gradient in one array, so
         # that their row sums and dot products take four einsum calls, not fourteen (the
         # same sums: each row's own, in its order); the float64 additions as before
-        dz = dlng * f32(1.0 / sa)       # detection: d z / d theta = dlng / sa, d / dK = ik
+        dz = dlng * (1.0 / sa)          # detection: d z / d theta = dlng / sa, d / dK = ik
         S = np.empty((7, *e.shape), dtype=np.result_type(w, e, a, jk, curv, usef, dz))
         W, Wd, Wa, Gw, Wj, Wdz, Gd = S
         np.multiply(w, w, out=W)
@@ -1107,12 +1107,24 @@ def _log_factor32(theta: FloatArray, tier: str, mod: ModuleParams) -> FloatArray
     return _gauss_log_factor32(theta, mod)[0]
 
 
+_LN_G_MAX = np.log(M._G_MAX)
+
+
+@functools.lru_cache(maxsize=64)
+def _gauss_scales32(sigma_deg: float, ddiv: float) -> tuple[np.float32, np.float32]:
+    """The gauss beam's float32 factors of a pass: 1 / 2 sigma^2 (ln g = theta^2 times
+    it) and 1 / sigma^2 / ``ddiv`` (d ln g / d theta over theta, scaled); worked out
+    once (a model pass needs them twice)."""
+    inv_s2 = 1.0 / np.deg2rad(sigma_deg) ** 2
+    return np.float32(0.5 / np.deg2rad(sigma_deg) ** 2), np.float32(inv_s2 / ddiv)
+
+
 def _gauss_log_factor32(theta: FloatArray, mod: ModuleParams) -> tuple[FloatArray, bool]:
     """ln g = theta^2 / 2 sigma^2 of the gauss beam in float32, capped as in
     :func:`sonarloc.fit.model.beam_log_factor`, and whether any entry is capped."""
-    cap = np.log(M._G_MAX)
+    cap = _LN_G_MAX
     q = theta * theta
-    q *= np.float32(0.5 / np.deg2rad(mod.sigma_deg) ** 2)
+    q *= _gauss_scales32(mod.sigma_deg, 1.0)[0]
     capped = bool(q.size) and float(q.max()) >= cap
     if capped:
         np.minimum(q, np.float32(cap), out=q)
