@@ -600,15 +600,19 @@ def _c_einsum() -> Any:
 
 _einsum = _c_einsum()
 
+_LOG_SQRT_2PI32 = np.float32(M._LOG_SQRT_2PI)
+
 
 def _dot_rows(u: FloatArray, v: FloatArray) -> Array:
-    """Row-wise dot products (B,) of (B, N) arrays, in their precision, as float64."""
-    return _einsum("bn,bn->b", u, v).astype(float)
+    """Row-wise dot products (B,) of (B, N) arrays, in their precision, as float64; ``u``
+    may be a stack (K, B, N) of such arrays: (K, B), each row's as on its own."""
+    return _einsum("...n,...n->...", u, v).astype(float)
 
 
 def _sum_rows(u: FloatArray) -> Array:
-    """Row sums (B,) of a (B, N) array, in its precision, as float64."""
-    return _einsum("bn->b", u).astype(float)
+    """Row sums (B,) of a (B, N) array, in its precision, as float64; of a stack
+    (K, B, N): (K, B), each row's as on its own."""
+    return _einsum("...n->...", u).astype(float)
 
 
 def _truncation_ratio32(z: FloatArray, m: FloatArray, dm: FloatArray, s: float
@@ -620,18 +624,17 @@ def _truncation_ratio32(z: FloatArray, m: FloatArray, dm: FloatArray, s: float
     polynomials in m and z). For ``s = 0.25`` (the amplitude SD) its log is within
     2.1e-6 of the exact one for every z (float32 rounding: 1e-7); it saves a second
     tail probability per echo."""
-    f32 = np.float32
-    mz = m - z
+    mz = m - z                       # (Python float constants: float32 ops, NEP 50)
     m2 = dm * mz
-    m2 += m * (dm - f32(1.0))
+    m2 += m * (dm - 1.0)
     m3 = m2 * mz
-    m3 += f32(2.0) * dm * (dm - f32(1.0))
+    m3 += 2.0 * dm * (dm - 1.0)
     m3 += m * m2
-    acc = m3 * f32(s ** 3 / 24.0)
-    acc += m2 * f32(s * s / 6.0)
-    acc += dm * f32(s / 2.0)
+    acc = m3 * (s ** 3 / 24.0)
+    acc += m2 * (s * s / 6.0)
+    acc += dm * (s / 2.0)
     acc += m
-    acc *= f32(-s)
+    acc *= -s
     return np.exp(acc)
 
 
@@ -643,32 +646,34 @@ def _use_float32(kind: str, tier: str, batch: SegmentBatch, cfg: FitConfig) -> b
 
 def _off_axis32(tier: str, mod: ModuleParams, phi: Array, yaw32: NDArray[np.float32],
                 yaw: Array, bounds: tuple[float, float], derivative: bool,
-                ddiv: float = 1.0
+                ddiv: float = 1.0, phi_bounds: tuple[float, float] | None = None
                 ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
     """ln g (B, N) and d ln g / d theta / ``ddiv`` (None without ``derivative``) in
     float32 of a stationary batch's readings (theta = phi - yaw): the gauss beam's closed
     form (capped as :func:`sonarloc.fit.model.beam_log_factor`), the piston table's
-    cubic (:meth:`sonarloc.fit.model._HermiteTable.lookup_log32`) for the other tiers."""
+    cubic (:meth:`sonarloc.fit.model._HermiteTable.lookup_log32`) for the other tiers.
+    ``phi_bounds``: (min, max) of ``phi`` if known (a pass has two calls)."""
     f32 = np.float32
     if M.BEAMS[tier] == "piston":
         # theta in float64: next to the piston beam's nulls ln g changes by ~1e5 per
         # rad, so the rounding of yaw (1e-7 rad) would show
         table = M._piston_table(mod.diameter_m, mod.carrier_hz, mod.c_mps)
-        lng_p, dlng_p, _ = table.lookup_log32(_angle_diff(phi, yaw, bounds), derivative,
-                                              ddiv)
+        lng_p, dlng_p, _ = table.lookup_log32(_angle_diff(phi, yaw, bounds, phi_bounds),
+                                              derivative, ddiv)
         return lng_p, dlng_p
     lo, hi = bounds
-    if yaw.size and phi.max() - lo <= np.pi and phi.min() - hi >= -np.pi:
-        th = phi.astype(f32) - yaw32
-    else:
-        th = M._wrap_fast(phi - yaw).astype(f32)
+    wrap = True
+    if yaw.size:
+        p_lo, p_hi = phi_bounds if phi_bounds is not None else (phi.min(), phi.max())
+        wrap = not (p_hi - lo <= np.pi and p_lo - hi >= -np.pi)
+    th = M._wrap_fast(phi - yaw).astype(f32) if wrap else phi.astype(f32) - yaw32
     q, capped = _gauss_log_factor32(th, mod)
     if not derivative:
         return q, None
     dlng = th
-    dlng *= f32(1.0 / np.deg2rad(mod.sigma_deg) ** 2 / ddiv)   # inv_s2 / ddiv
+    dlng *= _gauss_scales32(mod.sigma_deg, ddiv)[1]           # inv_s2 / ddiv
     if capped:
-        dlng[q >= f32(np.log(M._G_MAX))] = 0.0
+        dlng[q >= f32(_LN_G_MAX)] = 0.0
     return q, dlng
 
 
@@ -693,7 +698,6 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     mod = cfg.module
     tau = M.us_per_m(mod)
     sa = M.sigma_a(mod)
-    ln_sqrt_2pi = f32(M._LOG_SQRT_2PI)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
     B = p.shape[0]
     lnk = np.log(np.maximum(K, 1e-300))
@@ -701,23 +705,25 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     waveform = tier == "waveform"
 
     # detection margins z of the echoes and of the no-echo readings
+    phi_bounds = (float(phi.min()), float(phi.max())) if B else None
     lng, dlng = _off_axis32(tier, mod, phi, batch.yaw32, batch.yaw, batch.yaw_bounds[:2],
-                            want_derivs)
-    z = lng * f32(1.0 / sa)
+                            want_derivs, phi_bounds=phi_bounds)
+    z = lng * (1.0 / sa)             # (Python float constants: float32 ops, NEP 50)
     z += zc
     nv = batch.ne_valid
     noecho = bool(nv.shape[1] and nv.any())
     zz = z
     if noecho:
         lgn, dzn = _off_axis32(tier, mod, phi, batch.ne_yaw32, batch.ne_yaw,
-                               batch.yaw_bounds[2:], want_derivs, sa)   # d zn / d theta
-        zn = lgn * f32(1.0 / sa)
+                               batch.yaw_bounds[2:], want_derivs, sa,   # d zn / d theta
+                               phi_bounds)
+        zn = lgn * (1.0 / sa)
         zn += zc
         # the normal tails of both in one pass (elementwise: the same numbers as two)
         zz = np.concatenate([z, -zn], axis=1)
     # log P(echo) = log Phi(-z), log P(no echo) = log Phi(zn); phi / Phi of each
     lp = M.log_sf32(zz)
-    mills = np.exp(f32(-0.5) * zz * zz - ln_sqrt_2pi - lp)
+    mills = np.exp(-0.5 * zz * zz - _LOG_SQRT_2PI32 - lp)
     nd = z.shape[1]
     l0, m0 = lp[:, :nd], mills[:, :nd]
     curv = m0 - z
@@ -727,7 +733,7 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         x = lng + lnk.astype(f32)
         delay, dm_dx, var = M.waveform_delay_table(mod).lookup_log32(x, want_derivs)
         if s2 is None:
-            var += f32(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
+            var += float(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
             s2 = var   # type: ignore[assignment]   # float32 (see Returns)
     else:
         g = np.exp(lng)
@@ -737,8 +743,8 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         delay *= (K * scale).astype(f32)
         if s2 is None:
             v = delay * delay
-            v *= f32(mod.amplitude_fluctuation ** 2)
-            v += f32(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
+            v *= float(mod.amplitude_fluctuation ** 2)
+            v += float(mod.jitter_sd_us ** 2 + mod.count_period_us ** 2 / 12.0)
             s2 = v     # type: ignore[assignment]   # float32 (see Returns)
     assert s2 is not None
     usef = use.astype(f32)
@@ -765,40 +771,45 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             a = dm_dx * dlng
         else:
             # d mean / d kappa: scale (ratio + (ratio m0 - m1) / s) g
-            m1 = np.exp(z * f32(-sa) - f32(0.5 * sa * sa))      # phi(z+s) / Phi(-z)
+            m1 = np.exp(z * -sa - 0.5 * sa * sa)                # phi(z+s) / Phi(-z)
             m1 *= m0
             jk = ratio * m0
             jk -= m1
-            jk *= f32(1.0 / sa)
+            jk *= 1.0 / sa
             jk += ratio
             jk *= g
-            jk *= f32(scale)
+            jk *= scale
             a = jk * dlng
             a *= K.astype(f32)                          # d mean / d theta
-        W = w * w
-        Gw = w * e
-        Wa, Wj = W * a, W * jk
-
-        sw = _sum_rows(W)
-        H[:, 0, 0] = tau * tau * sw
-        H[:, 0, 1] = tau * _sum_rows(Wa)
-        H[:, 0, 2] = tau * _sum_rows(Wj)
-        H[:, 1, 1] = _dot_rows(Wa, a)
-        H[:, 1, 2] = _dot_rows(Wa, jk)
-        H[:, 2, 2] = _dot_rows(Wj, jk)
-        grad[:, 0] = -tau * _sum_rows(Gw)
-        grad[:, 1] = -_dot_rows(Gw, a)
-        grad[:, 2] = -_dot_rows(Gw, jk)
-        # detection terms of the echoes: d z / d theta = dlng / sa, d z / d kappa = ik
-        dz = dlng * f32(1.0 / sa)
-        Wd = curv * usef                                # curvature of -log Phi(-z)
-        Gd = m0 * usef                                  # -d log P / dz
-        Wdz = Wd * dz
-        H[:, 1, 1] += _dot_rows(Wdz, dz)
-        H[:, 1, 2] += ik * _sum_rows(Wdz)
-        H[:, 2, 2] += ik * ik * _sum_rows(Wd)
-        grad[:, 1] += _dot_rows(Gd, dz)
-        grad[:, 2] += ik * _sum_rows(Gd)
+        # the weighted columns of the Fisher matrix and the gradient in one array, so
+        # that their row sums and dot products take four einsum calls, not fourteen (the
+        # same sums: each row's own, in its order); the float64 additions as before
+        dz = dlng * (1.0 / sa)          # detection: d z / d theta = dlng / sa, d / dK = ik
+        S = np.empty((7, *e.shape), dtype=np.result_type(w, e, a, jk, curv, usef, dz))
+        W, Wd, Wa, Gw, Wj, Wdz, Gd = S
+        np.multiply(w, w, out=W)
+        np.multiply(curv, usef, out=Wd)                 # curvature of -log Phi(-z)
+        np.multiply(W, a, out=Wa)
+        np.multiply(w, e, out=Gw)
+        np.multiply(W, jk, out=Wj)
+        np.multiply(Wd, dz, out=Wdz)
+        np.multiply(m0, usef, out=Gd)                   # -d log P / dz
+        sums = _sum_rows(S)
+        dot_a, dot_jk, dot_dz = _dot_rows(S[2:4], a), _dot_rows(S[2:5], jk), _dot_rows(S[5:], dz)
+        H[:, 0, 0] = tau * tau * sums[0]
+        H[:, 0, 1] = tau * sums[2]
+        H[:, 0, 2] = tau * sums[4]
+        H[:, 1, 1] = dot_a[0]
+        H[:, 1, 2] = dot_jk[0]
+        H[:, 2, 2] = dot_jk[2]
+        grad[:, 0] = -tau * sums[3]
+        grad[:, 1] = -dot_a[1]
+        grad[:, 2] = -dot_jk[1]
+        H[:, 1, 1] += dot_dz[0]
+        H[:, 1, 2] += ik * sums[5]
+        H[:, 2, 2] += ik * ik * sums[1]
+        grad[:, 1] += dot_dz[1]
+        grad[:, 2] += ik * sums[6]
     prior = _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
     F = F + prior
     F_other = F_other + prior if s2_other is not None else F
@@ -811,16 +822,19 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         if want_derivs:
             assert dzn is not None
             mn = mills[:, nd:]                          # phi(zn) / Phi(zn)
-            Wn = zn + mn
+            Sn = np.empty((3, *mn.shape), dtype=np.result_type(zn, mn, nvf, dzn))
+            Wn, Wndz, Gn = Sn                           # (stacked as the echoes' S)
+            np.add(zn, mn, out=Wn)
             Wn *= mn
             Wn *= nvf                                   # curvature of -log Phi(z)
-            Gn = mn * nvf                               # d log P / dz
-            Wndz = Wn * dzn
-            H[:, 1, 1] += _dot_rows(Wndz, dzn)
-            H[:, 1, 2] += ik * _sum_rows(Wndz)
-            H[:, 2, 2] += ik * ik * _sum_rows(Wn)
-            grad[:, 1] -= _dot_rows(Gn, dzn)
-            grad[:, 2] -= ik * _sum_rows(Gn)
+            np.multiply(Wn, dzn, out=Wndz)
+            np.multiply(mn, nvf, out=Gn)                # d log P / dz
+            sums_n, dot_n = _sum_rows(Sn), _dot_rows(Sn[1:], dzn)
+            H[:, 1, 1] += dot_n[0]
+            H[:, 1, 2] += ik * sums_n[1]
+            H[:, 2, 2] += ik * ik * sums_n[0]
+            grad[:, 1] -= dot_n[1]
+            grad[:, 2] -= ik * sums_n[2]
     H[:, 1, 0], H[:, 2, 0], H[:, 2, 1] = H[:, 0, 1], H[:, 0, 2], H[:, 1, 2]
     return F_other, F, grad, H, e, s2
 
@@ -864,14 +878,16 @@ def _gram(H: Array, grad: Array, cols: Sequence[Array | None], wH: Array, wg: Ar
                 H[:, m, k] += v
 
 
-def _angle_diff(a: FloatArray, b: FloatArray, b_bounds: tuple[float, float] | None = None
-                ) -> Array:
+def _angle_diff(a: FloatArray, b: FloatArray, b_bounds: tuple[float, float] | None = None,
+                a_bounds: tuple[float, float] | None = None) -> Array:
     """``a - b`` wrapped to [-pi, pi] (broadcast); the bounds of the (small) inputs tell
     when no wrapping is needed, which saves passes over the (large) result.
-    ``b_bounds``: (min, max) of ``b`` if known (see :attr:`SegmentBatch.yaw_bounds`)."""
+    ``b_bounds``, ``a_bounds``: (min, max) of ``b`` (see :attr:`SegmentBatch.yaw_bounds`)
+    and of ``a`` if known."""
     if a.size and b.size:
         bmin, bmax = b_bounds if b_bounds is not None else (b.min(), b.max())
-        if a.max() - bmin <= np.pi and a.min() - bmax >= -np.pi:
+        amin, amax = a_bounds if a_bounds is not None else (a.min(), a.max())
+        if amax - bmin <= np.pi and amin - bmax >= -np.pi:
             return a - b
     return M._wrap_fast(a - b)
 
@@ -1091,12 +1107,24 @@ def _log_factor32(theta: FloatArray, tier: str, mod: ModuleParams) -> FloatArray
     return _gauss_log_factor32(theta, mod)[0]
 
 
+_LN_G_MAX = np.log(M._G_MAX)
+
+
+@functools.lru_cache(maxsize=64)
+def _gauss_scales32(sigma_deg: float, ddiv: float) -> tuple[np.float32, np.float32]:
+    """The gauss beam's float32 factors of a pass: 1 / 2 sigma^2 (ln g = theta^2 times
+    it) and 1 / sigma^2 / ``ddiv`` (d ln g / d theta over theta, scaled); worked out
+    once (a model pass needs them twice)."""
+    inv_s2 = 1.0 / np.deg2rad(sigma_deg) ** 2
+    return np.float32(0.5 / np.deg2rad(sigma_deg) ** 2), np.float32(inv_s2 / ddiv)
+
+
 def _gauss_log_factor32(theta: FloatArray, mod: ModuleParams) -> tuple[FloatArray, bool]:
     """ln g = theta^2 / 2 sigma^2 of the gauss beam in float32, capped as in
     :func:`sonarloc.fit.model.beam_log_factor`, and whether any entry is capped."""
-    cap = np.log(M._G_MAX)
+    cap = _LN_G_MAX
     q = theta * theta
-    q *= np.float32(0.5 / np.deg2rad(mod.sigma_deg) ** 2)
+    q *= _gauss_scales32(mod.sigma_deg, 1.0)[0]
     capped = bool(q.size) and float(q.max()) >= cap
     if capped:
         np.minimum(q, np.float32(cap), out=q)

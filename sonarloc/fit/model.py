@@ -825,6 +825,8 @@ def fit_log_erfc_poly(degree: int = _SF_DEGREE) -> tuple[float, ...]:
 
 
 _LOG_ERFC_POLY32 = tuple(np.float32(c) for c in _LOG_ERFC_POLY)
+_SQRT_HALF32 = np.float32(np.sqrt(0.5))
+_LN2_32 = np.float32(np.log(2.0))
 
 
 def log_sf32(z: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -837,10 +839,11 @@ def log_sf32(z: NDArray[np.float32]) -> NDArray[np.float32]:
     in log Phi(-z) and relative error below 2e-7 in Phi(-z) (float32 rounding); tested
     against ``scipy.special.log_ndtr``.
     """
-    f32 = np.float32
-    a = np.abs(z) * f32(np.sqrt(0.5))                  # erfc argument |z| / sqrt 2
-    t = f32(1.0) / (f32(1.0) + f32(0.5) * a)
-    v = f32(2.0) * t - f32(1.0)
+    # (constants: Python floats, or float32 for numpy's own scalars: a Python float
+    # meets a float32 array as float32, NEP 50, and costs no scalar of its own per call)
+    a = np.abs(z) * _SQRT_HALF32                       # erfc argument |z| / sqrt 2
+    t = 1.0 / (1.0 + 0.5 * a)
+    v = 2.0 * t - 1.0
     c0, *coef = _LOG_ERFC_POLY32
     acc = v * c0                                       # Horner's rule from c0 v
     for c in coef[:-1]:
@@ -855,9 +858,9 @@ def log_sf32(z: NDArray[np.float32]) -> NDArray[np.float32]:
     # blend by 0/1 weights (exact: one term is 0) replaces a masked select (which
     # costs more than all of the above on mixed signs)
     neg = (z < 0).astype(np.float32)
-    lo = np.log(f32(1.0) - f32(0.5) * np.exp(le))      # abs. error < 6e-8 (as log1p)
+    lo = np.log(1.0 - 0.5 * np.exp(le))               # abs. error < 6e-8 (as log1p)
     lo *= neg
-    le -= f32(np.log(2.0))
-    le *= f32(1.0) - neg
+    le -= _LN2_32
+    le *= 1.0 - neg
     le += lo
     return le

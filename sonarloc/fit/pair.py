@@ -245,7 +245,7 @@ class _Segment:
         if rd.rows is None:
             r, phi, K = r_, phi_, K_
         else:                                        # flat: each reading its row's values
-            r, phi, K = r_[rd.rows, 0], phi_[rd.rows, 0], K_[rd.rows, 0]
+            r, phi, K = _per_reading((r_, phi_, K_), rd.rows)
         R, theta, geo = _geometry(r, phi, px, py, yaw, self.moving)
         g, dg, lg = M.beam_delay_factor(theta, self.tier, mod, derivative=grad)
         z = M.detection_z(K, lg, mod)
@@ -257,7 +257,7 @@ class _Segment:
         has_ne = bool(nyaw.shape[-1])
         if has_ne:
             rn, phin, Kn = ((r, phi, K) if rd.nrows is None else
-                            (r_[rd.nrows, 0], phi_[rd.nrows, 0], K_[rd.nrows, 0]))
+                            _per_reading((r_, phi_, K_), rd.nrows))
             _, theta_n, ng = _geometry(rn, phin, npx, npy, nyaw, self.ne_moving)
             gn, dgn, lgn = M.beam_delay_factor(theta_n, self.tier, mod, derivative=grad)
             ne = M.noecho_terms(M.detection_z(Kn, lgn, mod), want_info=False)
@@ -544,6 +544,13 @@ class _Segments(_Segment):
     def _masks(self, owner: NDArray[np.intp] | None
                ) -> tuple[NDArray[np.bool_] | None, NDArray[np.bool_] | None]:
         return None, None
+
+
+def _per_reading(cols: tuple[Array, ...], rows: NDArray[np.intp]) -> tuple[Array, ...]:
+    """Each (S, 1) column's value at every flat reading (N,), ``rows`` the row of each
+    (``np.take`` of the column: the same values as ``col[rows, 0]``, a third of its time
+    on a pair call's ~10,000 readings)."""
+    return tuple(np.take(c[:, 0], rows) for c in cols)
 
 
 def _geometry(r: Array, phi: Array, px: Array, py: Array, yaw: Array, moving: bool

@@ -330,6 +330,25 @@ def test_step_solves_of_a_row_depend_on_its_own_system_only(rng):
         np.testing.assert_allclose(x[20], v * (v @ b[20]) / (v @ v) ** 2, rtol=1e-9)
 
 
+def test_stacked_row_sums_are_each_rows_own(rng):
+    # the float32 pass sums its Fisher matrix's and gradient's columns as one stack
+    # (K, B, N): each of those sums must be the one of that (B, N) array alone, to the
+    # last bit, so the fits do not depend on how the columns are stacked
+    from sonarloc.fit.lsq import _dot_rows, _sum_rows
+
+    for width in (1, 3, 7, 12, 19, 27, 33, 64):
+        S = rng.normal(size=(5, 9, width)).astype(np.float32)
+        v = rng.normal(size=(9, width)).astype(np.float32)
+        sums, dots = _sum_rows(S), _dot_rows(S[1:4], v)
+        assert sums.shape == (5, 9) and dots.shape == (3, 9)
+        assert sums.dtype == np.float64 and dots.dtype == np.float64
+        for k in range(5):
+            assert np.array_equal(sums[k], np.einsum("bn->b", S[k]).astype(float))
+        for k in range(3):
+            assert np.array_equal(dots[k], np.einsum("bn,bn->b", S[1 + k], v).astype(float))
+        assert np.array_equal(_sum_rows(S[0]), sums[0])       # one array: (B,)
+
+
 def test_batch_and_fast_presets(rng):
     # batch: the default's answer (to a fraction of an SD); fast: one guarded step from
     # a coarse grid, coarser but sound (no divergence, sub-degree bearings)
