@@ -1379,6 +1379,15 @@ def _chi2_band(dof: int) -> tuple[float, float]:
     return 0.99 * x, 1.01 * x
 
 
+_ARMS_OF_ONE_U = ("neither component's minimum is seen (both PARTIAL) where the single "
+                  "fit's is: the two arms of one U")
+"""Why an accepted pair does not replace an ``OK`` single landmark whose components would
+both be ``PARTIAL``: two half-U's explain a U whose minimum the single fit sees. On a
+moving ring's 300 s drive (benchmarks/bench_fit.py section 4) the pairs accepted for
+``OK`` singles were all of this kind and all single reflectors by the simulator's truth
+(odometry error bends the U; session 11)."""
+
+
 def pair_landmarks(pf: PairFit, single: Landmark, cfg: FitConfig) -> list[Landmark]:
     """Two landmarks from an accepted pair fit, each with its own status (``PARTIAL``
     when its minimum is hidden by the other reflector or beyond the scan)."""
@@ -1493,10 +1502,15 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
             fits[i] = pf
     for i, pf in fits.items():
         lm = landmarks[i]
+        basis = pf.basis
         if pf.accepted:
-            out[i] = pair_landmarks(pf, lm, cfg)
-            continue
-        lm.extra["pair_basis"] = pf.basis
+            pair = pair_landmarks(pf, lm, cfg)
+            if not (lm.status is FitStatus.OK
+                    and all(p.status is FitStatus.PARTIAL for p in pair)):
+                out[i] = pair
+                continue
+            basis = f"{basis}; not taken: {_ARMS_OF_ONE_U}"
+        lm.extra["pair_basis"] = basis
         lm.extra["pair_gain"] = pf.gain
         if lm.status is not FitStatus.OK:
             out[i] = [replace(lm, reason=f"{lm.reason}; {pf.basis}")]

@@ -1,5 +1,6 @@
-"""A wall seen squarely by one transducer up to its end: the no-echo readings past the
-end say nothing about the wall's strength (``select.past_wall_ends``)."""
+"""Moving segments: a wall seen squarely by one transducer up to its end (the no-echo
+readings past the end say nothing about the wall's strength, ``select.past_wall_ends``),
+and an OK single landmark against the two arms of its U (``pair._ARMS_OF_ONE_U``)."""
 
 from __future__ import annotations
 
@@ -7,10 +8,17 @@ import math
 
 import numpy as np
 import pytest
+from conftest import MAPS
 
-from sonarloc.fit.landmarks import fit_scan, weak_wall
+from sonarloc.fit.landmarks import fit_scan, fit_segments, weak_wall
+from sonarloc.fit.lsq import FitConfig
+from sonarloc.fit.pair import resolve_pair_groups
 from sonarloc.fit.result import FitStatus
+from sonarloc.fit.segment import Segmenter
 from sonarloc.fit.synth import Reflector, simulate_readings
+from sonarloc.maps import load_map
+from sonarloc.world.rig import rig_by_name
+from sonarloc.world.simulate import simulate_scan
 
 RHO_M = 2.0
 
@@ -53,3 +61,18 @@ def test_weak_wall_needs_a_significantly_weak_strength():
     np.testing.assert_array_equal(
         weak_wall(np.array(["line", "line", "point"]), [11.0, 4.3, 11.0], [0.8, 17.0, 0.8]),
         [True, False, False])
+
+
+def test_ok_single_is_not_replaced_by_the_two_arms_of_its_u():
+    # a moving ring's segment (room drive, odometry poses) whose single fit is OK and
+    # whose accepted pair would be two PARTIAL halves (neither minimum seen): odometry
+    # error bends the U; the single landmark stays
+    scan = simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
+                         frame="odom", duration_s=63.0, seed=3).readings
+    (seg,) = [s for s in Segmenter().feed_block(scan) if abs(s.readings.t_s[0] - 54.48) < 1e-6]
+    single = fit_segments([seg])[0]
+    assert single.status is FitStatus.OK
+    (group,) = resolve_pair_groups([seg], [single], FitConfig())
+    assert len(group) == 1 and group[0].status is FitStatus.OK
+    basis = str(group[0].extra["pair_basis"])
+    assert basis.startswith("two reflectors") and "not taken" in basis
