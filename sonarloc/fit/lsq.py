@@ -25,7 +25,7 @@ import importlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -108,13 +108,14 @@ class FitConfig:
         unconverged fit (its variance plus its expected distance to the converged one)
         rather than the variance of a converged one. A result whose pending step's
         expected decrease is below ``tolerance`` counts as converged.
-    float32 : the model passes of the refinement of stationary segments (pans: all
-        readings at the reference position) in single precision, for the gauss tier with
-        the detection model (others: float64): readings relative to the model range,
-        branch-free normal tail probabilities (:func:`sonarloc.fit.model.log_sf32`),
-        the objective summed in float64. About 3x cheaper passes; results within a few
-        thousandths of an SD of the float64 ones (tests). On by default since
-        2026-11-21 (session 5; ``float32=False`` for the float64 passes).
+    float32 : the model passes of the refinement in single precision, with the
+        detection model (without: float64): readings relative to the model range (a
+        moving batch's ranges formed in float64), branch-free normal tail probabilities
+        (:func:`sonarloc.fit.model.log_sf32`), the objective summed in float64. Passes
+        of pans about 3x cheaper, of moving batches (~10 segments a pass) ~1.2-1.3x;
+        results within a few thousandths of an SD of the float64 ones (tests). On by
+        default for pans since 2026-11-21 (session 5), for moving batches since
+        2026-11-27; ``float32=False`` for the float64 passes.
     start : where the refinement starts. ``"grid"``: the global bearing grid bracket.
         ``"arc"``: for stationary point segments (pans) whose echo arc is whole (a
         no-echo reading within 5 deg beyond each end, at most half as many no-echo
@@ -197,8 +198,8 @@ class FitConfig:
         segment and one round whose variances follow every step (``follow_variances``).
         Same accuracy as the default on single-reflector segments
         (benchmarks/results/fit.md), about 1.5-2x faster than the grid-started fit
-        (stationary gauss-tier segments in float32: ``float32``, within a few
-        thousandths of an SD of float64); the default's arc start (``start="arc"``) is
+        (the model passes in float32: ``float32``, within a few thousandths of an SD of
+        float64); the default's arc start (``start="arc"``) is
         faster still on pans whose arc is whole. On ill-posed segments (corners, merged
         wall and corner) it may settle elsewhere than the default, so the online
         pipeline keeps the default."""
@@ -217,9 +218,9 @@ class FitConfig:
         (benchmarks/results/fit.md). The covariance is that of the Fisher matrix at the
         result plus the pending Newton step's outer product (``final_derivatives``): it
         covers the distance to the converged fit, so the reported SDs match the errors
-        as the converged fit's do. Stationary gauss-tier segments (pans) are fitted in
-        float32 (``float32``; within a few hundredths of an SD of float64), in chunks
-        of twice the default size (the arrays are half as large)."""
+        as the converged fit's do. The model passes run in float32 (``float32``; within
+        a few hundredths of an SD of float64), in chunks of twice the default size (the
+        arrays are half as large)."""
         return replace(cls(grid_step_deg=12.0, rounds=1, iterations=2, follow_variances=True,
                            grid_max_echoes=16, final_derivatives=True, float32=True,
                            chunk_readings=131072, start="arc", arc_iterations=1), **changes)
@@ -511,7 +512,7 @@ def _evaluate_core(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array
     """:func:`_evaluate_s2` preceded by the objective with the variances ``s2_other``
     instead (the same as the objective without them), from the same model pass."""
     if _use_float32(kind, tier, batch, cfg):
-        return _evaluate_pan32(p, batch, y, use, s2, cfg, want_derivs, s2_other, tier)
+        return _evaluate32(kind, p, batch, y, use, s2, cfg, want_derivs, s2_other, tier)
     mod = cfg.module
     tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
@@ -600,8 +601,6 @@ def _c_einsum() -> Any:
 
 _einsum = _c_einsum()
 
-_LOG_SQRT_2PI32 = np.float32(M._LOG_SQRT_2PI)
-
 
 def _dot_rows(u: FloatArray, v: FloatArray) -> Array:
     """Row-wise dot products (B,) of (B, N) arrays, in their precision, as float64; ``u``
@@ -615,16 +614,16 @@ def _sum_rows(u: FloatArray) -> Array:
     return _einsum("...n->...", u).astype(float)
 
 
-def _truncation_ratio32(z: FloatArray, m: FloatArray, dm: FloatArray, s: float
+def _truncation_ratio32(h: FloatArray, m: FloatArray, dm: FloatArray, s: float
                         ) -> FloatArray:
-    """Phi(-z-s) / Phi(-z) from the Mills ratio ``m = phi(z) / Phi(-z)`` and its
-    derivative ``dm = m (m - z)``: exp of the 4th-order Taylor series in ``s`` of
+    """Phi(-z-s) / Phi(-z) from the Mills ratio ``m = phi(z) / Phi(-z)``, its excess
+    ``h = m - z`` and derivative ``dm = m h``: exp of the 4th-order Taylor series in ``s`` of
     log Phi(-z-s) - log Phi(-z), whose derivatives by z are minus m and its
     derivatives (m2 = dm (m - z) + m (dm - 1), m3 = m2 (m - z) + 2 dm (dm - 1) + m m2:
     polynomials in m and z). For ``s = 0.25`` (the amplitude SD) its log is within
     2.1e-6 of the exact one for every z (float32 rounding: 1e-7); it saves a second
     tail probability per echo."""
-    mz = m - z                       # (Python float constants: float32 ops, NEP 50)
+    mz = h                           # (Python float constants: float32 ops, NEP 50)
     m2 = dm * mz
     m2 += m * (dm - 1.0)
     m3 = m2 * mz
@@ -638,10 +637,31 @@ def _truncation_ratio32(z: FloatArray, m: FloatArray, dm: FloatArray, s: float
     return np.exp(acc)
 
 
+def _truncated_slope_far32(jk: NDArray[np.float32], z: NDArray[np.float32],
+                           h: NDArray[np.float32], ratio: NDArray[np.float32],
+                           g: NDArray[np.float32], scale: float, s: float) -> None:
+    """Put into ``jk`` (the truncated mean delay's derivative by kappa, ``scale g (ratio
+    + (ratio m - m1) / s)`` with m1 = phi(z+s) / Phi(-z)) the form that holds far beyond
+    the detection limit, z >= :data:`sonarloc.fit.model.Z_CF`: there 1 + (ratio m - m1)
+    / (s ratio) = 1 + (m(z) - m(z+s)) / s = (h(z) - h(z+s)) / s ~ 1/z^2 (h = m - z) is a
+    small difference of numbers ~1 (and of the ratio's series error, 2e-6, times z / s),
+    which float32 loses; the excess h from its continued fraction
+    (:func:`sonarloc.fit.model.mills_excess_cf32`) keeps it (within 3e-4)."""
+    far = np.flatnonzero(z >= np.float32(M.Z_CF))
+    if far.size:
+        zf = np.take(z, far)
+        slope = np.take(h, far) - M.mills_excess_cf32(zf + np.float32(s))
+        slope *= np.take(ratio, far)
+        slope *= np.take(g, far)
+        slope *= np.float32(scale / s)
+        np.put(jk, far, slope)
+
+
 def _use_float32(kind: str, tier: str, batch: SegmentBatch, cfg: FitConfig) -> bool:
-    """Whether :func:`_evaluate_pan32` does the model passes (``cfg.float32``, a
-    stationary batch, the detection model; every tier since session 6)."""
-    return cfg.float32 and cfg.detection and not batch.moving
+    """Whether :func:`_evaluate32` does the model passes (``cfg.float32`` and the
+    detection model; every tier since session 6, moving batches too since
+    2026-11-27)."""
+    return cfg.float32 and cfg.detection
 
 
 def _off_axis32(tier: str, mod: ModuleParams, phi: Array, yaw32: NDArray[np.float32],
@@ -649,43 +669,157 @@ def _off_axis32(tier: str, mod: ModuleParams, phi: Array, yaw32: NDArray[np.floa
                 ddiv: float = 1.0, phi_bounds: tuple[float, float] | None = None
                 ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
     """ln g (B, N) and d ln g / d theta / ``ddiv`` (None without ``derivative``) in
-    float32 of a stationary batch's readings (theta = phi - yaw): the gauss beam's closed
-    form (capped as :func:`sonarloc.fit.model.beam_log_factor`), the piston table's
-    cubic (:meth:`sonarloc.fit.model._HermiteTable.lookup_log32`) for the other tiers.
-    ``phi_bounds``: (min, max) of ``phi`` if known (a pass has two calls)."""
-    f32 = np.float32
+    float32 of readings whose off-axis angle is theta = phi - yaw (a stationary batch's,
+    a wall's): :func:`_log_beam32` of it. ``phi_bounds``: (min, max) of ``phi`` if
+    known (a pass has two calls)."""
     if M.BEAMS[tier] == "piston":
         # theta in float64: next to the piston beam's nulls ln g changes by ~1e5 per
         # rad, so the rounding of yaw (1e-7 rad) would show
-        table = M._piston_table(mod.diameter_m, mod.carrier_hz, mod.c_mps)
-        lng_p, dlng_p, _ = table.lookup_log32(_angle_diff(phi, yaw, bounds, phi_bounds),
-                                              derivative, ddiv)
-        return lng_p, dlng_p
+        return _log_beam32(tier, mod, _angle_diff(phi, yaw, bounds, phi_bounds),
+                           derivative, ddiv)
     lo, hi = bounds
     wrap = True
     if yaw.size:
         p_lo, p_hi = phi_bounds if phi_bounds is not None else (phi.min(), phi.max())
         wrap = not (p_hi - lo <= np.pi and p_lo - hi >= -np.pi)
-    th = M._wrap_fast(phi - yaw).astype(f32) if wrap else phi.astype(f32) - yaw32
+    th = M._wrap_fast(phi - yaw).astype(np.float32) if wrap else phi.astype(np.float32) - yaw32
+    return _log_beam32(tier, mod, th, derivative, ddiv)
+
+
+def _log_beam32(tier: str, mod: ModuleParams, th: FloatArray, derivative: bool,
+                ddiv: float = 1.0
+                ) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+    """ln g and d ln g / d theta / ``ddiv`` (None without ``derivative``) in float32 at
+    off-axis angles ``th`` (float32 for the gauss beam, whose closed form is capped as
+    :func:`sonarloc.fit.model.beam_log_factor`; float64 for the piston table's cubic,
+    :meth:`sonarloc.fit.model._HermiteTable.lookup_log32`). ``th`` of the gauss beam is
+    overwritten."""
+    if M.BEAMS[tier] == "piston":
+        table = M._piston_table(mod.diameter_m, mod.carrier_hz, mod.c_mps)
+        lng_p, dlng_p, _ = table.lookup_log32(th, derivative, ddiv)
+        return lng_p, dlng_p
     q, capped = _gauss_log_factor32(th, mod)
     if not derivative:
         return q, None
     dlng = th
     dlng *= _gauss_scales32(mod.sigma_deg, ddiv)[1]           # inv_s2 / ddiv
     if capped:
-        dlng[q >= f32(_LN_G_MAX)] = 0.0
+        dlng[q >= np.float32(_LN_G_MAX)] = 0.0
     return q, dlng
 
 
-def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
-                    s2: Array | None, cfg: FitConfig, want_derivs: bool = True,
-                    s2_other: Array | None = None, tier: str = "gauss"
-                    ) -> tuple[Array, Array, Array, Array, Array, Array]:
-    """:func:`_evaluate_core` of a stationary batch with the detection model, in
-    float32 (``FitConfig.float32``).
+@dataclass
+class _Moving32:
+    """What a moving batch's float32 pass needs of its readings' geometry (B, N): ln g
+    and d ln g / d theta / ``ddiv`` (float32); for echoes the range R (float64: the
+    residuals are formed from it before rounding) and tau times its derivatives by
+    (r, phi) (float32; None for the no-echo readings); the derivatives of theta by
+    (r, phi) (float32). None where constant: a wall's dR/dr = 1 (``tdR_dr``), dtheta/dr
+    = 0 and dtheta/dphi = 1."""
 
-    The readings enter relative to each segment's model range (``y - tau r`` formed in
-    float64, then rounded: tens of us, not ten thousands), the normal tail
+    lng: NDArray[np.float32]
+    dlng: NDArray[np.float32] | None
+    R: Array | None
+    tdR_dr: NDArray[np.float32] | None
+    tdR_dphi: NDArray[np.float32] | None
+    dth_dr: NDArray[np.float32] | None
+    dth_dphi: NDArray[np.float32] | None
+
+
+def _moving_geometry32(kind: str, tier: str, mod: ModuleParams, r: Array, phi: Array,
+                       px: Array, py: Array, yaw: Array, yaw32: NDArray[np.float32],
+                       bounds: tuple[float, float], derivative: bool, ddiv: float = 1.0,
+                       tau: float | None = None) -> _Moving32:
+    """:class:`_Moving32` of readings at (px, py) (relative to the reference) with axes
+    ``yaw``, for a local landmark (r, phi) (B, 1) (:func:`sonarloc.fit.model.geometry`);
+    ``tau`` (us per m): the range and its derivatives too (echoes).
+
+    Along the landmark's direction u(phi) a reading sits at ``l = p . u`` and beside it
+    at ``m = p x u = px sin phi - py cos phi``; a wall is at range ``r - l`` (dR/dphi =
+    m), a point at ``R = |(r - l, m)|`` and bearing ``phi + atan2(m, r - l)`` (so
+    dR/dr = (r - l) / R, dR/dphi = r m / R, dtheta/dr = -m / R^2, dtheta/dphi =
+    r (r - l) / R^2). l, m and R in float64 (R feeds the residuals: tens of thousands
+    of us, formed before rounding), the rest in float32; the piston beam's theta in
+    float64 (see :func:`_off_axis32`)."""
+    f32 = np.float32
+    c, s = np.cos(phi), np.sin(phi)
+    u = px * c
+    u += py * s                                          # l
+    m = px * s
+    m -= py * c
+    if kind == "line":
+        lng, dlng = _off_axis32(tier, mod, phi, yaw32, yaw, bounds, derivative, ddiv)
+        if tau is None:
+            return _Moving32(lng, dlng, None, None, None, None, None)
+        tdR_dphi = (m * tau).astype(f32) if derivative else None
+        np.subtract(r, u, out=u)
+        return _Moving32(lng, dlng, u, None, tdR_dphi, None, None)
+    np.subtract(r, u, out=u)                             # r - l
+    u32, m32 = u.astype(f32), m.astype(f32)
+    if M.BEAMS[tier] == "piston":
+        th: FloatArray = _angle_diff(phi, yaw, bounds) + np.arctan2(m, u)
+    else:
+        th = phi.astype(f32) - yaw32
+        th += np.arctan2(m32, u32)
+    # (the wrap keeps float32 angles float32)
+    lng, dlng = _log_beam32(tier, mod, M._wrap_fast(cast(Array, th)), derivative, ddiv)
+    R = None
+    if tau is not None or derivative:
+        R = u * u
+        R += m * m
+        np.sqrt(R, out=R)
+    if not derivative:
+        return _Moving32(lng, None, R, None, None, None, None)
+    assert R is not None
+    r32 = r.astype(f32)
+    iR = np.maximum(R, 1e-9).astype(f32)
+    np.reciprocal(iR, out=iR)                            # 1 / R
+    tdR_dr = tdR_dphi = None
+    if tau is not None:
+        tiR = iR * f32(tau)
+        tdR_dr = u32 * tiR
+        tdR_dphi = m32 * tiR
+        tdR_dphi *= r32
+    iR *= iR                                             # 1 / R^2
+    iR *= f32(-1.0)
+    m32 *= iR                                            # dtheta / dr
+    u32 *= iR
+    u32 *= -r32                                          # dtheta / dphi
+    return _Moving32(lng, dlng, R if tau is not None else None, tdR_dr, tdR_dphi, m32, u32)
+
+
+def _moving_columns32(out: NDArray[np.float32], geo: _Moving32, tau: float,
+                      dth: FloatArray, dk: FloatArray) -> None:
+    """Write into ``out`` (B, 3, N) the derivatives by (r, phi, kappa) of a moving
+    batch's per-reading terms: ``tau`` R (``tau`` 0: none; else ``geo`` has R's
+    derivatives) plus a term with derivative ``dth`` by theta (B, N) and ``dk`` by kappa
+    ((B, N) or (B, 1))."""
+    if geo.dth_dr is None:                              # a wall: dtheta/dr = 0, /dphi = 1
+        out[:, 0] = tau
+        np.copyto(out[:, 1], dth)
+    else:
+        assert geo.dth_dphi is not None
+        np.multiply(dth, geo.dth_dr, out=out[:, 0])
+        np.multiply(dth, geo.dth_dphi, out=out[:, 1])
+        if tau:
+            assert geo.tdR_dr is not None
+            out[:, 0] += geo.tdR_dr
+    if tau:
+        assert geo.tdR_dphi is not None
+        out[:, 1] += geo.tdR_dphi
+    out[:, 2] = dk
+
+
+def _evaluate32(kind: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
+                s2: Array | None, cfg: FitConfig, want_derivs: bool = True,
+                s2_other: Array | None = None, tier: str = "gauss"
+                ) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """:func:`_evaluate_core` with the detection model in float32 (``FitConfig.float32``).
+
+    The readings enter relative to the model range (``y - tau R`` formed in float64,
+    then rounded: tens of us, not ten thousands; a moving batch's R and the positions'
+    projections on the landmark's direction in float64 too,
+    :func:`_moving_geometry32`), the normal tail
     probabilities come from :func:`sonarloc.fit.model.log_sf32` (branch-free), the
     objective is summed in float64, the rest of the sums in float32 (relative error
     ~1e-6); returns float64 ``F``, gradient and Fisher matrix, float32 residuals and
@@ -706,28 +840,40 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
 
     # detection margins z of the echoes and of the no-echo readings
     phi_bounds = (float(phi.min()), float(phi.max())) if B else None
-    lng, dlng = _off_axis32(tier, mod, phi, batch.yaw32, batch.yaw, batch.yaw_bounds[:2],
-                            want_derivs, phi_bounds=phi_bounds)
+    moving = batch.moving
+    geo = gn = None
+    if moving:
+        geo = _moving_geometry32(kind, tier, mod, r, phi, batch.px, batch.py, batch.yaw,
+                                 batch.yaw32, batch.yaw_bounds[:2], want_derivs, tau=tau)
+        lng, dlng = geo.lng, geo.dlng
+    else:
+        lng, dlng = _off_axis32(tier, mod, phi, batch.yaw32, batch.yaw,
+                                batch.yaw_bounds[:2], want_derivs, phi_bounds=phi_bounds)
     z = lng * (1.0 / sa)             # (Python float constants: float32 ops, NEP 50)
     z += zc
     nv = batch.ne_valid
     noecho = bool(nv.shape[1] and nv.any())
     zz = z
     if noecho:
-        lgn, dzn = _off_axis32(tier, mod, phi, batch.ne_yaw32, batch.ne_yaw,
-                               batch.yaw_bounds[2:], want_derivs, sa,   # d zn / d theta
-                               phi_bounds)
+        if moving:
+            gn = _moving_geometry32(kind, tier, mod, r, phi, batch.ne_px, batch.ne_py,
+                                    batch.ne_yaw, batch.ne_yaw32, batch.yaw_bounds[2:],
+                                    want_derivs, sa)
+            lgn, dzn = gn.lng, gn.dlng                  # dzn: d zn / d theta
+        else:
+            lgn, dzn = _off_axis32(tier, mod, phi, batch.ne_yaw32, batch.ne_yaw,
+                                   batch.yaw_bounds[2:], want_derivs, sa,   # d zn / d theta
+                                   phi_bounds)
         zn = lgn * (1.0 / sa)
         zn += zc
         # the normal tails of both in one pass (elementwise: the same numbers as two)
         zz = np.concatenate([z, -zn], axis=1)
     # log P(echo) = log Phi(-z), log P(no echo) = log Phi(zn); phi / Phi of each
     lp = M.log_sf32(zz)
-    mills = np.exp(-0.5 * zz * zz - _LOG_SQRT_2PI32 - lp)
+    mills, excess = M.mills_ratio32(zz, lp)
     nd = z.shape[1]
-    l0, m0 = lp[:, :nd], mills[:, :nd]
-    curv = m0 - z
-    curv *= m0                                          # d m0 / dz = m0 (m0 - z)
+    l0, m0, h0 = lp[:, :nd], mills[:, :nd], excess[:, :nd]
+    curv = m0 * h0                                      # d m0 / dz = m0 (m0 - z)
     if waveform:
         # the module's delay moments at x = ln u (u = kappa g, the eq. 3 delay)
         x = lng + lnk.astype(f32)
@@ -737,7 +883,7 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             s2 = var   # type: ignore[assignment]   # float32 (see Returns)
     else:
         g = np.exp(lng)
-        ratio = _truncation_ratio32(z, m0, curv, sa)    # Phi(-z-s) / Phi(-z)
+        ratio = _truncation_ratio32(h0, m0, curv, sa)    # Phi(-z-s) / Phi(-z)
         scale = float(np.exp(0.5 * sa * sa))
         delay = g * ratio
         delay *= (K * scale).astype(f32)
@@ -749,7 +895,7 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     assert s2 is not None
     usef = use.astype(f32)
     w = usef / np.sqrt(s2)                              # 1/s, 0 where unused
-    res = (y - tau * r).astype(f32)
+    res = (y - tau * (r if geo is None or geo.R is None else geo.R)).astype(f32)
     res -= delay
     e = res * w
     F = _einsum("bn,bn->b", e, e, dtype=np.float64)
@@ -761,6 +907,10 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
     grad = np.zeros((B, 3))
     H = np.zeros((B, 3, 3))
     ik = 1.0 / (K[:, 0] * sa)                           # d z / d kappa
+    # a moving batch's terms: (geometry, tau, d / d theta, d / d kappa, Gram weights of
+    # H and of the gradient), summed at the end (:func:`_gram_moving32`)
+    blocks: list[tuple[_Moving32, float, FloatArray, FloatArray, FloatArray,
+                       FloatArray]] = []
     if want_derivs:
         assert dlng is not None
         if waveform:
@@ -779,37 +929,43 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
             jk += ratio
             jk *= g
             jk *= scale
+            _truncated_slope_far32(jk, z, h0, ratio, g, scale, sa)
             a = jk * dlng
             a *= K.astype(f32)                          # d mean / d theta
-        # the weighted columns of the Fisher matrix and the gradient in one array, so
-        # that their row sums and dot products take four einsum calls, not fourteen (the
-        # same sums: each row's own, in its order); the float64 additions as before
         dz = dlng * (1.0 / sa)          # detection: d z / d theta = dlng / sa, d / dK = ik
-        S = np.empty((7, *e.shape), dtype=np.result_type(w, e, a, jk, curv, usef, dz))
-        W, Wd, Wa, Gw, Wj, Wdz, Gd = S
-        np.multiply(w, w, out=W)
-        np.multiply(curv, usef, out=Wd)                 # curvature of -log Phi(-z)
-        np.multiply(W, a, out=Wa)
-        np.multiply(w, e, out=Gw)
-        np.multiply(W, jk, out=Wj)
-        np.multiply(Wd, dz, out=Wdz)
-        np.multiply(m0, usef, out=Gd)                   # -d log P / dz
-        sums = _sum_rows(S)
-        dot_a, dot_jk, dot_dz = _dot_rows(S[2:4], a), _dot_rows(S[2:5], jk), _dot_rows(S[5:], dz)
-        H[:, 0, 0] = tau * tau * sums[0]
-        H[:, 0, 1] = tau * sums[2]
-        H[:, 0, 2] = tau * sums[4]
-        H[:, 1, 1] = dot_a[0]
-        H[:, 1, 2] = dot_jk[0]
-        H[:, 2, 2] = dot_jk[2]
-        grad[:, 0] = -tau * sums[3]
-        grad[:, 1] = -dot_a[1]
-        grad[:, 2] = -dot_jk[1]
-        H[:, 1, 1] += dot_dz[0]
-        H[:, 1, 2] += ik * sums[5]
-        H[:, 2, 2] += ik * ik * sums[1]
-        grad[:, 1] += dot_dz[1]
-        grad[:, 2] += ik * sums[6]
+        if geo is not None:     # moving: summed with the no-echo terms at the end
+            blocks += [(geo, tau, a, jk, w * w, w * e),
+                       (geo, 0.0, dz, ik[:, None], curv * usef, -(m0 * usef))]
+        else:
+            # the weighted columns of the Fisher matrix and the gradient in one array, so
+            # that their row sums and dot products take four einsum calls, not fourteen (the
+            # same sums: each row's own, in its order); the float64 additions as before
+            S = np.empty((7, *e.shape), dtype=np.result_type(w, e, a, jk, curv, usef, dz))
+            W, Wd, Wa, Gw, Wj, Wdz, Gd = S
+            np.multiply(w, w, out=W)
+            np.multiply(curv, usef, out=Wd)                 # curvature of -log Phi(-z)
+            np.multiply(W, a, out=Wa)
+            np.multiply(w, e, out=Gw)
+            np.multiply(W, jk, out=Wj)
+            np.multiply(Wd, dz, out=Wdz)
+            np.multiply(m0, usef, out=Gd)                   # -d log P / dz
+            sums = _sum_rows(S)
+            dot_a, dot_jk = _dot_rows(S[2:4], a), _dot_rows(S[2:5], jk)
+            dot_dz = _dot_rows(S[5:], dz)
+            H[:, 0, 0] = tau * tau * sums[0]
+            H[:, 0, 1] = tau * sums[2]
+            H[:, 0, 2] = tau * sums[4]
+            H[:, 1, 1] = dot_a[0]
+            H[:, 1, 2] = dot_jk[0]
+            H[:, 2, 2] = dot_jk[2]
+            grad[:, 0] = -tau * sums[3]
+            grad[:, 1] = -dot_a[1]
+            grad[:, 2] = -dot_jk[1]
+            H[:, 1, 1] += dot_dz[0]
+            H[:, 1, 2] += ik * sums[5]
+            H[:, 2, 2] += ik * ik * sums[1]
+            grad[:, 1] += dot_dz[1]
+            grad[:, 2] += ik * sums[6]
     prior = _kappa_prior(K[:, 0], grad, H, cfg, want_derivs)
     F = F + prior
     F_other = F_other + prior if s2_other is not None else F
@@ -822,21 +978,48 @@ def _evaluate_pan32(p: Array, batch: SegmentBatch, y: Array, use: NDArray,
         if want_derivs:
             assert dzn is not None
             mn = mills[:, nd:]                          # phi(zn) / Phi(zn)
-            Sn = np.empty((3, *mn.shape), dtype=np.result_type(zn, mn, nvf, dzn))
-            Wn, Wndz, Gn = Sn                           # (stacked as the echoes' S)
-            np.add(zn, mn, out=Wn)
-            Wn *= mn
-            Wn *= nvf                                   # curvature of -log Phi(z)
-            np.multiply(Wn, dzn, out=Wndz)
-            np.multiply(mn, nvf, out=Gn)                # d log P / dz
-            sums_n, dot_n = _sum_rows(Sn), _dot_rows(Sn[1:], dzn)
-            H[:, 1, 1] += dot_n[0]
-            H[:, 1, 2] += ik * sums_n[1]
-            H[:, 2, 2] += ik * ik * sums_n[0]
-            grad[:, 1] -= dot_n[1]
-            grad[:, 2] -= ik * sums_n[2]
+            hn = excess[:, nd:]                         # mn + zn
+            if gn is not None:
+                blocks.append((gn, 0.0, dzn, ik[:, None], hn * mn * nvf, mn * nvf))
+            else:
+                Sn = np.empty((3, *mn.shape), dtype=np.result_type(zn, mn, nvf, dzn))
+                Wn, Wndz, Gn = Sn                       # (stacked as the echoes' S)
+                np.multiply(hn, mn, out=Wn)
+                Wn *= nvf                               # curvature of -log Phi(z)
+                np.multiply(Wn, dzn, out=Wndz)
+                np.multiply(mn, nvf, out=Gn)            # d log P / dz
+                sums_n, dot_n = _sum_rows(Sn), _dot_rows(Sn[1:], dzn)
+                H[:, 1, 1] += dot_n[0]
+                H[:, 1, 2] += ik * sums_n[1]
+                H[:, 2, 2] += ik * ik * sums_n[0]
+                grad[:, 1] -= dot_n[1]
+                grad[:, 2] -= ik * sums_n[2]
+    if blocks:
+        _gram_moving32(H, grad, blocks)
     H[:, 1, 0], H[:, 2, 0], H[:, 2, 1] = H[:, 0, 1], H[:, 0, 2], H[:, 1, 2]
     return F_other, F, grad, H, e, s2
+
+
+def _gram_moving32(H: Array, grad: Array, blocks: Sequence[tuple[
+        _Moving32, float, FloatArray, FloatArray, FloatArray, FloatArray]]) -> None:
+    """:func:`_gram` of a moving batch's float32 terms: ``H += sum_n wH c c^T`` and
+    ``grad -= sum_n wg c`` over the readings of all ``blocks`` (each ``(geometry, tau,
+    dth, dk, wH, wg)``, its derivatives c by (r, phi, kappa) as
+    :func:`_moving_columns32` writes them), as one stacked Jacobian (B, 3, N) and one
+    batched matrix product: a moving fit's passes hold ~10 segments, where the numpy
+    calls of separate row sums (~80 a pass) cost more than the sums."""
+    f32 = np.float32
+    widths = [blk[4].shape[1] for blk in blocks]
+    J = np.empty((H.shape[0], 3, sum(widths)), dtype=f32)
+    wH = np.empty((H.shape[0], sum(widths)), dtype=f32)
+    wg = np.empty_like(wH)
+    o = 0
+    for (geo, tau, dth, dk, h, g), k in zip(blocks, widths, strict=True):
+        _moving_columns32(J[:, :, o:o + k], geo, tau, dth, dk)
+        wH[:, o:o + k], wg[:, o:o + k] = h, g
+        o += k
+    H += np.matmul(J * wH[:, None, :], J.transpose(0, 2, 1))
+    grad -= _einsum("bkn,bn->bk", J, wg)
 
 
 def _gram(H: Array, grad: Array, cols: Sequence[Array | None], wH: Array, wg: Array) -> None:

@@ -99,9 +99,7 @@ def _curvature_share(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
         return out, fisher
     sub = _take(batch, moving)
     fit = fit.take(moving)
-    # the objective the fit minimised (its echoes, and the detection terms unless the
-    # method is one of the echoes-only ones; see lsq._refine_any)
-    c = cfg if cfg.method == "full" else replace(cfg, detection=False)
+    c = _objective(cfg)
     y = np.where(fit.used, sub.tof_us - 0.5 * cfg.module.count_period_us, 0.0)
     _, g0, H, _, _ = _evaluate_s2(fit.kind, fit.tier, fit.local, sub, y, fit.used, None, c)
     _, g1, _, _, _ = _evaluate_s2(fit.kind, fit.tier, fit.local, bend(sub, _EPS), y, fit.used,
@@ -111,6 +109,16 @@ def _curvature_share(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
     out[moving] = sd * sd * s[:, :, None] * s[:, None, :]
     fisher[moving] = H
     return out, fisher
+
+
+def _objective(cfg: FitConfig) -> FitConfig:
+    """The settings of the objective the fit minimised (its echoes, and the detection
+    terms unless the method is one of the echoes-only ones; see lsq._refine_any), in
+    float64: the curvature's share is a difference of two gradients over a small bend,
+    which a float32 pass's rounding (~1e-6 of the terms) would move by ~1e-5 (and with
+    it, by the batch's padding, a segment's share with the batch it sits in)."""
+    return replace(cfg, float32=False,
+                   detection=cfg.detection and cfg.method == "full")
 
 
 # --- the odometry's random pose error: the status test and the covariance -----------
@@ -271,10 +279,9 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     # the objective it minimised, as in odometry_covariance; not the curvature's weight:
     # that share is odometry_covariance's)
     if fisher is None:
-        objective = cfg if cfg.method == "full" else replace(cfg, detection=False)
         y = np.where(used[moving], sub.tof_us - 0.5 * mod.count_period_us, 0.0)
         _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used[moving], None,
-                                     objective)
+                                     _objective(cfg))
     else:   # :func:`_curvature_share`'s (its moving segments include these)
         H = fisher[moving]
     S = np.einsum("bij,bjk->bik", _covariance(H), N[:, :3, 4:])     # (b, 3, m - 1)

@@ -535,7 +535,7 @@ def test_final_derivatives_cover_the_pending_newton_step(rng):
 
 
 def test_float32_passes_equal_float64_ones(rng):
-    from sonarloc.fit.lsq import _evaluate_core, _evaluate_pan32
+    from sonarloc.fit.lsq import _evaluate32, _evaluate_core
 
     batch, truth = _mixed_pans(rng, 120)
     cfg64 = FitConfig(float32=False)
@@ -544,7 +544,7 @@ def test_float32_passes_equal_float64_ones(rng):
     y = np.where(batch.valid, batch.tof_us - 0.5 * cfg64.module.count_period_us, 0.0)
     for p in (truth, truth + np.array([2e-3, np.deg2rad(3.0), 0.3])):
         ref = _evaluate_core("point", "gauss", p, batch, y, batch.valid, None, cfg64)
-        got = _evaluate_pan32(p, batch, y, batch.valid, None, cfg32)
+        got = _evaluate32("point", p, batch, y, batch.valid, None, cfg32)
         F_o, F, grad, H, e, s2 = ref
         np.testing.assert_allclose(got[1], F, rtol=1e-5, atol=1e-3)
         np.testing.assert_allclose(got[0], F_o, rtol=1e-5, atol=1e-3)

@@ -257,7 +257,7 @@ def test_truncation_ratio32_matches_exact_ratio():
     z = np.linspace(-12.0, 40.0, 50001)
     l0 = log_ndtr(-z)
     m = np.exp(-0.5 * z * z - 0.5 * np.log(2 * np.pi) - l0)
-    r = _truncation_ratio32(z.astype(np.float32), m.astype(np.float32),
+    r = _truncation_ratio32((m - z).astype(np.float32), m.astype(np.float32),
                             (m * (m - z)).astype(np.float32), s)
     exact = log_ndtr(-z - s) - l0
     assert np.abs(np.log(r.astype(float)) - exact).max() < 3e-6
@@ -266,6 +266,62 @@ def test_truncation_ratio32_matches_exact_ratio():
     et = M.echo_terms(1.0, g, z[::100], MOD)
     mine = g * np.exp(0.5 * s * s) * r[::100].astype(float)
     np.testing.assert_allclose(mine, et.delay, rtol=3e-6)
+
+
+def test_mills_ratio32_and_its_excess_hold_in_the_upper_tail():
+    # m = phi(z) / Phi(-z) and m - z (whose product is the curvature of -log P(echo))
+    # for every z a fit may visit: far beyond the detection limit m - z ~ 1/z is a small
+    # difference, which the continued fraction keeps (as a float32 difference it is off
+    # by ~100 % at z = 90)
+    from scipy.special import erfcx
+
+    z = np.concatenate([np.linspace(-12.0, 120.0, 132001), [M.Z_CF, np.nextafter(
+        np.float32(M.Z_CF), np.float32(0.0))]]).astype(np.float32)
+    m, h = M.mills_ratio32(z, M.log_sf32(z))
+    assert m.dtype == h.dtype == np.float32
+    zf = z.astype(float)
+    exact = np.sqrt(2.0 / np.pi) / erfcx(zf / np.sqrt(2.0))                # m
+    # (the exponent's float32 rounding: ~|z^2/2| 6e-8 of m)
+    np.testing.assert_allclose(m, exact, rtol=1e-5)
+    # the excess and the curvature: a float32 difference below Z_CF (to ~5e-5 of
+    # itself just below), the continued fraction from there on (float64's m - z
+    # cancels too beyond ~1e3, not here)
+    far = zf >= M.Z_CF
+    up = (zf > 0.0) & ~far
+    np.testing.assert_allclose(h[up], (exact - zf)[up], rtol=6e-5)
+    np.testing.assert_allclose(h[far], (exact - zf)[far], rtol=1e-6)
+    curv = exact * (exact - zf)
+    mid = (zf > -8.0) & ~far
+    np.testing.assert_allclose((m * h)[mid], curv[mid], rtol=6e-5)
+    np.testing.assert_allclose((m * h)[far], curv[far], rtol=2e-6)
+    # the continued fraction alone
+    np.testing.assert_allclose(M.mills_excess_cf32(z[far]), (exact - zf)[far], rtol=3e-7)
+
+
+def test_truncated_slope32_far_beyond_the_detection_limit():
+    # d mean delay / d kappa of a detected echo, float32 pass against float64, for
+    # margins from inside the arc to far beyond the detection limit (where it is ~1/z^2
+    # of the delay over kappa and the written-out form cancels in float32)
+    from sonarloc.fit.lsq import _truncated_slope_far32, _truncation_ratio32
+
+    s = M.sigma_a(MOD)
+    z = np.linspace(-10.0, 110.0, 24001).astype(np.float32)
+    lp = M.log_sf32(z)
+    m, h = M.mills_ratio32(z, lp)
+    dm = m * h
+    ratio = _truncation_ratio32(h, m, dm, s)
+    g = np.ones_like(z)
+    scale = float(np.exp(0.5 * s * s))
+    m1 = np.exp(z * np.float32(-s) - np.float32(0.5 * s * s)) * m
+    jk = (ratio + (ratio * m - m1) * np.float32(1.0 / s)) * np.float32(scale)
+    _truncated_slope_far32(jk, z, h, ratio, g, scale, s)
+    et = M.echo_terms(1.0, np.ones(z.shape), z.astype(float), MOD)   # kappa g = 1
+    # the written-out form's float32 error grows to 0.15 % just below Z_CF (as in the
+    # float32 passes of pans since session 5); from there on the excess' difference
+    # holds it to 1e-4 (the written-out form: 100 % at z = 80)
+    near = z < M.Z_CF
+    np.testing.assert_allclose(jk[near], et.ddelay_du[near], rtol=2e-3)
+    np.testing.assert_allclose(jk[~near], et.ddelay_du[~near], rtol=1e-4)
 
 
 @pytest.mark.parametrize("tier", ["gauss", "piston", "waveform"])

@@ -582,7 +582,10 @@ def test_covariance_only_of_accepted_pairs_each_its_own(rng):
             continue
         alone = P._fit_pairs([seg], [single])[0]
         assert np.all(np.isfinite(pf.cov))
-        np.testing.assert_allclose(pf.cov, alone.cov, rtol=1e-6, atol=1e-15)
+        # (the searches' batch-wide sums round differently, which a flat valley
+        # amplifies: 7e-8 from main's single fits, 2.2e-6 from those of 2026-11-27,
+        # whose bearings moved by 1e-7 rad; another pair's covariance is off by O(1))
+        np.testing.assert_allclose(pf.cov, alone.cov, rtol=1e-5, atol=1e-15)
 
 
 def test_direct_grid_sums_in_node_blocks_are_the_written_out_sums(rng, monkeypatch):

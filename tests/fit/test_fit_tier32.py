@@ -7,7 +7,7 @@ import pytest
 
 from sonarloc.fit import model as M
 from sonarloc.fit import select as S
-from sonarloc.fit.lsq import FitConfig, _evaluate_core, _evaluate_pan32, fit_batch, pack_segments
+from sonarloc.fit.lsq import FitConfig, _evaluate32, _evaluate_core, _take, fit_batch, pack_segments
 from sonarloc.fit.synth import Reflector, pan_scan
 from sonarloc.physics import ModuleParams
 
@@ -73,7 +73,7 @@ def test_float32_tier_passes_equal_float64_ones(rng, tier):
     for p in (truth, off):
         ref = _evaluate_core("point", tier, p, batch, y, batch.valid, None, cfg64)
         got = _evaluate_core("point", tier, p, batch, y, batch.valid, None, cfg32)
-        also = _evaluate_pan32(p, batch, y, batch.valid, None, cfg32, True, None, tier)
+        also = _evaluate32("point", p, batch, y, batch.valid, None, cfg32, True, None, tier)
         np.testing.assert_array_equal(got[1], also[1])       # the float32 path it is
         assert got[4].dtype == np.float32
         F_o, F, grad, H, e, s2 = ref
@@ -207,3 +207,75 @@ def test_landmark_from_fields_is_the_dataclass_construction():
     with pytest.raises(AttributeError):
         b.reason = "frozen"                     # type: ignore[misc]
     assert b.ok is False and b.kappa_us == 0.15
+
+
+def _assert_pass_near(got, ref, f_rtol, sd_atol, e_atol):
+    """A float32 pass's (F_other, F, grad, H, e, s2) near the float64 one's: objectives
+    to ``f_rtol``, gradient and Fisher matrix to ``sd_atol`` in SD and correlation units
+    (of the float64 H), standardised residuals to ``e_atol``, variances to 2e-5."""
+    names = ("F_other", "F", "grad", "H", "e", "s2")
+    g, r = dict(zip(names, got, strict=True)), dict(zip(names, ref, strict=True))
+    for name in ("F_other", "F"):
+        np.testing.assert_allclose(g[name], r[name], rtol=f_rtol, atol=2e-3, err_msg=name)
+    sd = np.sqrt(np.einsum("bkk->bk", r["H"]))
+    np.testing.assert_allclose(g["grad"] / sd, r["grad"] / sd, rtol=1e-3, atol=sd_atol)
+    corr = sd[:, :, None] * sd[:, None, :]
+    np.testing.assert_allclose(g["H"] / corr, r["H"] / corr, rtol=0, atol=sd_atol)
+    np.testing.assert_allclose(g["e"], r["e"], rtol=1e-5, atol=e_atol)
+    np.testing.assert_allclose(g["s2"], r["s2"], rtol=2e-5)
+
+
+def _drive_bys(rng, n, kind, tier):
+    """Segments of a sensor driving past one reflector (a pole or a wall, 0.8-2.5 m off
+    the path, 0.6-1.5 m driven, the axis sweeping as a ring's transducers do); (batch,
+    its float64 fits)."""
+    from sonarloc.fit.synth import simulate_readings
+
+    segs = []
+    for _ in range(n):
+        d, k = rng.uniform(0.8, 2.5), rng.choice([0.15, 0.67, 2.68])
+        length, m = rng.uniform(0.6, 1.5), int(rng.integers(30, 90))
+        x = np.linspace(-length, 0.0, m)
+        yaw = np.deg2rad(np.linspace(rng.uniform(40, 70), rng.uniform(110, 140), m))
+        refl = (Reflector.point(rng.uniform(-0.6, 0.2), d, k) if kind == "point"
+                else Reflector.line(d, np.pi / 2, 0.15))
+        sc = simulate_readings(np.arange(m) * 0.05, x, 0.0, yaw, [refl], rng,
+                               tier="auto" if tier == "waveform" else tier)
+        segs.append((sc.t_s, sc.x_m, sc.y_m, sc.yaw_rad, sc.tof_us))
+    batch = pack_segments(segs)
+    g = fit_batch(batch, kind, tier, FitConfig(float32=False))
+    return batch, g
+
+
+@pytest.mark.parametrize("kind", ["point", "line"])
+@pytest.mark.parametrize("tier", ["gauss", "piston", "waveform"])
+def test_float32_moving_passes_equal_float64_ones(rng, kind, tier):
+    # a moving batch's float32 pass (ranges formed in float64, the rest in float32)
+    # against the float64 pass: at the fits and off them, and far off them (a grid
+    # start's first steps: kappa and range off by orders of magnitude, echoes put far
+    # beyond the detection limit, where the Mills ratio's excess must hold)
+    batch, g = _drive_bys(rng, 60, kind, tier)
+    keep = np.flatnonzero(g.n_used >= 8)[:40]           # (weak ones go undetected)
+    assert batch.moving and keep.size == 40
+    batch, g = _take(batch, keep), g.take(keep)
+    cfg64, cfg32 = FitConfig(float32=False), FitConfig()
+    y = np.where(batch.valid, batch.tof_us - 0.5 * cfg64.module.count_period_us, 0.0)
+    use = g.used
+    off = g.local + np.array([0.02, np.deg2rad(4.0), 0.0]) * rng.choice([-1, 1], (40, 3))
+    far = g.local * np.array([0.5, 1.0, 0.0]) + np.array([0.0, 0.3, 0.002])
+    for p in (g.local, off, far):
+        ref = _evaluate_core(kind, tier, p, batch, y, use, None, cfg64)
+        got = _evaluate_core(kind, tier, p, batch, y, use, None, cfg32)
+        assert got[4].dtype == np.float32
+        _assert_pass_near(got, ref, f_rtol=2e-5, sd_atol=2e-3, e_atol=1e-4)
+    # the fits, converged tightly (the default's tolerance leaves each within ~0.03 SD
+    # of its optimum, where flat valleys let two runs end apart by more): the same
+    # answers to a small fraction of an SD
+    tight = {"tolerance": 1e-7, "iterations": 60}
+    a = fit_batch(batch, kind, tier, FitConfig(float32=False, **tight))
+    b = fit_batch(batch, kind, tier, FitConfig(**tight))
+    sd = np.sqrt(np.einsum("bkk->bk", a.cov))
+    d = np.abs(b.local - a.local) / sd
+    both = a.converged & b.converged
+    assert both.sum() >= 30
+    assert np.median(d[both]) < 0.002 and np.all(d[both] < 0.02)
