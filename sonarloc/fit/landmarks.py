@@ -382,7 +382,7 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
                n_echo: NDArray[np.int64], n_noecho: NDArray[np.int64],
                chi2_status: Array | None = None) -> list[Landmark]:
     """Landmarks with statuses from the selected fits (vectorised, then one object each);
-    ``chi2_status``: the TOF chi-square of the fit test (default the fits'))."""
+    ``chi2_status``: the TOF chi-square of the fit test (default: the fits')."""
     B = batch.size
     mod = cfg.module
     local = sel.local.copy()
@@ -445,11 +445,13 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     # segments that may fail a test below (a superset of each, NaN failing as there):
     # the rest are OK without going through them one by one
     kap = local[:, 2]
+    weak = weak_wall(sel.kind, kap, sd[:, 2])
+    weak_l = weak.tolist()
     occluded = np.array(["occluded" in m for m in meta], dtype=bool)
     overlap = np.array(["overlap" in ex for ex in sel.extra], dtype=bool)
     check_l = (~finite | (n_used < cfg.min_echoes) | overlap | occluded
                | ~((0.5 * cfg.kappa_lo_us <= kap) & (kap <= 2.0 * cfg.kappa_hi_us))
-               | weak_wall(sel.kind, kap, sd[:, 2])
+               | weak
                | (p_fit < cfg.min_fit_p) | ((outside > math.radians(1.0)) & (span > 3.0))
                | (kap < 1.5 * cfg.kappa_lo_us) | (sd[:, 1] > flat_sd)).tolist()
     out = []
@@ -474,7 +476,7 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             status = FitStatus.UNRESOLVED
             reason = (f"kappa {local_l[j][2]:.3g} us is outside any real reflector's range "
                       f"({cfg.kappa_lo_us:g}..{cfg.kappa_hi_us:g} us): merged or misread echoes?")
-        elif weak_wall(kind_l[j], local_l[j][2], sd_l[j][2]):
+        elif weak_l[j]:
             status = FitStatus.UNRESOLVED
             reason = (f"a wall with kappa {local_l[j][2]:.2f} +- {sd_l[j][2]:.2f} us: walls echo "
                       "strongly at normal incidence (kappa ~0.15 us); corner or merged echoes?")
@@ -677,12 +679,12 @@ def _hopeless(lm: Landmark, cfg: FitConfig) -> bool:
             and not weak_wall(lm.kind, kappa, _kappa_sd(lm)))
 
 
-def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
+def _fits_alone(lm: Landmark, whole_weak: bool) -> bool:
     """A part of a cut that may stand as a landmark: ``OK`` and fitting well on its own (a
     stricter test than for whole segments: cutting at the best of several places
-    favours chance fits); of a segment whose single fit is a weak wall (a line with
-    kappa above ``3 KAPPA_WALL_US``, the status test: a corner or merged echoes?), a
-    point part must be as strong as that test expects of a wall (a corner, a pole).
+    favours chance fits); of a segment whose single fit is a weak wall (``whole_weak``:
+    :func:`weak_wall`, the status test: a corner or merged echoes?), a point part must
+    be as strong as that test expects of a wall (a corner, a pole).
 
     A point as weak as the wall is that wall seen from part of the path, not a corner:
     on a moving ring's drive (benchmarks/bench_fit.py section 4, second table) 19 parts
@@ -690,7 +692,7 @@ def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
     placed along it with SDs of 0.9-22 cm where the wall has no point (the simulator's
     truth); the one weak-wall split into two lines is kept."""
     return (lm.ok and _fit_p(lm) > 0.01
-            and not (weak_wall and lm.kind == "point" and lm.kappa_us > WEAK_WALL_KAPPA_US))
+            and not (whole_weak and lm.kind == "point" and lm.kappa_us > WEAK_WALL_KAPPA_US))
 
 
 def _search(plans: dict[int, _Cuts], cfg: FitConfig) -> tuple[
