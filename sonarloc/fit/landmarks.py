@@ -679,10 +679,10 @@ def _hopeless(lm: Landmark, cfg: FitConfig) -> bool:
             and not weak_wall(lm.kind, kappa, _kappa_sd(lm)))
 
 
-def _fits_alone(lm: Landmark, whole_weak: bool) -> bool:
+def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
     """A part of a cut that may stand as a landmark: ``OK`` and fitting well on its own (a
     stricter test than for whole segments: cutting at the best of several places
-    favours chance fits); of a segment whose single fit is a weak wall (``whole_weak``:
+    favours chance fits); of a segment whose single fit is a weak wall (``weak_wall``:
     :func:`weak_wall`, the status test: a corner or merged echoes?), a point part must
     be as strong as that test expects of a wall (a corner, a pole).
 
@@ -692,7 +692,7 @@ def _fits_alone(lm: Landmark, whole_weak: bool) -> bool:
     placed along it with SDs of 0.9-22 cm where the wall has no point (the simulator's
     truth); the one weak-wall split into two lines is kept."""
     return (lm.ok and _fit_p(lm) > 0.01
-            and not (whole_weak and lm.kind == "point" and lm.kappa_us > WEAK_WALL_KAPPA_US))
+            and not (weak_wall and lm.kind == "point" and lm.kappa_us > WEAK_WALL_KAPPA_US))
 
 
 def _search(plans: dict[int, _Cuts], cfg: FitConfig) -> tuple[
