@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _covariance, _evaluate_s2, _take
+from sonarloc.fit.select import runs_z
 
 Array = NDArray[np.float64]
 
@@ -76,12 +77,13 @@ def odometry_covariance(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
 
 def odometry_terms(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitConfig,
                    curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M
-                   ) -> tuple[Array, Array, Array]:
-    """:func:`odometry_covariance` and :func:`odometry_chi2` (its chi-square and
-    covariance) of the same fits, the Fisher matrix at the fit evaluated once for both."""
+                   ) -> tuple[Array, Array, Array, Array]:
+    """:func:`odometry_covariance` and :func:`odometry_chi2` (its chi-square, covariance
+    and runs statistic) of the same fits, the Fisher matrix at the fit evaluated once
+    for both."""
     cov, fisher = _curvature_share(batch, fit, cfg, curvature_sd_deg_per_m)
-    chi2, walk = odometry_chi2(batch, fit, travel, cfg, curvature_sd_deg_per_m, fisher)
-    return cov, chi2, walk
+    chi2, walk, runs = odometry_chi2(batch, fit, travel, cfg, curvature_sd_deg_per_m, fisher)
+    return cov, chi2, walk, runs
 
 
 def _curvature_share(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
@@ -179,10 +181,10 @@ def _walk_modes(s: Array, length: Array, k: int) -> tuple[Array, Array]:
 
 def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitConfig,
                   curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M,
-                  fisher: Array | None = None) -> tuple[Array, Array]:
-    """TOF chi-square of moving segments with the odometry's pose error profiled out (B,)
-    and the random walks' share of the covariance of the local ``(r, phi, kappa)``
-    (B, 3, 3).
+                  fisher: Array | None = None) -> tuple[Array, Array, Array]:
+    """TOF chi-square of moving segments with the odometry's pose error profiled out (B,),
+    the random walks' share of the covariance of the local ``(r, phi, kappa)``
+    (B, 3, 3) and the runs statistic of the residuals left (B,; NaN where not moving).
 
     ``travel`` (B, Nd): distance travelled from each echo to the reference (from
     :func:`travel_from_start`). Relative to the reference, odometry bends the path by a
@@ -217,13 +219,14 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
 
     chi2 = fit.chi2.copy()
     out_cov = np.zeros((batch.size, 3, 3))
+    runs = np.full(batch.size, np.nan)
     sd = math.radians(curvature_sd_deg_per_m)
     if sd <= 0.0 or batch.size == 0:
-        return chi2, out_cov
+        return chi2, out_cov, runs
     used = fit.used
     moving = np.flatnonzero(np.max(np.hypot(batch.px, batch.py) * used, axis=1) > 0.02)
     if moving.size == 0:
-        return chi2, out_cov
+        return chi2, out_cov, runs
     scale = sd / math.radians(CURVATURE_SD_DEG_PER_M)
     sub = _take(batch, moving)
     u = used[moving].astype(float)
@@ -271,7 +274,8 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     N[:, 3:, 3:] += np.eye(A.shape[1])[None]
     N[:, :3, :3] += 1e-9 * np.eye(3)[None]
     b = np.einsum("bin,bn->bi", G, e)
-    both = np.einsum("bi,bi->b", b, np.linalg.solve(N, b[..., None])[..., 0])
+    step = np.linalg.solve(N, b[..., None])[..., 0]
+    both = np.einsum("bi,bi->b", b, step)
     alone = np.einsum("bi,bi->b", b[:, :3],
                       np.linalg.solve(N[:, :3, :3], b[:, :3, None])[..., 0])
     drop = both - alone
@@ -289,4 +293,11 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     good = np.isfinite(drop) & np.all(np.isfinite(cov), axis=(1, 2))
     chi2[moving[good]] = np.maximum(fit.chi2[moving[good]] - drop[good], 0.0)
     out_cov[moving[good]] = cov[good]
-    return chi2, out_cov
+    # the residuals left when the path may bend so, in order of the off-axis angle as
+    # the fit's own runs test reads them (select.overlap_check): the walk itself puts a
+    # moving segment's residuals in blocks
+    left = (e - np.einsum("bin,bi->bn", G, step)) * u
+    order = np.argsort(np.where(u > 0.0, geo.theta, np.inf), axis=1)
+    z = runs_z(np.take_along_axis(left > 0.0, order, axis=1), used[moving].sum(1))
+    runs[moving[good]] = z[good]
+    return chi2, out_cov, runs

@@ -537,8 +537,16 @@ def runs_z(signs: NDArray[np.bool_], n: NDArray[np.int64]) -> Array:
     return np.where(ok, (runs - mu) / np.sqrt(np.where(ok, var, 1.0)), 0.0)
 
 
+RUNS_Z_MAX = -4.0
+"""The overlap test: residuals in blocks (their runs statistic below this) ..."""
+
+CHI2_RATIO_MIN = 2.0
+"""... with a chi-square per degree of freedom above this suggest a second reflector."""
+
+
 def overlap_check(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
-                  runs_z_max: float = -4.0, chi2_ratio_min: float = 2.0) -> None:
+                  runs_z_max: float = RUNS_Z_MAX, chi2_ratio_min: float = CHI2_RATIO_MIN
+                  ) -> None:
     """Flag segments whose residuals show a second reflector (``extra['overlap']``)."""
     for kind in ("point", "line"):
         idx = np.flatnonzero(sel.kind == kind)
@@ -552,14 +560,25 @@ def overlap_check(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         signs = np.take_along_axis(sel.resid[idx] > 0, order, axis=1)
         n = used.sum(1)
         z = runs_z(signs, n)
-        ratio = sel.chi2[idx] / np.maximum(n - 3, 1)
-        flag = (z < runs_z_max) & (ratio > chi2_ratio_min)
-        for b, zj in zip(idx.tolist(), z.tolist(), strict=True):
+        for b, zj, reason in zip(idx.tolist(), z.tolist(),
+                                 overlap_reasons(z, sel.chi2[idx], n, runs_z_max,
+                                                 chi2_ratio_min), strict=True):
             sel.extra[b]["runs_z"] = zj
-        for j in np.flatnonzero(flag).tolist():
-            sel.extra[int(idx[j])]["overlap"] = (
-                f"residuals run in blocks (runs z = {z[j]:.1f}, chi2/dof = {ratio[j]:.1f}): "
-                "two reflectors merged?")
+            if reason:
+                sel.extra[b]["overlap"] = reason
+
+
+def overlap_reasons(z: Array, chi2: Array, n: NDArray[np.int64],
+                    runs_z_max: float = RUNS_Z_MAX, chi2_ratio_min: float = CHI2_RATIO_MIN
+                    ) -> list[str]:
+    """The overlap test of :func:`overlap_check` from each segment's runs statistic
+    ``z``, chi-square and number of used echoes ``n``: why a second reflector is
+    suspected ('' where not)."""
+    ratio = chi2 / np.maximum(n - 3, 1)
+    flag = (z < runs_z_max) & (ratio > chi2_ratio_min)
+    return [f"residuals run in blocks (runs z = {zj:.1f}, chi2/dof = {rj:.1f}): two "
+            "reflectors merged?" if fj else ""
+            for zj, rj, fj in zip(z.tolist(), ratio.tolist(), flag.tolist(), strict=True)]
 
 
 def past_wall_ends(batch: SegmentBatch, sel: Selection, rows: NDArray[np.int64]

@@ -77,6 +77,27 @@ def test_two_poles_on_an_odometry_path_stay_unresolved():
         assert float(lm.extra["chi2_odom"]) > 400.0  # type: ignore[arg-type]
 
 
+def test_runs_test_reads_what_the_walk_leaves():
+    # one wall on an odometry path: the walk bends the path smoothly, so the residuals
+    # run in blocks with the jitter alone (read so, the wall is two reflectors merged);
+    # with the walk profiled out the blocks are gone
+    wall = [Reflector("line", 1.2, -math.pi / 2 + 0.25, 0.15)]
+    for seed in (2, 6, 7):
+        seg, _ = _drive(seed, wall)
+        lm = fit_segments([seg], FitConfig())[0]
+        assert float(lm.extra["runs_z"]) < -4.0   # type: ignore[arg-type]
+        assert float(lm.extra["runs_z_odom"]) > -2.0   # type: ignore[arg-type]
+        assert "residuals run in blocks" not in lm.reason
+    assert fit_segments([seg], FitConfig(), 0.0)[0].reason.startswith(
+        "residuals run in blocks")
+    # two poles merged: their blocks stay
+    poles = [Reflector("point", 1.0, -1.5, 0.67), Reflector("point", 2.2, -1.3, 0.67)]
+    for seed in (0, 1):
+        seg, _ = _drive(seed, poles)
+        lm = fit_segments([seg], FitConfig())[0]
+        assert float(lm.extra["runs_z_odom"]) < -2.5   # type: ignore[arg-type]
+
+
 def test_walk_modes_carry_a_brownian_paths_variance():
     # the Karhunen-Loeve modes of a unit Brownian path on [0, L]: the variance at s is s
     # (95 % of it in WALK_TERMS modes at the far end), the mean over [0, s] has variance
