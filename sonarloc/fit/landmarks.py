@@ -159,7 +159,8 @@ def _fallback(seg_arrays: _Cleaned, status: FitStatus, reason: str,
 
 
 def _add_odometry_terms(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
-                        sd_deg_per_m: float | None, to_ref: Array | None) -> Array:
+                        sd_deg_per_m: float | None, to_ref: Array | None,
+                        arm_m: float = 0.0) -> Array:
     """The odometry's share of moving segments' fits (:mod:`sonarloc.fit.odomcov`, one
     :func:`~sonarloc.fit.odomcov.odometry_terms` call per kind and tier): the curvature
     error's and the random walks' covariances added to ``sel.cov`` (recorded in ``extra``
@@ -184,7 +185,7 @@ def _add_odometry_terms(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
         for tier in set(sel.tier[sel.kind == kind]):
             idx = np.flatnonzero((sel.kind == kind) & (sel.tier == tier))
             curv, c2, walk, runs = odomcov.odometry_terms(_take(batch, idx), sel.rows(idx),
-                                                          to_ref[idx], cfg, sd)
+                                                          to_ref[idx], cfg, sd, arm_m)
             sel.cov[idx] += curv
             for j in np.flatnonzero((curv[:, 0, 0] > 0.0) | (curv[:, 1, 1] > 0.0)).tolist():
                 ex = sel.extra[int(idx[j])]
@@ -292,6 +293,7 @@ class _Selected:
     n_echo: NDArray[np.int64]
     n_noecho: NDArray[np.int64]
     to_ref: Array | None              # (rows, Nd) travel from each echo to the reference
+    arm_m: float                      # the transducers' lever arm (odomcov.ring_arm)
 
     def landmarks(self, cfg: FitConfig, odometry_sd_deg_per_m: float | None,
                   which: Sequence[int] | None = None) -> list[Landmark]:
@@ -309,7 +311,8 @@ class _Selected:
             batch = self.batch if whole else _take(self.batch, take)
             sel = self.sel if whole else self.sel.subset(take)
             chi2 = _add_odometry_terms(batch, sel, cfg, odometry_sd_deg_per_m,
-                                       None if self.to_ref is None else self.to_ref[take])
+                                       None if self.to_ref is None else self.to_ref[take],
+                                       self.arm_m)
             r = take.tolist()
             lms = _landmarks(batch, sel, cfg, [self.meta[j] for j in r],
                              [self.sensors[j] for j in r], self.n_echo[take],
@@ -383,10 +386,12 @@ def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Ar
             vals = (keys % width + s_lo).tolist()
             sensors = [tuple(vals[a:b]) for a, b in zip(cut[:-1].tolist(), cut[1:].tolist(),
                                                          strict=True)]
-    to_ref = (_travel_to_ref(batch, seg, t, x, y, sensor, echo)
-              if batch is not None and batch.moving else None)
+    to_ref, arm = None, 0.0
+    if batch is not None and batch.moving:
+        to_ref = _travel_to_ref(batch, seg, t, x, y, sensor, echo)
+        arm = odomcov.ring_arm(t, x, y, yaw, sensor)
     return _Selected(out, row, batch, sel, [meta[i] for i in todo.tolist()], sensors,
-                     n_echo[todo], n_noecho[todo], to_ref)
+                     n_echo[todo], n_noecho[todo], to_ref, arm)
 
 
 def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,

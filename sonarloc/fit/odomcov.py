@@ -39,6 +39,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from sonarloc.fit import model as M
 from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _covariance, _evaluate_s2, _take
 from sonarloc.fit.select import runs_z
 
@@ -76,13 +77,14 @@ def odometry_covariance(batch: SegmentBatch, fit: BatchFit, cfg: FitConfig,
 
 
 def odometry_terms(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitConfig,
-                   curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M
+                   curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M, arm_m: float = 0.0
                    ) -> tuple[Array, Array, Array, Array]:
     """:func:`odometry_covariance` and :func:`odometry_chi2` (its chi-square, covariance
     and runs statistic) of the same fits, the Fisher matrix at the fit evaluated once
     for both."""
     cov, fisher = _curvature_share(batch, fit, cfg, curvature_sd_deg_per_m)
-    chi2, walk, runs = odometry_chi2(batch, fit, travel, cfg, curvature_sd_deg_per_m, fisher)
+    chi2, walk, runs = odometry_chi2(batch, fit, travel, cfg, curvature_sd_deg_per_m, fisher,
+                                     arm_m)
     return cov, chi2, walk, runs
 
 
@@ -141,9 +143,11 @@ ALONG_WALK_M2_PER_M = WHEEL_NOISE_M_PER_SQRT_M ** 2 / 2.0
 """Along-track random walk of that odometry [m^2 per m of travel]: the mean of the two
 wheels' travel errors (about (2.1 mm)^2 per metre)."""
 
-WALK_TERMS = 4
+WALK_TERMS = 10
 """Terms of each random walk's Karhunen-Loeve expansion (the first four carry 95 % of a
-Brownian path's variance on its interval)."""
+Brownian path's variance at its end, ten 98 %; the path's shape in between needs more:
+on a moving ring's 300 s drive, benchmarks/bench_fit.py section 4, 4 -> 10 terms left
+118 -> 106 segments ``UNRESOLVED``; 24 terms gained one more)."""
 
 
 def travel_from_start(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array,
@@ -169,6 +173,27 @@ def travel_from_start(seg: NDArray[np.int64], t_s: Array, x_m: Array, y_m: Array
     return speed[seg] * (t_s - start[seg])
 
 
+def ring_arm(t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array, sensor: NDArray[np.int64]
+             ) -> float:
+    """How far behind its transducers [m] the robot's centre lies, from readings of
+    different transducers taken at the same time (a ring firing several at once): the
+    least-squares distance along their axes to a common point; 0 without such readings
+    (one transducer: its lever arm shows only through rotation)."""
+    order = np.lexsort((sensor, t_s))
+    t, k = t_s[order], sensor[order]
+    pair = np.flatnonzero((t[1:] == t[:-1]) & (k[1:] != k[:-1]))
+    if pair.size == 0:
+        return 0.0
+    a, b = order[pair], order[pair + 1]
+    dux = np.cos(yaw_rad[a]) - np.cos(yaw_rad[b])
+    duy = np.sin(yaw_rad[a]) - np.sin(yaw_rad[b])
+    den = float(np.sum(dux * dux + duy * duy))
+    if den < 1e-9:
+        return 0.0
+    arm = float(np.sum((x_m[a] - x_m[b]) * dux + (y_m[a] - y_m[b]) * duy)) / den
+    return arm if math.isfinite(arm) and arm > 0.0 else 0.0
+
+
 def _walk_modes(s: Array, length: Array, k: int) -> tuple[Array, Array]:
     """Mode ``k`` (0-based) of a unit-intensity Brownian path on [0, length] started at
     0 (Karhunen-Loeve): its value at ``s`` and its mean over [0, s] (B, Nd)."""
@@ -181,7 +206,8 @@ def _walk_modes(s: Array, length: Array, k: int) -> tuple[Array, Array]:
 
 def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitConfig,
                   curvature_sd_deg_per_m: float = CURVATURE_SD_DEG_PER_M,
-                  fisher: Array | None = None) -> tuple[Array, Array, Array]:
+                  fisher: Array | None = None, arm_m: float = 0.0
+                  ) -> tuple[Array, Array, Array]:
     """TOF chi-square of moving segments with the odometry's pose error profiled out (B,),
     the random walks' share of the covariance of the local ``(r, phi, kappa)``
     (B, 3, 3) and the runs statistic of the residuals left (B,; NaN where not moving).
@@ -195,9 +221,13 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     :data:`ALONG_WALK_M2_PER_M`: derived from its wheel noise and wheelbase, not fitted
     to any result) times ``(curvature_sd_deg_per_m / CURVATURE_SD_DEG_PER_M)^2``, so 0
     means exact poses. A reading's heading is off by the heading error where it was
-    taken, its position rotated about the reference by the mean heading error on the
-    way there and moved along the chord by the distance error. Each walk is expanded in
-    :data:`WALK_TERMS` Karhunen-Loeve modes with standard-normal weights.
+    taken; its position by the path from it on to the reference (the robot's centre,
+    ``arm_m`` behind each transducer: :func:`ring_arm`), each element turned by the
+    heading error there and stretched by the distance's, plus its lever arm turned
+    (:class:`_Path`; until session 12 the chord to the reference was turned by the mean
+    heading error and stretched along itself: exact for a straight path only, where a
+    ring's segments turn by 20-180 deg). Each walk is expanded in :data:`WALK_TERMS`
+    Karhunen-Loeve modes with standard-normal weights.
 
     With ``A`` the whitened TOF sensitivities to the weights (the model's pose
     Jacobian at the fit) and ``J`` the fit's whitened TOF Jacobian, the chi-square
@@ -214,9 +244,6 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     share. ``fisher``: that Fisher matrix (B, 3, 3) where known (:func:`odometry_terms`),
     else evaluated here.
     """
-    from sonarloc.fit import model as M
-    from sonarloc.fit.lsq import tof_jacobian_at
-
     chi2 = fit.chi2.copy()
     out_cov = np.zeros((batch.size, 3, 3))
     runs = np.full(batch.size, np.nan)
@@ -227,77 +254,128 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     moving = np.flatnonzero(np.max(np.hypot(batch.px, batch.py) * used, axis=1) > 0.02)
     if moving.size == 0:
         return chi2, out_cov, runs
-    scale = sd / math.radians(CURVATURE_SD_DEG_PER_M)
     sub = _take(batch, moving)
     u = used[moving].astype(float)
     e = fit.resid[moving] * u
     p = fit.local[moving]
+    obj = _objective(cfg)
+    path = _Path(sub, travel[moving], arm_m, sd / math.radians(CURVATURE_SD_DEG_PER_M), sd)
+    geo, G = _system(fit.kind, fit.tier, p, sub, u, path, cfg)
+    N = _normal(G)
+    b = np.einsum("bin,bn->bi", G, e)
+    step = np.linalg.solve(N, b[..., None])[..., 0]
+    # the chi-square's drop when the weights join the fit's parameters (the fit's own
+    # linear step, which the detection terms and kappa's prior kept it from, taken out)
+    alone = np.einsum("bi,bi->b", b[:, :3],
+                      np.linalg.solve(N[:, :3, :3], b[:, :3, None])[..., 0])
+    left_chi2 = fit.chi2[moving] - np.einsum("bi,bi->b", b, step) + alone
+    left = (e - np.einsum("bin,bi->bn", G, step)) * u
+    y = np.where(used[moving], sub.tof_us - 0.5 * cfg.module.count_period_us, 0.0)
+    # the fit's linear response to the walks' weights, -H^-1 dg (H the Fisher matrix of
+    # the objective it minimised, as in odometry_covariance; not the curvature's weight:
+    # that share is odometry_covariance's)
+    if fisher is None:
+        _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used[moving], None, obj)
+    else:   # :func:`_curvature_share`'s (its moving segments include these)
+        H = fisher[moving]
+    S = np.einsum("bij,bjk->bik", _covariance(H), N[:, :3, 4:])     # (b, 3, m - 1)
+    cov = np.einsum("bik,bjk->bij", S, S)
+    good = np.isfinite(left_chi2) & np.all(np.isfinite(cov), axis=(1, 2))
+    chi2[moving[good]] = np.maximum(left_chi2[good], 0.0)
+    out_cov[moving[good]] = cov[good]
+    # the runs statistic of the residuals left when the path may bend so, in order of the
+    # off-axis angle as the fit's own runs test reads them (select.overlap_check): the
+    # walk itself puts a moving segment's residuals in blocks
+    order = np.argsort(np.where(u > 0.0, geo.theta, np.inf), axis=1)
+    z = runs_z(np.take_along_axis(left > 0.0, order, axis=1), used[moving].sum(1))
+    runs[moving[good]] = z[good]
+    return chi2, out_cov, runs
+
+
+class _Path:
+    """The odometry's error fields along the path of segments' echoes (time order, up to
+    the reference, the last echo), one per weight of the profile, each (b, m, Nd): the
+    heading error (0 at the reference) and the rate at which the distance driven is off
+    (per metre); and the path itself: the robot's centre (``arm_m`` behind each
+    transducer) and its elements between consecutive echoes. Weight 0 is the constant
+    curvature, then for each of :data:`WALK_TERMS` modes the heading's and the
+    distance's random walk."""
+
+    def __init__(self, sub: SegmentBatch, travel: Array, arm_m: float, scale: float,
+                 sd: float) -> None:
+        valid = sub.valid
+        self.sub, self.arm_m = sub, arm_m
+        s = np.maximum(travel, np.hypot(sub.px, sub.py)) * valid
+        length = np.maximum(np.max(s, axis=1, keepdims=True), 1e-9)
+        zero = np.zeros_like(s)
+        heads, rates = [sd * s], [zero]
+        qh = math.sqrt(HEADING_WALK_RAD2_PER_M) * scale
+        qa = math.sqrt(ALONG_WALK_M2_PER_M) * scale
+        for k in range(WALK_TERMS):
+            val, _ = _walk_modes(s, length, k)
+            heads += [qh * val, zero]
+            # the distance's walk: the derivative of its mode (value amp sin(w s))
+            rates += [zero, qa * np.sqrt(2.0 / length) * np.cos((k + 0.5) * math.pi / length * s)]
+        self.heads, self.rates = np.stack(heads, axis=1), np.stack(rates, axis=1)
+        self.lever = (arm_m * np.cos(sub.yaw), arm_m * np.sin(sub.yaw))
+        self.steps = tuple(np.where(valid[:, 1:], np.diff(q - lq, axis=1), 0.0)
+                           for q, lq in zip((sub.px, sub.py), self.lever, strict=True))
+
+    def onward(self, f: Array) -> tuple[Array, Array]:
+        """Sums over the path's elements from each echo on to the reference of ``f`` (at
+        the elements' middles; (..., Nd) per echo) times the element."""
+        fm = 0.5 * (f[..., :-1] + f[..., 1:])
+        sx, sy = (st if f.ndim == 2 else st[:, None, :] for st in self.steps)
+        pad = [(0, 0)] * (f.ndim - 1) + [(0, 1)]
+        return tuple(np.pad(np.cumsum((fm * st)[..., ::-1], axis=-1)[..., ::-1], pad)
+                     for st in (sx, sy))   # type: ignore[return-value]
+
+    def moved(self, head: Array, rate: Array) -> tuple[Array, Array]:
+        """Each echo's position error (linear) from a heading error and a distance rate
+        field (..., Nd): the path on to the reference turned by the one and stretched by
+        the other, and the lever arm turned."""
+        hx, hy = self.onward(head)
+        ax, ay = self.onward(rate)
+        lx, ly = (q if head.ndim == 2 else q[:, None, :] for q in self.lever)
+        return hy - ax - head * ly, -hx - ay + head * lx
+
+
+def _system(kind: str, tier: str, p: Array, sub: SegmentBatch, u: Array, path: _Path,
+            cfg: FitConfig) -> tuple[M.Geometry, Array]:
+    """The geometry at the fits ``p`` (at the poses of ``sub``) and the whitened TOF
+    sensitivities (b, 3 + m, Nd) to the parameters and to the weights of ``path``'s
+    error fields (the model's pose Jacobian times the fields' pose errors), used echoes
+    only."""
+    from sonarloc.fit.lsq import tof_jacobian_at
+
     mod = cfg.module
     tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
-    px, py = sub.px, sub.py
-    geo = M.geometry(fit.kind, r, phi, px, py, sub.yaw, moving=True)
-    g, dg, lng = M.beam_delay_factor(geo.theta, fit.tier, mod)
+    geo = M.geometry(kind, r, phi, sub.px, sub.py, sub.yaw, moving=True)
+    g, dg, lng = M.beam_delay_factor(geo.theta, tier, mod)
     z = M.detection_z(K, lng, mod) if cfg.detection else None
-    J, et, tof_sd = tof_jacobian_at(geo, K, g, dg, z, fit.tier, mod)
+    J, et, tof_sd = tof_jacobian_at(geo, K, g, dg, z, tier, mod)
     a = et.ddelay_du * K * dg                         # d mean TOF / d theta
     # pose Jacobian of the mean TOF (whitened, used echoes only)
     c, s = np.cos(phi), np.sin(phi)
-    if fit.kind == "line":
-        dx, dy = -tau * c + 0.0 * px, -tau * s + 0.0 * py
+    if kind == "line":
+        dx, dy = -tau * c + 0.0 * sub.px, -tau * s + 0.0 * sub.py
     else:
-        qx, qy = r * c - px, r * s - py
+        qx, qy = r * c - sub.px, r * s - sub.py
         R2 = np.maximum(qx * qx + qy * qy, 1e-18)
         Rr = np.sqrt(R2)
         dx = -tau * qx / Rr + a * qy / R2
         dy = -tau * qy / Rr - a * qx / R2
     w = u / tof_sd
-    dx, dy, dyaw = dx * w, dy * w, -a * w
-    chord = np.hypot(px, py)
-    ux, uy = px / np.maximum(chord, 1e-9), py / np.maximum(chord, 1e-9)
-    s_i = np.maximum(travel[moving], chord) * u
-    length = np.max(s_i, axis=1, keepdims=True)
-    rows = []
-    # constant curvature: heading c s, position rotated by c s / 2
-    rows.append(sd * (dyaw * s_i + (-dx * py + dy * px) * 0.5 * s_i))
-    qh = math.sqrt(HEADING_WALK_RAD2_PER_M) * scale
-    qa = math.sqrt(ALONG_WALK_M2_PER_M) * scale
-    for k in range(WALK_TERMS):
-        val, mean = _walk_modes(s_i, length, k)
-        rows.append(qh * (dyaw * val + (-dx * py + dy * px) * mean))
-        rows.append(qa * (dx * ux + dy * uy) * val)
-    A = np.stack(rows, axis=1)                                   # (b, m, Nd)
-    # the chi-square's drop when the weights join the fit's parameters (the fit's own
-    # linear step, which the detection terms and kappa's prior kept it from, taken out)
-    G = np.concatenate([J * u[:, None, :], A], axis=1)
+    mx, my = path.moved(path.heads, path.rates)
+    A = ((dx * w)[:, None] * mx + (dy * w)[:, None] * my
+         + (-a * w)[:, None] * path.heads)
+    return geo, np.concatenate([J * u[:, None, :], A], axis=1)
+
+
+def _normal(G: Array) -> Array:
+    """Normal matrix of the profile: ``G G^T`` with the weights' standard-normal prior."""
     N = np.einsum("bin,bjn->bij", G, G)
-    N[:, 3:, 3:] += np.eye(A.shape[1])[None]
+    N[:, 3:, 3:] += np.eye(G.shape[1] - 3)[None]
     N[:, :3, :3] += 1e-9 * np.eye(3)[None]
-    b = np.einsum("bin,bn->bi", G, e)
-    step = np.linalg.solve(N, b[..., None])[..., 0]
-    both = np.einsum("bi,bi->b", b, step)
-    alone = np.einsum("bi,bi->b", b[:, :3],
-                      np.linalg.solve(N[:, :3, :3], b[:, :3, None])[..., 0])
-    drop = both - alone
-    # the fit's linear response to the walks' weights, -H^-1 dg (H the Fisher matrix of
-    # the objective it minimised, as in odometry_covariance; not the curvature's weight:
-    # that share is odometry_covariance's)
-    if fisher is None:
-        y = np.where(used[moving], sub.tof_us - 0.5 * mod.count_period_us, 0.0)
-        _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used[moving], None,
-                                     _objective(cfg))
-    else:   # :func:`_curvature_share`'s (its moving segments include these)
-        H = fisher[moving]
-    S = np.einsum("bij,bjk->bik", _covariance(H), N[:, :3, 4:])     # (b, 3, m - 1)
-    cov = np.einsum("bik,bjk->bij", S, S)
-    good = np.isfinite(drop) & np.all(np.isfinite(cov), axis=(1, 2))
-    chi2[moving[good]] = np.maximum(fit.chi2[moving[good]] - drop[good], 0.0)
-    out_cov[moving[good]] = cov[good]
-    # the residuals left when the path may bend so, in order of the off-axis angle as
-    # the fit's own runs test reads them (select.overlap_check): the walk itself puts a
-    # moving segment's residuals in blocks
-    left = (e - np.einsum("bin,bi->bn", G, step)) * u
-    order = np.argsort(np.where(u > 0.0, geo.theta, np.inf), axis=1)
-    z = runs_z(np.take_along_axis(left > 0.0, order, axis=1), used[moving].sum(1))
-    runs[moving[good]] = z[good]
-    return chi2, out_cov, runs
+    return N

@@ -8,6 +8,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from sonarloc.fit import odomcov
 from sonarloc.fit.landmarks import fit_segments
@@ -161,3 +162,71 @@ def test_walk_intensities_are_the_simulators_odometry():
 
     assert odomcov.WHEEL_NOISE_M_PER_SQRT_M == OdometryModel().noise_m_per_sqrt_m
     assert odomcov.WHEELBASE_M == DriveParams().wheelbase_m
+
+
+def _turning_ring(radius_m=1.0, turn_deg=120.0, arm_m=0.2, mount_deg=-90.0, n=60):
+    """A transducer ``arm_m`` out from a robot's centre driving an arc: the centre's path,
+    its heading, and the transducer's poses."""
+    psi = np.radians(np.linspace(0.0, turn_deg, n))
+    cx, cy = radius_m * np.sin(psi), radius_m * (1.0 - np.cos(psi))
+    yaw = psi + math.radians(mount_deg)
+    return cx, cy, psi, cx + arm_m * np.cos(yaw), cy + arm_m * np.sin(yaw), yaw
+
+
+def test_path_model_moves_a_turning_rings_echoes_as_odometry_does():
+    # a heading error growing along a turning path (curvature error k), odometry
+    # re-integrated exactly backwards from the reference (the last reading): each
+    # reading's position error is the path on to the reference turned by the error, plus
+    # its lever arm turned; the model's linear prediction matches to second order in k
+    # (the chord turned about the reference, the model until session 12, is off by
+    # centimetres on such a path)
+    from sonarloc.fit.lsq import pack_flat
+
+    arm = 0.2
+    cx, cy, psi, x, y, yaw = _turning_ring(arm_m=arm)
+    s = np.r_[0.0, np.cumsum(np.hypot(np.diff(cx), np.diff(cy)))]
+    batch = pack_flat(np.zeros(x.size, dtype=np.int64), np.arange(x.size) * 0.1, x, y, yaw,
+                      np.full(x.size, 5000.0))
+    sd = math.radians(1.0)
+    path = odomcov._Path(batch, (s[-1] - s)[None, :], arm, 1.0, sd)
+    k = math.radians(0.5)                                  # rad/m
+    h = path.heads[0, 0] * (k / sd)                        # k times the travel to the end
+    hm = 0.5 * (h[:-1] + h[1:])
+    dcx, dcy = np.diff(cx), np.diff(cy)
+    ex, ey = np.cos(hm) * dcx - np.sin(hm) * dcy, np.sin(hm) * dcx + np.cos(hm) * dcy
+    ocx = cx[-1] - np.r_[np.cumsum(ex[::-1])[::-1], 0.0]
+    ocy = cy[-1] - np.r_[np.cumsum(ey[::-1])[::-1], 0.0]
+    oyaw = yaw + h
+    ox, oy = ocx + arm * np.cos(oyaw), ocy + arm * np.sin(oyaw)
+    actual = np.hypot(ox - x, oy - y)
+    assert actual.max() > 0.01                             # a centimetre and more
+    mx, my = path.moved(h[None, :], np.zeros((1, x.size)))
+    err = np.hypot(mx[0] - (ox - x), my[0] - (oy - y))
+    assert err.max() < 0.02 * actual.max()
+    # the chord turned about the reference by the mean error on the way (no lever arm)
+    ds = -np.diff(path.heads[0, 0] / sd)
+    mean_h = (np.r_[np.cumsum((hm * ds)[::-1])[::-1], 0.0]
+              / np.maximum(path.heads[0, 0] / sd, 1e-12))
+    px, py = x - x[-1], y - y[-1]
+    chord_err = np.hypot(-mean_h * py - (ox - x), mean_h * px - (oy - y))
+    assert chord_err.max() > 5.0 * err.max()
+    # a distance driven 1 % long: every element of the centre's path on to the
+    # reference stretched (the lever arm not)
+    mx, my = path.moved(np.zeros((1, x.size)), np.full((1, x.size), 0.01))
+    np.testing.assert_allclose(mx[0], 0.01 * (cx - cx[-1]), atol=1e-12)
+    np.testing.assert_allclose(my[0], 0.01 * (cy - cy[-1]), atol=1e-12)
+
+
+def test_ring_arm_from_simultaneous_readings():
+    # four transducers of a ring 0.2 m out from its centre, fired together while the
+    # robot drives and turns: the lever arm; one transducer alone: none
+    t = np.repeat(np.arange(10) * 0.1, 4)
+    mount = np.tile(np.radians([0.0, 90.0, 180.0, 270.0]), 10)
+    heading = 0.05 * t
+    yaw = heading + mount
+    cx, cy = 0.3 * t, 0.01 * t
+    x, y = cx + 0.2 * np.cos(yaw), cy + 0.2 * np.sin(yaw)
+    sensor = np.tile(np.arange(4), 10)
+    assert odomcov.ring_arm(t, x, y, yaw, sensor) == pytest.approx(0.2, abs=1e-9)
+    one = sensor == 0
+    assert odomcov.ring_arm(t[one], x[one], y[one], yaw[one], sensor[one]) == 0.0
