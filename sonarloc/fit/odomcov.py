@@ -254,98 +254,128 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     moving = np.flatnonzero(np.max(np.hypot(batch.px, batch.py) * used, axis=1) > 0.02)
     if moving.size == 0:
         return chi2, out_cov, runs
-    sub = _take(batch, moving)
-    u = used[moving].astype(float)
-    e = fit.resid[moving] * u
-    p = fit.local[moving]
+    # in chunks of segments of similar widths: the profile's arrays are (b, m, Nd) per
+    # weight, most segments far narrower than the batch's widest
+    width = batch.valid[moving].sum(1)                      # (echoes are a prefix)
+    by_width = moving[np.argsort(width, kind="stable")]
+    scale = sd / math.radians(CURVATURE_SD_DEG_PER_M)
+    for k in range(0, by_width.size, PROFILE_CHUNK):
+        rows = by_width[k:k + PROFILE_CHUNK]
+        wd = max(int(np.max(np.sum(batch.valid[rows], axis=1))), 1)
+        c2, cv, z = _walk_profile(fit, rows, wd, cfg,
+                                  None if fisher is None else fisher[rows],
+                                  _Path(_take(batch, rows, wd), travel[rows, :wd], arm_m,
+                                        scale, sd))
+        good = np.isfinite(c2) & np.all(np.isfinite(cv), axis=(1, 2))
+        chi2[rows[good]] = np.maximum(c2[good], 0.0)
+        out_cov[rows[good]] = cv[good]
+        runs[rows[good]] = z[good]
+    return chi2, out_cov, runs
+
+
+PROFILE_CHUNK = 64
+"""Segments per chunk of :func:`odometry_chi2`'s profile."""
+
+
+def _walk_profile(fit: BatchFit, rows: NDArray[np.int64], wd: int, cfg: FitConfig,
+                  fisher: Array | None, path: _Path) -> tuple[Array, Array, Array]:
+    """:func:`odometry_chi2` of segments ``rows`` (their first ``wd`` echo columns: all
+    their echoes; ``path`` of theirs): the chi-square, the walks' covariance and the
+    runs statistic."""
+    sub = path.sub
+    used = fit.used[rows, :wd]
+    u = used.astype(float)
+    e = fit.resid[rows, :wd] * u
+    p = fit.local[rows]
     obj = _objective(cfg)
-    path = _Path(sub, travel[moving], arm_m, sd / math.radians(CURVATURE_SD_DEG_PER_M), sd)
     geo, G = _system(fit.kind, fit.tier, p, sub, u, path, cfg)
     N = _normal(G)
-    b = np.einsum("bin,bn->bi", G, e)
+    b = np.matmul(G, e[:, :, None])[..., 0]
     step = np.linalg.solve(N, b[..., None])[..., 0]
     # the chi-square's drop when the weights join the fit's parameters (the fit's own
     # linear step, which the detection terms and kappa's prior kept it from, taken out)
     alone = np.einsum("bi,bi->b", b[:, :3],
                       np.linalg.solve(N[:, :3, :3], b[:, :3, None])[..., 0])
-    left_chi2 = fit.chi2[moving] - np.einsum("bi,bi->b", b, step) + alone
-    left = (e - np.einsum("bin,bi->bn", G, step)) * u
-    y = np.where(used[moving], sub.tof_us - 0.5 * cfg.module.count_period_us, 0.0)
+    left_chi2 = fit.chi2[rows] - np.einsum("bi,bi->b", b, step) + alone
+    left = (e - np.matmul(step[:, None, :], G)[:, 0]) * u
     # the fit's linear response to the walks' weights, -H^-1 dg (H the Fisher matrix of
     # the objective it minimised, as in odometry_covariance; not the curvature's weight:
     # that share is odometry_covariance's)
     if fisher is None:
-        _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used[moving], None, obj)
+        y = np.where(used, sub.tof_us - 0.5 * cfg.module.count_period_us, 0.0)
+        _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used, None, obj)
     else:   # :func:`_curvature_share`'s (its moving segments include these)
-        H = fisher[moving]
+        H = fisher
     S = np.einsum("bij,bjk->bik", _covariance(H), N[:, :3, 4:])     # (b, 3, m - 1)
     cov = np.einsum("bik,bjk->bij", S, S)
-    good = np.isfinite(left_chi2) & np.all(np.isfinite(cov), axis=(1, 2))
-    chi2[moving[good]] = np.maximum(left_chi2[good], 0.0)
-    out_cov[moving[good]] = cov[good]
     # the runs statistic of the residuals left when the path may bend so, in order of the
     # off-axis angle as the fit's own runs test reads them (select.overlap_check): the
     # walk itself puts a moving segment's residuals in blocks
     order = np.argsort(np.where(u > 0.0, geo.theta, np.inf), axis=1)
-    z = runs_z(np.take_along_axis(left > 0.0, order, axis=1), used[moving].sum(1))
-    runs[moving[good]] = z[good]
-    return chi2, out_cov, runs
+    z = runs_z(np.take_along_axis(left > 0.0, order, axis=1), used.sum(1))
+    return left_chi2, cov, z
 
 
 class _Path:
     """The odometry's error fields along the path of segments' echoes (time order, up to
-    the reference, the last echo), one per weight of the profile, each (b, m, Nd): the
-    heading error (0 at the reference) and the rate at which the distance driven is off
-    (per metre); and the path itself: the robot's centre (``arm_m`` behind each
-    transducer) and its elements between consecutive echoes. Weight 0 is the constant
-    curvature, then for each of :data:`WALK_TERMS` modes the heading's and the
-    distance's random walk."""
+    the reference, the last echo), one per weight of the profile: ``heads`` (b, 1 + K,
+    Nd) heading errors (0 at the reference) of the constant curvature and of the
+    heading's random walk, ``rates`` (b, K, Nd) rates at which the distance driven is off
+    (per metre) of the distance's walk (K = :data:`WALK_TERMS`); and the path itself:
+    the robot's centre (``arm_m`` behind each transducer) and its elements between
+    consecutive echoes."""
 
     def __init__(self, sub: SegmentBatch, travel: Array, arm_m: float, scale: float,
                  sd: float) -> None:
+        self.sub = sub
         valid = sub.valid
-        self.sub, self.arm_m = sub, arm_m
         s = np.maximum(travel, np.hypot(sub.px, sub.py)) * valid
         length = np.maximum(np.max(s, axis=1, keepdims=True), 1e-9)
-        zero = np.zeros_like(s)
-        heads, rates = [sd * s], [zero]
         qh = math.sqrt(HEADING_WALK_RAD2_PER_M) * scale
         qa = math.sqrt(ALONG_WALK_M2_PER_M) * scale
-        for k in range(WALK_TERMS):
-            val, _ = _walk_modes(s, length, k)
-            heads += [qh * val, zero]
-            # the distance's walk: the derivative of its mode (value amp sin(w s))
-            rates += [zero, qa * np.sqrt(2.0 / length) * np.cos((k + 0.5) * math.pi / length * s)]
-        self.heads, self.rates = np.stack(heads, axis=1), np.stack(rates, axis=1)
+        # the walks' modes (as _walk_modes, all at once): the heading's values and the
+        # distance's derivatives (its value amp sin(w s))
+        half = (np.arange(WALK_TERMS) + 0.5)[None, :, None] * math.pi
+        ws = half * (s / length)[:, None, :]
+        amp = np.sqrt(2.0 * length)[:, :, None] / half
+        self.heads = np.concatenate([(sd * s)[:, None, :], qh * amp * np.sin(ws)], axis=1)
+        self.rates = qa * np.sqrt(2.0 / length)[:, :, None] * np.cos(ws)
         self.lever = (arm_m * np.cos(sub.yaw), arm_m * np.sin(sub.yaw))
-        self.steps = tuple(np.where(valid[:, 1:], np.diff(q - lq, axis=1), 0.0)
+        self.steps = tuple(np.where(valid[:, 1:], np.diff(q - lq, axis=1), 0.0)[:, None, :]
                            for q, lq in zip((sub.px, sub.py), self.lever, strict=True))
 
     def onward(self, f: Array) -> tuple[Array, Array]:
         """Sums over the path's elements from each echo on to the reference of ``f`` (at
-        the elements' middles; (..., Nd) per echo) times the element."""
+        the elements' middles; (b, m, Nd)) times the element."""
         fm = 0.5 * (f[..., :-1] + f[..., 1:])
-        sx, sy = (st if f.ndim == 2 else st[:, None, :] for st in self.steps)
-        pad = [(0, 0)] * (f.ndim - 1) + [(0, 1)]
-        return tuple(np.pad(np.cumsum((fm * st)[..., ::-1], axis=-1)[..., ::-1], pad)
-                     for st in (sx, sy))   # type: ignore[return-value]
+        out = []
+        for st in self.steps:
+            g = fm * st
+            v = np.zeros(f.shape)
+            v[..., :-1] = g.sum(-1, keepdims=True) - np.cumsum(g, axis=-1) + g
+            out.append(v)
+        return out[0], out[1]
 
-    def moved(self, head: Array, rate: Array) -> tuple[Array, Array]:
-        """Each echo's position error (linear) from a heading error and a distance rate
-        field (..., Nd): the path on to the reference turned by the one and stretched by
-        the other, and the lever arm turned."""
-        hx, hy = self.onward(head)
-        ax, ay = self.onward(rate)
-        lx, ly = (q if head.ndim == 2 else q[:, None, :] for q in self.lever)
-        return hy - ax - head * ly, -hx - ay + head * lx
+    def turned(self) -> tuple[Array, Array]:
+        """Each echo's position error (linear) from each heading error field: the path on
+        to the reference turned by it, and the lever arm turned."""
+        hx, hy = self.onward(self.heads)
+        lx, ly = (q[:, None, :] for q in self.lever)
+        return hy - self.heads * ly, -hx + self.heads * lx
+
+    def stretched(self) -> tuple[Array, Array]:
+        """Each echo's position error (linear) from each distance rate field: the
+        centre's path on to the reference stretched by it."""
+        ax, ay = self.onward(self.rates)
+        return -ax, -ay
 
 
 def _system(kind: str, tier: str, p: Array, sub: SegmentBatch, u: Array, path: _Path,
             cfg: FitConfig) -> tuple[M.Geometry, Array]:
     """The geometry at the fits ``p`` (at the poses of ``sub``) and the whitened TOF
     sensitivities (b, 3 + m, Nd) to the parameters and to the weights of ``path``'s
-    error fields (the model's pose Jacobian times the fields' pose errors), used echoes
-    only."""
+    error fields, the curvature's first (the model's pose Jacobian times the fields'
+    pose errors), used echoes only."""
     from sonarloc.fit.lsq import tof_jacobian_at
 
     mod = cfg.module
@@ -367,15 +397,17 @@ def _system(kind: str, tier: str, p: Array, sub: SegmentBatch, u: Array, path: _
         dx = -tau * qx / Rr + a * qy / R2
         dy = -tau * qy / Rr - a * qx / R2
     w = u / tof_sd
-    mx, my = path.moved(path.heads, path.rates)
-    A = ((dx * w)[:, None] * mx + (dy * w)[:, None] * my
-         + (-a * w)[:, None] * path.heads)
-    return geo, np.concatenate([J * u[:, None, :], A], axis=1)
+    dx, dy = (dx * w)[:, None], (dy * w)[:, None]
+    hx, hy = path.turned()
+    ax, ay = path.stretched()
+    return geo, np.concatenate([J * u[:, None, :],
+                                dx * hx + dy * hy + (-a * w)[:, None] * path.heads,
+                                dx * ax + dy * ay], axis=1)
 
 
 def _normal(G: Array) -> Array:
     """Normal matrix of the profile: ``G G^T`` with the weights' standard-normal prior."""
-    N = np.einsum("bin,bjn->bij", G, G)
+    N = np.matmul(G, G.transpose(0, 2, 1))
     N[:, 3:, 3:] += np.eye(G.shape[1] - 3)[None]
     N[:, :3, :3] += 1e-9 * np.eye(3)[None]
     return N

@@ -200,21 +200,24 @@ def test_path_model_moves_a_turning_rings_echoes_as_odometry_does():
     ox, oy = ocx + arm * np.cos(oyaw), ocy + arm * np.sin(oyaw)
     actual = np.hypot(ox - x, oy - y)
     assert actual.max() > 0.01                             # a centimetre and more
-    mx, my = path.moved(h[None, :], np.zeros((1, x.size)))
-    err = np.hypot(mx[0] - (ox - x), my[0] - (oy - y))
+    curvature = path.heads[:, :1]
+    path.heads = h[None, None, :]
+    mx, my = path.turned()
+    err = np.hypot(mx[0, 0] - (ox - x), my[0, 0] - (oy - y))
     assert err.max() < 0.02 * actual.max()
     # the chord turned about the reference by the mean error on the way (no lever arm)
-    ds = -np.diff(path.heads[0, 0] / sd)
+    ds = -np.diff(curvature[0, 0] / sd)
     mean_h = (np.r_[np.cumsum((hm * ds)[::-1])[::-1], 0.0]
-              / np.maximum(path.heads[0, 0] / sd, 1e-12))
+              / np.maximum(curvature[0, 0] / sd, 1e-12))
     px, py = x - x[-1], y - y[-1]
     chord_err = np.hypot(-mean_h * py - (ox - x), mean_h * px - (oy - y))
     assert chord_err.max() > 5.0 * err.max()
     # a distance driven 1 % long: every element of the centre's path on to the
     # reference stretched (the lever arm not)
-    mx, my = path.moved(np.zeros((1, x.size)), np.full((1, x.size), 0.01))
-    np.testing.assert_allclose(mx[0], 0.01 * (cx - cx[-1]), atol=1e-12)
-    np.testing.assert_allclose(my[0], 0.01 * (cy - cy[-1]), atol=1e-12)
+    path.rates = np.full((1, 1, x.size), 0.01)
+    mx, my = path.stretched()
+    np.testing.assert_allclose(mx[0, 0], 0.01 * (cx - cx[-1]), atol=1e-12)
+    np.testing.assert_allclose(my[0, 0], 0.01 * (cy - cy[-1]), atol=1e-12)
 
 
 def test_ring_arm_from_simultaneous_readings():
