@@ -194,14 +194,14 @@ def ring_arm(t_s: Array, x_m: Array, y_m: Array, yaw_rad: Array, sensor: NDArray
     return arm if math.isfinite(arm) and arm > 0.0 else 0.0
 
 
-def _walk_modes(s: Array, length: Array, k: int) -> tuple[Array, Array]:
-    """Mode ``k`` (0-based) of a unit-intensity Brownian path on [0, length] started at
-    0 (Karhunen-Loeve): its value at ``s`` and its mean over [0, s] (B, Nd)."""
-    w = (k + 0.5) * math.pi / np.maximum(length, 1e-9)
-    amp = np.sqrt(2.0 * length) / (k + 0.5) / math.pi
-    ws = w * s
-    mean = np.where(ws > 1e-9, (1.0 - np.cos(ws)) / np.maximum(ws, 1e-9), 0.5 * ws)
-    return amp * np.sin(ws), amp * mean
+def _walk_modes(s: Array, length: Array, n: int) -> tuple[Array, Array]:
+    """The first ``n`` modes of a unit-intensity Brownian path on [0, length] started at 0
+    (Karhunen-Loeve), each (b, n, Nd): their values at ``s`` (b, Nd) and their
+    derivatives by ``s`` (``length`` (b, 1))."""
+    half = (np.arange(n) + 0.5)[None, :, None] * math.pi
+    ws = half * (s / length)[:, None, :]
+    amp = np.sqrt(2.0 * length)[:, :, None] / half
+    return amp * np.sin(ws), np.sqrt(2.0 / length)[:, :, None] * np.cos(ws)
 
 
 def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitConfig,
@@ -333,13 +333,10 @@ class _Path:
         length = np.maximum(np.max(s, axis=1, keepdims=True), 1e-9)
         qh = math.sqrt(HEADING_WALK_RAD2_PER_M) * scale
         qa = math.sqrt(ALONG_WALK_M2_PER_M) * scale
-        # the walks' modes (as _walk_modes, all at once): the heading's values and the
-        # distance's derivatives (its value amp sin(w s))
-        half = (np.arange(WALK_TERMS) + 0.5)[None, :, None] * math.pi
-        ws = half * (s / length)[:, None, :]
-        amp = np.sqrt(2.0 * length)[:, :, None] / half
-        self.heads = np.concatenate([(sd * s)[:, None, :], qh * amp * np.sin(ws)], axis=1)
-        self.rates = qa * np.sqrt(2.0 / length)[:, :, None] * np.cos(ws)
+        # the walks' modes: the heading's values, the distance's derivatives
+        val, rate = _walk_modes(s, length, WALK_TERMS)
+        self.heads = np.concatenate([(sd * s)[:, None, :], qh * val], axis=1)
+        self.rates = qa * rate
         self.lever = (arm_m * np.cos(sub.yaw), arm_m * np.sin(sub.yaw))
         self.steps = tuple(np.where(valid[:, 1:], np.diff(q - lq, axis=1), 0.0)[:, None, :]
                            for q, lq in zip((sub.px, sub.py), self.lever, strict=True))
