@@ -79,3 +79,31 @@ def test_ok_single_is_not_replaced_by_the_two_arms_of_its_u():
     assert len(group) == 1 and group[0].status is FitStatus.OK
     basis = str(group[0].extra["pair_basis"])
     assert basis.startswith("two reflectors") and "not taken" in basis
+
+
+def test_readings_kept_past_a_walls_ends_stay_in_front():
+    # a wall seen squarely on the middle of the drive (no echo before or after it) and two
+    # missed echoes on it: the readings past both ends go, the two missed echoes stay,
+    # moved to the front of the no-echo columns (fit_batch cuts a chunk's columns to the
+    # readings' count: a hole before them used to cut them off)
+    from sonarloc.fit.lsq import pack_flat
+    from sonarloc.fit.select import select_models
+
+    scan = _drive_past_wall_end(0.0, 0.3)
+    tof = scan.tof_us.copy()
+    echo = np.flatnonzero(np.isfinite(tof))
+    assert echo[0] > 0 and echo[-1] < tof.size - 1        # silent before and after
+    missed = echo[[len(echo) // 3, 2 * len(echo) // 3]]
+    tof[missed] = np.nan
+    batch = pack_flat(np.zeros(tof.size, dtype=np.int64), scan.t_s, scan.x_m, scan.y_m,
+                      scan.yaw_rad, tof)
+    sel, fitted = select_models(batch, FitConfig())
+    assert sel.kind[0] == "line"
+    n_kept = int(fitted.ne_valid[0].sum())
+    assert n_kept == 2 and fitted.ne_valid[0, :n_kept].all()
+    kept = {(round(float(x), 9), round(float(y), 9))
+            for x, y in zip(fitted.ne_px[0, :2], fitted.ne_py[0, :2], strict=True)}
+    ref = batch.ref_xy[0]
+    assert kept == {(round(float(scan.x_m[i] - ref[0]), 9), round(float(scan.y_m[i] - ref[1]), 9))
+                    for i in missed}
+    assert sel.extra[0]["n_past_wall_end"] == int((~np.isfinite(scan.tof_us)).sum())
