@@ -87,16 +87,16 @@ def test_runs_test_reads_what_the_walk_leaves():
         seg, _ = _drive(seed, wall)
         lm = fit_segments([seg], FitConfig())[0]
         assert float(lm.extra["runs_z"]) < -4.0   # type: ignore[arg-type]
-        assert float(lm.extra["runs_z_odom"]) > -2.0   # type: ignore[arg-type]
+        assert float(lm.extra["runs_z_odom"]) > -1.5   # type: ignore[arg-type]
         assert "residuals run in blocks" not in lm.reason
     assert fit_segments([seg], FitConfig(), 0.0)[0].reason.startswith(
         "residuals run in blocks")
     # two poles merged: their blocks stay
     poles = [Reflector("point", 1.0, -1.5, 0.67), Reflector("point", 2.2, -1.3, 0.67)]
-    for seed in (0, 1):
+    for seed in range(4):
         seg, _ = _drive(seed, poles)
         lm = fit_segments([seg], FitConfig())[0]
-        assert float(lm.extra["runs_z_odom"]) < -2.5   # type: ignore[arg-type]
+        assert float(lm.extra["runs_z_odom"]) < -2.0   # type: ignore[arg-type]
 
 
 def test_walk_modes_carry_a_brownian_paths_variance():
