@@ -1204,9 +1204,9 @@ def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Ar
     g: FloatArray
     lg: FloatArray
     if moving:
-        geo = M.geometry(kind, r0[:, None, None], phis[:, :, None], batch.px[:, None, :],
-                         batch.py[:, None, :], batch.yaw[:, None, :], moving=True)
-        theta = geo.theta
+        R, theta = M.range_angle(kind, r0[:, None, None], phis[:, :, None],
+                                 batch.px[:, None, :], batch.py[:, None, :],
+                                 batch.yaw[:, None, :])
     elif single:
         theta = _angle_diff(phis.astype(dt)[:, :, None], batch.yaw32[:, None, :],
                             batch.yaw_bounds[:2])
@@ -1226,7 +1226,7 @@ def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Ar
     S1 = gw.sum(-1).astype(float) * scale
     S2 = np.einsum("bgn,bgn->bg", gw, g).astype(float) * (scale * scale)
     if moving:   # the range offsets of the readings depend on the node
-        ycg = (yc[:, None, :] - tau * (geo.R - r0[:, None, None])) * (use[:, None, :])
+        ycg = (yc[:, None, :] - tau * (R - r0[:, None, None])) * (use[:, None, :])
         Sy = np.einsum("bgn,bgn->bg", ycg, w)
         Syy = np.einsum("bgn,bgn->bg", ycg * w, ycg)
         Sgy = np.einsum("bgn,bgn->bg", gw, ycg) * scale
@@ -1258,9 +1258,9 @@ def _node_profile(kind: str, tier: str, batch: SegmentBatch, phis: Array, r0: Ar
         cost = cost + (0.7 / (sa * sa)) * np.einsum("bgn,bgn->bg", zd * w, zd).astype(float)
         if batch.ne_valid.shape[1] and batch.ne_valid.any():
             if moving:
-                thn = M.geometry(kind, r0[:, None, None], phis[:, :, None],
-                                 batch.ne_px[:, None, :], batch.ne_py[:, None, :],
-                                 batch.ne_yaw[:, None, :], moving=True).theta
+                thn = M.range_angle(kind, r0[:, None, None], phis[:, :, None],
+                                    batch.ne_px[:, None, :], batch.ne_py[:, None, :],
+                                    batch.ne_yaw[:, None, :])[1]
             elif single:
                 thn = _angle_diff(phis.astype(dt)[:, :, None], batch.ne_yaw32[:, None, :],
                                   batch.yaw_bounds[2:])

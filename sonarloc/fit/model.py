@@ -67,6 +67,20 @@ def _wrap_fast(a: Array) -> Array:
     return a - _TWO_PI * np.rint(a * (1.0 / _TWO_PI))
 
 
+def range_angle(kind: str, r: Array, phi: Array, px: Array, py: Array, yaw: Array
+                ) -> tuple[Array, Array]:
+    """Range [m] and off-axis angle [rad] of moving readings, as :func:`geometry`
+    computes them (the same numbers), without its derivatives: what a bracket's nodes
+    need. Inputs as :func:`geometry`'s, float arrays; the range of a line has the
+    broadcast shape of ``phi`` and the positions."""
+    c, s = np.cos(phi), np.sin(phi)
+    if kind == "line":
+        return r - (px * c + py * s), _wrap_fast(phi - yaw)
+    qx = r * c - px
+    qy = r * s - py
+    return np.sqrt(qx * qx + qy * qy), _wrap_fast(np.arctan2(qy, qx) - yaw)
+
+
 @dataclass(frozen=True)
 class Geometry:
     """Range and off-axis angle of each reading with their derivatives by (r, phi).

@@ -30,6 +30,22 @@ def test_geometry_derivatives_match_finite_differences(kind, rng):
                                    atol=1e-6, rtol=1e-6)
 
 
+@pytest.mark.parametrize("kind", ["point", "line"])
+def test_range_angle_is_geometry_without_derivatives(kind, rng):
+    # the grid's nodes (B, G, N) broadcast as in _node_profile; the same numbers, bit for
+    # bit (the bracket must not move), angles wrapped across +-pi
+    px, py = rng.normal(0, 0.5, (4, 1, 30)), rng.normal(0, 0.5, (4, 1, 30))
+    yaw = rng.uniform(-np.pi, np.pi, (4, 1, 30))
+    r = rng.uniform(0.5, 3.0, (4, 1, 1))
+    phi = rng.uniform(-np.pi, np.pi, (4, 9, 1))
+    R, theta = M.range_angle(kind, r, phi, px, py, yaw)
+    geo = M.geometry(kind, r, phi, px, py, yaw, moving=True)
+    assert R.shape == theta.shape == (4, 9, 30)
+    np.testing.assert_array_equal(R, geo.R)
+    np.testing.assert_array_equal(theta, geo.theta)
+    assert np.abs(theta).max() <= np.pi
+
+
 def test_stationary_point_equals_line_and_pan_angle():
     yaw = np.deg2rad(np.linspace(-30, 30, 7))
     z = np.zeros(7)
