@@ -588,8 +588,8 @@ half was hopeless) and rule out fewer short parts than they cost. Measured (cach
 the cut stage alone, session 12): the 300 s drive's 155 ``UNRESOLVED`` segments 1317 ->
 1441 parts in 4 -> 3 batches, 23.98 -> 23.39 G instructions; the 60 s drive's 31
 segments 9.38 -> 9.14 G (-2.7 and -3.1 % of the stages without the 1.8 G of start-up).
-The same splits at the same cuts (27 and 6), kinds, tiers and statuses; parameters
-within 0.24 % (the batches' chunks converge a little differently). (Counted in echoes
+The same splits at the same cuts (27 and 6), kinds, tiers and statuses; the parts'
+estimates within 0.009 SD (the batches' chunks converge a little differently). (Counted in echoes
 fitted, as until session 12, two rounds fitted fewer: 64,000 against 66,000.)"""
 
 CUT_STAGED_MIN = 128
