@@ -171,7 +171,8 @@ def _add_odometry_terms(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     residuals in blocks (on a moving ring's 300 s drive, benchmarks/bench_fit.py section
     4, 29 single reflectors by the simulator's truth were ``UNRESOLVED`` by the runs
     test, 7 with it; most of the others still fail the chi-square).
-    ``to_ref``: :func:`_travel_to_ref` (None: no segment moved)."""
+    ``to_ref``: :func:`_travel_to_ref` (None: no segment moved); ``arm_m``: the
+    transducers' lever arm (:func:`~sonarloc.fit.odomcov.ring_arm`)."""
     sd = _odometry_sd(sd_deg_per_m)
     if sd == 0.0:
         return sel.chi2

@@ -538,10 +538,12 @@ def runs_z(signs: NDArray[np.bool_], n: NDArray[np.int64]) -> Array:
 
 
 RUNS_Z_MAX = -4.0
-"""The overlap test: residuals in blocks (their runs statistic below this) ..."""
+"""The overlap test's bound on the runs statistic: residuals in blocks (below this) with
+a chi-square per degree of freedom above :data:`CHI2_RATIO_MIN` suggest a second
+reflector."""
 
 CHI2_RATIO_MIN = 2.0
-"""... with a chi-square per degree of freedom above this suggest a second reflector."""
+"""The overlap test's bound on the chi-square per degree of freedom (:data:`RUNS_Z_MAX`)."""
 
 
 def overlap_check(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
@@ -634,7 +636,6 @@ def _drop_past_wall_ends(batch: SegmentBatch, sel: Selection, moving: NDArray[np
     # ring's 300 s drive, benchmarks/bench_fit.py section 4)
     keep = batch.ne_valid & ~past
     order = np.argsort(~keep, axis=1, kind="stable")
-
     ne_px, ne_py, ne_yaw = (np.take_along_axis(a, order, axis=1)
                             for a in (batch.ne_px, batch.ne_py, batch.ne_yaw))
     batch = replace(batch, ne_px=ne_px, ne_py=ne_py, ne_yaw=ne_yaw,
