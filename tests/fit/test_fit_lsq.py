@@ -600,3 +600,32 @@ def test_float32_presets_on_hard_segments(rng):
         for b in (0, 2, 3, 4):
             assert np.all(np.abs(f.local[b] - ref.local[b]) < 3.0 * sd[b]), (cfg, b)
         assert f.n_used[4] == ref.n_used[4] < batch.valid[4].sum()       # spikes dropped
+
+
+def test_second_starts_refined_with_the_first_ones(rng):
+    # the grid's second starts share the first starts' refinement (one lockstep batch):
+    # each ambiguous segment still gets the better of its two fits, each the one its
+    # start gives alone (to within the convergence tolerance, as batch vs one by one)
+    from sonarloc.fit.lsq import _covariance, _grid_start, _refine, _solve, _take
+    from sonarloc.fit.segment import Segmenter
+    from sonarloc.fit.synth import rotation_scan
+
+    segs = Segmenter().feed_block(rotation_scan(30000, rng))
+    batch = pack_segments([(s.readings.t_s, s.readings.x_m, s.readings.y_m,
+                            s.readings.yaw_rad, s.readings.tof_us) for s in segs])
+    cfg = FitConfig()
+    y = np.where(batch.valid, batch.tof_us - 0.5 * cfg.module.count_period_us, 0.0)
+    start, start2, second, _ = _grid_start("point", "gauss", batch, y, batch.valid, cfg)
+    st, _ = _solve("point", "gauss", batch, y, batch.valid, cfg)
+    won = 0
+    for b in np.flatnonzero(second).tolist():
+        i = np.array([b])
+        sub, yi, ui = _take(batch, i), y[i], batch.valid[i]
+        alone = [_refine("point", "gauss", s[i], sub, yi, ui, cfg, cfg.rounds)
+                 for s in (start, start2)]
+        costs = [a.full_cost(ui)[0] for a in alone]
+        best = alone[int(np.argmin(costs))]
+        won += costs[1] < costs[0]
+        sd = np.sqrt(np.diag(_covariance(best.H)[0]))
+        assert np.all(np.abs(st.p[b] - best.p[0]) < 0.05 * sd), b
+    assert second.sum() >= 20 and won >= 5       # (both kinds of outcome are tested)
