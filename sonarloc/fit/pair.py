@@ -628,7 +628,7 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
 
     def evaluate(pts: Array, rows: NDArray[np.intp]) -> tuple[Array, Array]:
         c, g = seg.cost_grad(pts, None if owner is None else owner[rows])
-        return c, np.where(free[rows], g, 0.0)
+        return c, np.where(free.take(rows, axis=0), g, 0.0)
 
     rows_all = np.arange(S)
     f, g = evaluate(x, rows_all)
@@ -645,16 +645,18 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
     while active.any():
         new = np.flatnonzero(active & (tries == 0))
         if new.size:
-            pn = -np.einsum("sij,sj->si", Hinv[new], g[new])
-            sl = np.einsum("si,si->s", pn, g[new])
+            # (row gathers by ndarray.take: a third of the fancy index's cost)
+            gn = g.take(new, axis=0)
+            pn = -np.einsum("sij,sj->si", Hinv.take(new, axis=0), gn)
+            sl = np.einsum("si,si->s", pn, gn)
             bad = ~(sl < 0)                      # not a descent direction: steepest descent
-            pn[bad] = -g[new][bad]
-            sl[bad] = -np.einsum("si,si->s", g[new][bad], g[new][bad])
+            pn[bad] = -gn[bad]
+            sl[bad] = -np.einsum("si,si->s", gn[bad], gn[bad])
             p[new], slope[new] = pn, sl
             alpha[new] = np.where(first[new], np.minimum(1.0, 1.0 / np.maximum(
                 np.linalg.norm(pn, axis=1), 1e-300)), 1.0)
         k = np.flatnonzero(active)
-        trial = x[k] + alpha[k, None] * p[k]
+        trial = x.take(k, axis=0) + alpha[k, None] * p.take(k, axis=0)
         ft, gt = evaluate(trial, k)
         ok = ft <= f[k] + 1e-4 * alpha[k] * slope[k]
         tries[k] += 1
@@ -664,11 +666,12 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
             continue
         rows, moved = k[end], ok[end]
         tries[rows] = 0
-        x_new, f_new, g_new = x[rows].copy(), f[rows].copy(), g[rows].copy()
+        x_old, g_old = x.take(rows, axis=0), g.take(rows, axis=0)
+        x_new, f_new, g_new = x_old.copy(), f[rows], g_old.copy()
         x_new[moved], f_new[moved], g_new[moved] = (trial[end][moved], ft[end][moved],
                                                     gt[end][moved])
-        sv = x_new - x[rows]
-        yv = g_new - g[rows]
+        sv = x_new - x_old
+        yv = g_new - g_old
         sy = np.einsum("si,si->s", sv, yv)
         upd = np.flatnonzero(moved & (sy > 1e-12))
         for j in upd[first[rows[upd]]].tolist():   # scale the initial inverse Hessian
@@ -677,7 +680,8 @@ def _minimise_batch(seg: _Segment, x0: Array, fixed: Sequence[int | None] | None
             r, s_, y_ = rows[upd], sv[upd], yv[upd]
             rho = (1.0 / sy[upd])[:, None, None]
             V = np.eye(D) - rho * (s_[:, :, None] * y_[:, None, :])
-            Hinv[r] = V @ Hinv[r] @ np.swapaxes(V, 1, 2) + rho * (s_[:, :, None] * s_[:, None, :])
+            Hinv[r] = (V @ Hinv.take(r, axis=0) @ np.swapaxes(V, 1, 2)
+                       + rho * (s_[:, :, None] * s_[:, None, :]))
         first[rows[moved]] = False
         f_old = f[rows]
         x[rows], f[rows], g[rows] = x_new, f_new, g_new
