@@ -608,6 +608,15 @@ def _dot_rows(u: FloatArray, v: FloatArray) -> Array:
     return _einsum("...n,...n->...", u, v).astype(float)
 
 
+def _dot64(u: FloatArray, v: FloatArray) -> Array:
+    """Row-wise dot products (B,) of (B, N) float32 arrays summed in float64: the values
+    cast first, then einsum's float64 kernel (the same products and sums as
+    ``einsum(..., dtype=np.float64)``, tested; without its buffered casting, which
+    copies row by row: 40 % less time on a pass's ~700 x 19 arrays)."""
+    u64 = u.astype(np.float64)
+    return _einsum("bn,bn->b", u64, u64 if v is u else v.astype(np.float64))
+
+
 def _sum_rows(u: FloatArray) -> Array:
     """Row sums (B,) of a (B, N) array, in its precision, as float64; of a stack
     (K, B, N): (K, B), each row's as on its own."""
@@ -898,12 +907,12 @@ def _evaluate32(kind: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray
     res = (y - tau * (r if geo is None or geo.R is None else geo.R)).astype(f32)
     res -= delay
     e = res * w
-    F = _einsum("bn,bn->b", e, e, dtype=np.float64)
-    dF = 2.0 * _einsum("bn,bn->b", l0, usef, dtype=np.float64)
+    F = _dot64(e, e)
+    dF = 2.0 * _dot64(l0, usef)
     F -= dF
     F_other = F
     if s2_other is not None:
-        F_other = _einsum("bn,bn->b", res * res, usef / s2_other, dtype=np.float64) - dF
+        F_other = _dot64(res * res, usef / s2_other) - dF
     grad = np.zeros((B, 3))
     H = np.zeros((B, 3, 3))
     ik = 1.0 / (K[:, 0] * sa)                           # d z / d kappa
@@ -972,7 +981,7 @@ def _evaluate32(kind: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray
     if noecho:
         lpn = lp[:, nd:]                                # log P(no echo) = log Phi(zn)
         nvf = nv.astype(f32)
-        dFn = 2.0 * _einsum("bn,bn->b", lpn, nvf, dtype=np.float64)
+        dFn = 2.0 * _dot64(lpn, nvf)
         F = F - dFn
         F_other = F_other - dFn if s2_other is not None else F
         if want_derivs:

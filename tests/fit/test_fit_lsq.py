@@ -349,6 +349,22 @@ def test_stacked_row_sums_are_each_rows_own(rng):
         assert np.array_equal(_sum_rows(S[0]), sums[0])       # one array: (B,)
 
 
+def test_float64_row_dots_are_einsums(rng):
+    # the float32 pass's objective terms are summed in float64 from values cast first:
+    # the same numbers as einsum's own float64 accumulation (dtype=np.float64), to the
+    # last bit, also for a column slice of a wider array (log P of the echoes)
+    from sonarloc.fit.lsq import _dot64
+
+    for rows, width in ((1, 1), (3, 7), (9, 19), (40, 27), (700, 33), (5, 64)):
+        scale = 10.0 ** rng.uniform(-3.0, 4.0, size=(rows, 1))
+        u = (rng.normal(size=(rows, width + 5)) * scale).astype(np.float32)[:, :width]
+        v = (rng.random((rows, width)) > 0.3).astype(np.float32)
+        for a, b in ((u, u), (u, v)):
+            got = _dot64(a, b)
+            assert got.dtype == np.float64
+            assert np.array_equal(got, np.einsum("bn,bn->b", a, b, dtype=np.float64))
+
+
 def test_batch_and_fast_presets(rng):
     # batch: the default's answer (to a fraction of an SD); fast: one guarded step from
     # a coarse grid, coarser but sound (no divergence, sub-degree bearings)
