@@ -862,7 +862,7 @@ def _evaluate32(kind: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray
     z += zc
     nv = batch.ne_valid
     noecho = bool(nv.shape[1] and nv.any())
-    zz = z
+    zz = z.reshape(-1)
     if noecho:
         if moving:
             gn = _moving_geometry32(kind, tier, mod, r, phi, batch.ne_px, batch.ne_py,
@@ -875,13 +875,15 @@ def _evaluate32(kind: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray
                                    phi_bounds)
         zn = lgn * (1.0 / sa)
         zn += zc
-        # the normal tails of both in one pass (elementwise: the same numbers as two)
-        zz = np.concatenate([z, -zn], axis=1)
+        # the normal tails of both in one pass (elementwise: the same numbers as two),
+        # end to end flat: every part below a contiguous array of its own shape (columns
+        # side by side were copied and then swept row by row)
+        zz = np.concatenate([zz, (-zn).reshape(-1)])
     # log P(echo) = log Phi(-z), log P(no echo) = log Phi(zn); phi / Phi of each
     lp = M.log_sf32(zz)
     mills, excess = M.mills_ratio32(zz, lp)
-    nd = z.shape[1]
-    l0, m0, h0 = lp[:, :nd], mills[:, :nd], excess[:, :nd]
+    ne = z.size
+    l0, m0, h0 = (t[:ne].reshape(z.shape) for t in (lp, mills, excess))
     curv = m0 * h0                                      # d m0 / dz = m0 (m0 - z)
     if waveform:
         # the module's delay moments at x = ln u (u = kappa g, the eq. 3 delay)
@@ -979,15 +981,15 @@ def _evaluate32(kind: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray
     F = F + prior
     F_other = F_other + prior if s2_other is not None else F
     if noecho:
-        lpn = lp[:, nd:]                                # log P(no echo) = log Phi(zn)
+        lpn = lp[ne:].reshape(zn.shape)                 # log P(no echo) = log Phi(zn)
         nvf = nv.astype(f32)
         dFn = 2.0 * _dot64(lpn, nvf)
         F = F - dFn
         F_other = F_other - dFn if s2_other is not None else F
         if want_derivs:
             assert dzn is not None
-            mn = mills[:, nd:]                          # phi(zn) / Phi(zn)
-            hn = excess[:, nd:]                         # mn + zn
+            mn = mills[ne:].reshape(zn.shape)           # phi(zn) / Phi(zn)
+            hn = excess[ne:].reshape(zn.shape)          # mn + zn
             if gn is not None:
                 blocks.append((gn, 0.0, dzn, ik[:, None], hn * mn * nvf, mn * nvf))
             else:
