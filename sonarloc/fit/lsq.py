@@ -1551,11 +1551,11 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
 
     A segment stops when its Newton decrement g^T H^-1 g (the expected decrease of the
     objective) falls below ``cfg.tolerance``; stopped segments are frozen for the rest
-    of the round and left out of the remaining iterations (but their damping, which
-    grows x8 at each of the round's further steps until they are compacted out, and
-    the float32 passes' rounding: that much of a result depends on the other segments
-    of the batch). ``stop_above`` (B,): a segment whose -2 log-
-    likelihood (with the round's variances) still exceeds this after
+    of the round and left out of the remaining iterations, their damping kept (until
+    session 12 it grew x8 at each of the round's further steps until they were
+    compacted out, so a segment's next round depended on the other segments of the
+    batch; now only the float32 passes' rounding does). ``stop_above`` (B,): a segment
+    whose -2 log-likelihood (with the round's variances) still exceeds this after
     :data:`STOP_CHECK_ITER` steps (or at any later step) is given up (frozen for good,
     not converged; see :func:`fit_batch`). Returns the state at the result (variances
     of the last round's start: the weights a round's steps were taken with).
@@ -1638,8 +1638,13 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
                     s2[ia] = s2q[tk]
                     s2s = s2s.copy() if s2s is s2 else s2s
                     s2s[tk] = s2q[tk]
-            lam[act] = np.where(ok, np.maximum(lam[act] / 4.0, 1e-9),
-                                np.minimum(lam[act] * 8.0, 1e9))
+            # (a segment stopped at this step, or before and not yet compacted out, keeps
+            # its damping: grown at the others' steps it made its next round depend on
+            # the batch it shares)
+            stopped = done[act]
+            lam[act] = np.where(stopped, lam[act],
+                                np.where(ok, np.maximum(lam[act] / 4.0, 1e-9),
+                                         np.minimum(lam[act] * 8.0, 1e9)))
             done[act[~ok & (lam[act] >= 1e9)]] = True
     pending = np.zeros((B, 3))
     if cfg.final_derivatives:

@@ -645,3 +645,28 @@ def test_second_starts_refined_with_the_first_ones(rng):
         sd = np.sqrt(np.diag(_covariance(best.H)[0]))
         assert np.all(np.abs(st.p[b] - best.p[0]) < 0.05 * sd), b
     assert second.sum() >= 20 and won >= 5       # (both kinds of outcome are tested)
+
+
+def test_a_stopped_segments_next_round_is_its_own(rng):
+    # float64: a segment that stops early keeps its damping while its batch's others go
+    # on, so its next round is the one it has alone (until session 12 the damping grew
+    # x8 at each of their steps: its bearing then differed by 0.03 deg)
+    from sonarloc.fit import lsq
+
+    segs = []
+    for _ in range(12):
+        sc = pan_scan([Reflector.polar(1.5, 5.0, 0.67)], rng, -15.0, 25.0, 0.3)
+        segs.append((sc.t_s, sc.x_m, sc.y_m, sc.yaw_rad, sc.tof_us))
+    batch = pack_segments(segs)
+    cfg = FitConfig(float32=False)
+    p0 = fit_batch(batch, "point", "gauss", cfg).local.copy()
+    p0[0, 1] += np.radians(0.3)            # one near its optimum: stops at once
+    p0[1:, 1] += np.radians(8.0)           # the others far off: many steps
+    p0[1:, 2] *= 3.0
+    y = batch.tof_us - 0.5 * cfg.module.count_period_us
+    use = batch.valid & np.isfinite(y)
+    y = np.where(use, y, 0.0)
+    together = lsq._refine("point", "gauss", p0, batch, y, use, cfg, rounds=3)
+    alone = lsq._refine("point", "gauss", p0[:1], lsq._take(batch, np.array([0])), y[:1],
+                        use[:1], cfg, rounds=3)
+    np.testing.assert_allclose(together.p[0], alone.p[0], rtol=0, atol=1e-12)
