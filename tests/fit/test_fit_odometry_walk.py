@@ -233,3 +233,29 @@ def test_ring_arm_from_simultaneous_readings():
     assert odomcov.ring_arm(t, x, y, yaw, sensor) == pytest.approx(0.2, abs=1e-9)
     one = sensor == 0
     assert odomcov.ring_arm(t[one], x[one], y[one], yaw[one], sensor[one]) == 0.0
+
+
+def test_odometry_terms_do_not_depend_on_their_chunks(monkeypatch):
+    # the terms are computed in chunks of segments of similar widths (odomcov._by_width):
+    # one segment per chunk, or all in one, gives the same landmarks (to the rounding
+    # of the curvature share's finite difference)
+    from conftest import MAPS
+
+    from sonarloc.fit.segment import Segmenter
+    from sonarloc.maps import load_map
+    from sonarloc.world.rig import rig_by_name
+    from sonarloc.world.simulate import simulate_scan
+
+    scan = simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
+                         frame="odom", duration_s=20.0, seed=3).readings
+    segs = list(Segmenter().feed_block(scan))
+    out = {}
+    for chunk in (1, 10**6):
+        monkeypatch.setattr(odomcov, "PROFILE_CHUNK", chunk)
+        out[chunk] = fit_segments(segs)
+    assert len(segs) > 20
+    for a, b in zip(out[1], out[10**6], strict=True):
+        assert (a.status, a.kind, a.tier) == (b.status, b.kind, b.tier)
+        np.testing.assert_allclose(a.cov, b.cov, rtol=1e-6, atol=1e-6 * np.abs(b.cov).max())
+        if "chi2_odom" in b.extra:
+            assert a.extra["chi2_odom"] == pytest.approx(b.extra["chi2_odom"], rel=1e-9)
