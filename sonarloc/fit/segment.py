@@ -605,6 +605,7 @@ class Segmenter:
             two_beam = 2.0 * beam
             best, best_score = None, math.inf
             covered: list[tuple[_Open, float]] = []   # landmark within the miss width
+            matched: list[_Open] = []    # segments this echo matches (finite score)
             for s in opened:
                 # the miss test (applied below to all but the best match). Cheap test
                 # first: a landmark well off the axis is neither missed nor censored (the
@@ -654,17 +655,23 @@ class Segmenter:
                         if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) <= beam:
                             d_best = d
                     score = d_best / gate if d_best <= gate else math.inf
-                if score < best_score:
-                    best, best_score = s, score
+                if score < math.inf:
+                    matched.append(s)
+                    if score < best_score:
+                        best, best_score = s, score
             for s, off in covered:
                 if s is best:
                     continue
+                # an echo this segment matches too (another matched better) may be its
+                # own landmark's: it says neither that a nearer reflector answered nor
+                # that a farther one won (its range grows as the transducer moves away)
+                other = s not in matched
                 last = s.last
-                if (R < last[4] - gate and s.trailing == 0 and s.misses == 0
+                if (other and R < last[4] - gate and s.trailing == 0 and s.misses == 0
                         and sensor == last[5]):
                     s.occluded_trail = True   # a nearer reflector answered right after
                 # a farther echo won: this landmark was not detected (censor)
-                if (R > last[4] + gate and sensor in s.sensors
+                if (other and R > last[4] + gate and sensor in s.sensors
                         and s.trailing < self._censor):
                     s.rows.append(~ref if isinstance(ref, int)
                                   else (t, x, y, yaw, math.nan, sensor))

@@ -145,11 +145,14 @@ class Segmenter:
                     continue
                 off = self._off_axis(s, x, y, yaw)
                 if off <= miss:
-                    if (R < s.last[4] - self._gate_m and s.trailing == 0 and s.misses == 0
-                            and sensor == s.last[5]):
+                    # an echo this segment matches too may be its own landmark's: neither
+                    # a nearer reflector answering nor a farther one winning
+                    other = self._match(s, x, y, yaw, R) == math.inf
+                    if (other and R < s.last[4] - self._gate_m and s.trailing == 0
+                            and s.misses == 0 and sensor == s.last[5]):
                         s.occluded_trail = True   # a nearer reflector answered right after
                     # a farther echo won: this landmark was not detected (censor)
-                    if (R > s.last[4] + self._gate_m and sensor in s.sensors
+                    if (other and R > s.last[4] + self._gate_m and sensor in s.sensors
                             and s.trailing < self.config.censor_window):
                         s.rows.append((t, x, y, yaw, math.nan, sensor))
                         s.trailing += 1

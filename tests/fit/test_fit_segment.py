@@ -209,3 +209,36 @@ def test_sweep_away_spares_fixed_transducers(rng):
 def test_sweep_away_must_be_positive():
     with pytest.raises(ValueError, match="sweep_away_deg"):
         SegmenterConfig(sweep_away_deg=0.0)
+
+
+def test_an_echo_two_segments_match_is_no_miss_of_the_one_it_skips():
+    """Ring neighbours can open two segments on one wall (room drive, seed 4: transducer
+    7 at -108 deg opens a second one at 22.65 s); each echo then joins the better match.
+    The other segment matches it too, so it must not take it as a farther reflector
+    winning (a NaN row: the wall "not detected"): transducer 8 faces the wall squarely
+    at 2.2-2.5 m and echoes it at every ping, its range growing as the robot drives
+    away. Those NaN rows made the fit tilt the wall by 10 deg to explain them."""
+    from conftest import MAPS
+
+    from sonarloc.maps.geojson import load_map
+    from sonarloc.world.rig import rig_by_name
+    from sonarloc.world.simulate import simulate_scan
+
+    sim = simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
+                        duration_s=26.0, seed=4)
+    scan = sim.readings
+    at = {(float(t), int(k)): i for i, (t, k) in enumerate(zip(scan.t_s, scan.sensor,
+                                                                strict=True))}
+    s8 = np.flatnonzero((scan.sensor == 8) & (scan.t_s > 24.3) & (scan.t_s < 25.4))
+    assert np.isfinite(scan.tof_us[s8]).all() and (sim.reflector[s8] == 0).all()
+    (seg,) = [s for s in Segmenter().feed(scan)
+              if any(at[(float(t), int(k))] == s8[0] and np.isfinite(tof) for t, k, tof
+                     in zip(s.readings.t_s, s.readings.sensor, s.readings.tof_us,
+                            strict=True))]
+    rows = np.array([at[(float(t), int(k))] for t, k in zip(seg.readings.t_s,
+                                                            seg.readings.sensor, strict=True)])
+    nan = np.isnan(seg.readings.tof_us)
+    # its no-echo rows are readings without an echo of the wall (there are some: the
+    # other transducer's edge of the beam)
+    assert nan.any()
+    assert not (sim.reflector[rows[nan]] == 0).any()
