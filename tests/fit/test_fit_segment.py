@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import MAPS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -218,8 +219,6 @@ def test_an_echo_two_segments_match_is_no_miss_of_the_one_it_skips():
     winning (a NaN row: the wall "not detected"): transducer 8 faces the wall squarely
     at 2.2-2.5 m and echoes it at every ping, its range growing as the robot drives
     away. Those NaN rows made the fit tilt the wall by 10 deg to explain them."""
-    from conftest import MAPS
-
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import rig_by_name
     from sonarloc.world.simulate import simulate_scan
