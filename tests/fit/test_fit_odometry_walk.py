@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import MAPS
 
 from sonarloc.fit import odomcov
 from sonarloc.fit.landmarks import fit_segments
@@ -239,8 +240,6 @@ def test_odometry_terms_do_not_depend_on_their_chunks(monkeypatch):
     # the terms are computed in chunks of segments of similar widths (odomcov._by_width):
     # one segment per chunk, or all in one, gives the same landmarks (to the rounding
     # of the curvature share's finite difference)
-    from conftest import MAPS
-
     from sonarloc.fit.segment import Segmenter
     from sonarloc.maps import load_map
     from sonarloc.world.rig import rig_by_name
