@@ -1683,9 +1683,9 @@ def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cf
     if plain and idx.size:
         # the second starts refined with the first ones, in the same passes: their
         # lockstep tails no longer run after the first's (a row's steps are its own but
-        # for the float32 passes' rounding and the damping of rows that stopped before
-        # the others, see :func:`_refine`; on the rotation of benchmarks/bench_fit.py
-        # section 4, 92 of 4445 landmarks moved by at most 0.63 % of their SDs)
+        # for the float32 passes' rounding, see :func:`_refine`; on the rotation of
+        # benchmarks/bench_fit.py section 4, before the damping fix of the same session,
+        # 92 of 4445 landmarks moved by at most 0.63 % of their SDs)
         both = np.concatenate([np.arange(batch.size), idx])
         st_all = _refine_any(kind, tier, np.concatenate([start, start2[idx]]),
                              _take(batch, both), y[both], use[both], cfg,
