@@ -41,7 +41,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sonarloc.fit import model as M
-from sonarloc.fit.lsq import BatchFit, FitConfig, SegmentBatch, _covariance, _evaluate_s2, _take
+from sonarloc.fit.lsq import (
+    BatchFit,
+    FitConfig,
+    SegmentBatch,
+    _covariance,
+    _evaluate_s2,
+    _take,
+    tof_jacobian_at,
+)
 from sonarloc.fit.select import runs_z
 
 Array = NDArray[np.float64]
@@ -304,7 +312,6 @@ def _walk_profile(fit: BatchFit, rows: NDArray[np.int64], cfg: FitConfig,
     u = used.astype(float)
     e = fit.resid[rows, :wd] * u
     p = fit.local[rows]
-    obj = _objective(cfg)
     geo, G = _system(fit.kind, fit.tier, p, sub, u, path, cfg)
     N = _normal(G)
     b = np.matmul(G, e[:, :, None])[..., 0]
@@ -320,7 +327,8 @@ def _walk_profile(fit: BatchFit, rows: NDArray[np.int64], cfg: FitConfig,
     # that share is odometry_covariance's)
     if fisher is None:
         y = np.where(used, sub.tof_us - 0.5 * cfg.module.count_period_us, 0.0)
-        _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used, None, obj)
+        _, _, H, _, _ = _evaluate_s2(fit.kind, fit.tier, p, sub, y, used, None,
+                                     _objective(cfg))
     else:   # :func:`_curvature_share`'s (its moving segments include these)
         H = fisher
     S = np.einsum("bij,bjk->bik", _covariance(H), N[:, :3, 4:])     # (b, 3, m - 1)
@@ -390,8 +398,6 @@ def _system(kind: str, tier: str, p: Array, sub: SegmentBatch, u: Array, path: _
     sensitivities (b, 3 + m, Nd) to the parameters and to the weights of ``path``'s
     error fields, the curvature's first (the model's pose Jacobian times the fields'
     pose errors), used echoes only."""
-    from sonarloc.fit.lsq import tof_jacobian_at
-
     mod = cfg.module
     tau = M.us_per_m(mod)
     r, phi, K = p[:, 0:1], p[:, 1:2], p[:, 2:3]
