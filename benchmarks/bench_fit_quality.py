@@ -218,12 +218,17 @@ def fig5_table(results: list[dict[str, object]]) -> list[str]:
     return out
 
 
-def walls_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | None]
-                     ) -> list[dict[str, float | str]]:
-    """Walls fitted from a ring16 drive through maps/room.geojson (world simulator,
-    default odometry), poses from odometry (``odom``) and true (``map``): errors of the
-    local (range, normal bearing) against the truth seen from the true reference pose,
-    and the reported SDs, for each odometry curvature SD in ``sds`` (None = default)."""
+_POINT_KINDS = ("pole", "rod", "point", "corner", "edge")
+
+
+def landmarks_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | None]
+                         ) -> dict[str, list[dict[str, float | str]]]:
+    """Walls and points (poles, rods, corners) fitted from a ring16 drive through
+    maps/room.geojson (world simulator, default odometry), poses from odometry (``odom``)
+    and true (``map``): errors of the local range and bearing (of a wall's normal, of the
+    direction to a point's reflecting surface) against the truth seen from the true
+    reference pose, and the reported SDs, for each odometry curvature SD in ``sds``
+    (None = default). Returns the rows of each kind (``"wall"``, ``"point"``)."""
     from scipy.special import chdtrc
 
     from sonarloc.fit.landmarks import fit_segments
@@ -235,7 +240,7 @@ def walls_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | None
     from sonarloc.world.simulate import PingTruth, scan_from_pings, simulate_records
 
     room = load_map(ROOT / "maps" / "room.geojson")
-    res: dict[tuple[str, float], list[tuple[float, float, float, float]]] = {}
+    res: dict[tuple[str, str, float, str], list[tuple[float, float, float, float]]] = {}
     for seed in range(n_seeds):
         pings: list[PingTruth] = []
         for _ in simulate_records(room, rig_by_name("ring16"), duration_s=duration_s,
@@ -247,7 +252,7 @@ def walls_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | None
             for sd in (sds if frame == "odom" else [0.0]):
                 sdv = CURVATURE_SD_DEG_PER_M if sd is None else float(sd)
                 for seg, lm in zip(segs, fit_segments(segs, None, sdv), strict=True):
-                    if lm.kind != "line" or not lm.ok:
+                    if not lm.ok:
                         continue
                     r = seg.readings
                     fin = np.isfinite(r.tof_us)
@@ -257,33 +262,41 @@ def walls_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | None
                     if not hits:
                         continue
                     refl = room.reflectors[int(np.bincount(hits).argmax())]
-                    if refl.kind not in ("wall", "plane"):
-                        continue
                     p = pings[idx[-1]]
-                    (x1, y1), (x2, y2) = refl.geometry.coords
-                    nx, ny = y2 - y1, -(x2 - x1)
-                    n = math.hypot(nx, ny)
-                    nx, ny = nx / n, ny / n
-                    d = (x1 - p.x_m) * nx + (y1 - p.y_m) * ny
-                    if d < 0:
-                        nx, ny, d = -nx, -ny, -d
+                    if lm.kind == "line" and refl.kind in ("wall", "plane"):
+                        group = "wall"
+                        (x1, y1), (x2, y2) = refl.geometry.coords
+                        nx, ny = y2 - y1, -(x2 - x1)
+                        n = math.hypot(nx, ny)
+                        nx, ny = nx / n, ny / n
+                        d = (x1 - p.x_m) * nx + (y1 - p.y_m) * ny
+                        if d < 0:
+                            nx, ny, d = -nx, -ny, -d
+                    elif lm.kind == "point" and refl.kind in _POINT_KINDS:
+                        # the reflecting surface's point nearest the reference position
+                        group = "point"
+                        cx, cy = refl.geometry.x - p.x_m, refl.geometry.y - p.y_m
+                        d = math.hypot(cx, cy) - refl.radius_m
+                        nx, ny = cx / math.hypot(cx, cy), cy / math.hypot(cx, cy)
+                    else:
+                        continue
                     t_b = math.atan2(ny, nx) - p.yaw_rad
                     f_b = lm.bearing_rad - lm.ref_pose[2]
                     eb = (f_b - t_b + math.pi) % (2 * math.pi) - math.pi
                     row = (lm.range_m - d, eb, float(lm.extra["range_sd_m"]),  # type: ignore[arg-type]
                            math.radians(float(lm.extra["bearing_sd_deg"])))  # type: ignore[arg-type]
-                    res.setdefault((frame, sdv, ""), []).append(row)
+                    res.setdefault((group, frame, sdv, ""), []).append(row)
                     if frame == "odom" and sdv > 0.0:
                         # OK only with the odometry's walk in the chi-square test, or
                         # passing the jitter-only test as well
-                        p = float(chdtrc(max(lm.n_readings - 3, 1), float(lm.extra["chi2"])))  # type: ignore[arg-type]
-                        res.setdefault((frame, sdv, "rescued" if p < FitConfig().min_fit_p
-                                        else "jitter test passes"), []).append(row)
-    rows: list[dict[str, float | str]] = []
-    for (frame, sdv, subset), v in res.items():
+                        p_fit = float(chdtrc(max(lm.n_readings - 3, 1), float(lm.extra["chi2"])))  # type: ignore[arg-type]
+                        res.setdefault((group, frame, sdv, "rescued" if p_fit < FitConfig(
+                        ).min_fit_p else "jitter test passes"), []).append(row)
+    rows: dict[str, list[dict[str, float | str]]] = {"wall": [], "point": []}
+    for (group, frame, sdv, subset), v in res.items():
         a = np.array(v)
         er, eb, sr, sb = a.T
-        rows.append(dict(
+        rows[group].append(dict(
             frame=frame + (f", {subset}" if subset else ""), sd=sdv, n=float(len(a)),
             r_rmse=1e3 * float(np.sqrt(np.mean(er ** 2))), r_sd=1e3 * float(np.median(sr)),
             r_z=float(np.sqrt(np.mean((er / sr) ** 2))),
@@ -293,8 +306,8 @@ def walls_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | None
     return rows
 
 
-def walls_table(rows: list[dict[str, float | str]]) -> list[str]:
-    out = ["| poses | odometry curvature SD (deg/m) | OK walls | range RMSE (mm) | median "
+def walls_table(rows: list[dict[str, float | str]], what: str = "walls") -> list[str]:
+    out = [f"| poses | odometry curvature SD (deg/m) | OK {what} | range RMSE (mm) | median "
            "reported SD (mm) | RMS of error/SD | bearing RMSE (deg) | bearing bias (deg) | "
            "median reported SD (deg) | RMS of error/SD |",
            "|---|---|---|---|---|---|---|---|---|---|"]
@@ -371,8 +384,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "kind: it must not come out `OK` as a pole.", ""] + tbl + [""]
         print("\n".join(tbl), flush=True)
     if "wall" in parts:
-        rows_w = walls_from_drive(2 if q else 10, 30.0, [0.0, 0.5, None, 1.5])
-        tbl = walls_table(rows_w)
+        rows_d = landmarks_from_drive(2 if q else 10, 30.0, [0.0, 0.5, None, 1.5])
+        tbl = walls_table(rows_d["wall"])
         lines += ["## Walls from a moving robot: reported SD against the error (ring16, 30 s "
                   "drives through maps/room.geojson, default odometry; local range and "
                   "normal bearing seen from the reference pose)", "",
@@ -383,6 +396,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "'jitter test passes': walls whose TOF chi-square passes without the "
                   "walk (`OK` before it entered the test); 'rescued': `OK` only with it.",
                   ""] + tbl + [""]
+        print("\n".join(tbl), flush=True)
+        tbl = walls_table(rows_d["point"], "points")
+        lines += ["## Points from a moving robot: reported SD against the error (the same "
+                  "drives; poles, rods and corners fitted as points; local range and "
+                  "bearing of the reflecting surface's point nearest the reference "
+                  "position)", "", "Rows as in the walls' table.", ""] + tbl + [""]
         print("\n".join(tbl), flush=True)
     lines.append(f"Machine: {platform.machine()} {platform.python_version()}, "
                  f"{datetime.date.today().isoformat()}; {'--quick' if q else 'full run'}; "

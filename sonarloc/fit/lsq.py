@@ -1420,29 +1420,23 @@ def _grid_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArra
 
 
 def _trilaterate(batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
-                 steps: int = 3) -> tuple[Array, NDArray[np.bool_]]:
+                 steps: int = 5) -> tuple[Array, NDArray[np.bool_]]:
     """A point landmark's position (B, 2) relative to the reference from the echoes'
     ranges alone (the delays neglected: a few mm), and where the directions from it to
     the transducers spread enough to fix it (:data:`_TRILATERATION_SPREAD`).
 
-    Linear least squares first (``|q - t|^2 = R^2`` is linear in ``q`` and ``|q|^2``,
-    positions centred on their mean), then Gauss-Newton steps on the ranges themselves.
+    Gauss-Newton steps on the ranges from the mean of the echoes' axis points (each
+    echo's range along its transducer's axis): the beams tell the side of the path the
+    point is on, which the ranges of a straight path cannot (a mirror image).
     """
     tau = M.us_per_m(cfg.module)
     u = use.astype(float)
     n = np.maximum(u.sum(1), 1.0)
-    mx = (u * batch.px).sum(1) / n
-    my = (u * batch.py).sum(1) / n
-    x = batch.px - mx[:, None]
-    z = batch.py - my[:, None]
     R = y / tau
-    cols = np.stack([np.ones_like(x), -2.0 * x, -2.0 * z], axis=-1) * u[..., None]
-    rhs = (R * R - x * x - z * z) * u
-    N = np.einsum("bni,bnj->bij", cols, cols) + 1e-9 * np.eye(3)
-    sol = np.linalg.solve(N, np.einsum("bni,bn->bi", cols, rhs)[..., None])[..., 0]
-    q = sol[:, 1:].copy()
+    q = np.stack([(u * (batch.px + R * np.cos(batch.yaw))).sum(1) / n,
+                  (u * (batch.py + R * np.sin(batch.yaw))).sum(1) / n], axis=1)
     for _ in range(steps):
-        dx, dz = q[:, :1] - x, q[:, 1:] - z
+        dx, dz = q[:, :1] - batch.px, q[:, 1:] - batch.py
         d = np.maximum(np.hypot(dx, dz), 1e-6)
         jx, jz, f = dx / d * u, dz / d * u, (d - R) * u
         a, b, c = (jx * jx).sum(1), (jx * jz).sum(1), (jz * jz).sum(1)
@@ -1450,11 +1444,12 @@ def _trilaterate(batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
         det = np.maximum(a * c - b * b, 1e-12)
         q[:, 0] -= (c * gx - b * gz) / det
         q[:, 1] -= (a * gz - b * gx) / det
-    # the directions' spread: the smaller eigenvalue of their mean outer product
+    # the directions' spread: the smaller eigenvalue of their mean outer product (from
+    # the last step's Jacobian: the point moved by millimetres there)
     tr, det = (a + c) / n, (a * c - b * b) / (n * n)
     spread = 0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
     ok = np.isfinite(q).all(1) & (spread > _TRILATERATION_SPREAD) & (use.sum(1) >= 3)
-    return q + np.stack([mx, my], axis=1), ok
+    return q, ok
 
 
 _TRILATERATION_SPREAD = 1e-4
