@@ -47,6 +47,7 @@ from sonarloc.fit.lsq import (
     SegmentBatch,
     _covariance,
     _evaluate_s2,
+    _solve_pivoted,
     _take,
     tof_jacobian_at,
 )
@@ -315,11 +316,10 @@ def _walk_profile(fit: BatchFit, rows: NDArray[np.int64], cfg: FitConfig,
     geo, G = _system(fit.kind, fit.tier, p, sub, u, path, cfg)
     N = _normal(G)
     b = np.matmul(G, e[:, :, None])[..., 0]
-    step = np.linalg.solve(N, b[..., None])[..., 0]
+    step = _solve_pivoted(N, b)
     # the chi-square's drop when the weights join the fit's parameters (the fit's own
     # linear step, which the detection terms and kappa's prior kept it from, taken out)
-    alone = np.einsum("bi,bi->b", b[:, :3],
-                      np.linalg.solve(N[:, :3, :3], b[:, :3, None])[..., 0])
+    alone = np.einsum("bi,bi->b", b[:, :3], _solve_pivoted(N[:, :3, :3], b[:, :3]))
     left_chi2 = fit.chi2[rows] - np.einsum("bi,bi->b", b, step) + alone
     left = (e - np.matmul(step[:, None, :], G)[:, 0]) * u
     # the fit's linear response to the walks' weights, -H^-1 dg (H the Fisher matrix of

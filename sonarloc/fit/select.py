@@ -37,6 +37,7 @@ from sonarloc.fit.lsq import (
     BatchFit,
     FitConfig,
     SegmentBatch,
+    _solve_pivoted,
     _take,
     fit_batch,
     tof_jacobian,
@@ -304,8 +305,10 @@ def score_z(batch: SegmentBatch, sel: Selection, idx: NDArray[np.int64], kind: s
     used = sel.used[idx]
     d = np.where(used, (db - da) / sd, 0.0)
     J = J * used[:, None, :]
-    JJ = np.matmul(J, np.swapaxes(J, 1, 2)) + 1e-12 * np.eye(3)[None]
-    coef = np.linalg.solve(JJ, np.einsum("bkn,bn->bk", J, d)[..., None])[..., 0]
+    JJ = np.matmul(J, np.swapaxes(J, 1, 2))
+    # (pivoted, least squares where singular: two columns can be proportional, e.g.
+    # range and kappa where every used echo has the same off-axis angle)
+    coef = _solve_pivoted(JJ, np.einsum("bkn,bn->bk", J, d))
     d_perp = d - np.einsum("bk,bkn->bn", coef, J)
     norm = np.sqrt((d_perp * d_perp).sum(1))
     e = sel.resid[idx] * used

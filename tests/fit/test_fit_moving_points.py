@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import collections
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -159,3 +160,26 @@ def test_a_pole_passed_by_is_fitted_with_its_radius():
         assert abs(math.degrees(d_bearing)) < 3 * float(lm.extra["bearing_sd_deg"])
         assert abs(lm.range_m - math.hypot(sx - rx, sy - ry)) < 3 * float(lm.extra["range_sd_m"])
         assert float(lm.extra["radius_m"]) == pytest.approx(radius, abs=0.005)
+
+
+def test_proportional_jacobian_columns_do_not_raise():
+    """Two segments of a ring16 room drive (true poses) whose batch made the tier score's
+    3x3 projection exactly singular (range and kappa columns proportional in one of them:
+    every used echo at the same off-axis angle): ``LinAlgError`` from ``fit_segments``
+    until session 13; each fitted alone did not raise. The readings as they were
+    (helper seg13's reduction)."""
+    import csv
+
+    from sonarloc.io.scancsv import read_scan_csv
+
+    path = Path(__file__).parent / "data" / "collinear_columns.csv"
+    scan = read_scan_csv(path)
+    with path.open() as f:
+        seg = np.array([int(row["segment"]) for row in csv.DictReader(f)])
+    segments = [scan.select(seg == k) for k in (0, 1)]
+    both = fit_segments(segments, None, 0.0)
+    alone = [fit_segments([s], None, 0.0)[0] for s in segments]
+    for lm, ref in zip(both, alone, strict=True):
+        assert (lm.kind, lm.status) == (ref.kind, ref.status)
+        assert np.all(np.isfinite(lm.params))
+    assert both[1].status is FitStatus.OK
