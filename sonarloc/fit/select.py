@@ -680,7 +680,7 @@ RADIUS_REFIT_Z = 2.0
 fitted again with the TOFs corrected for it (:func:`radius_step`), at most
 :data:`RADIUS_REFITS` times."""
 
-RADIUS_REFITS = 2
+RADIUS_REFITS = 3
 
 
 def radius_step(batch: SegmentBatch, sel: Selection, cfg: FitConfig) -> None:
@@ -747,11 +747,13 @@ def _radius_update(batch: SegmentBatch, sel: Selection, jdx: NDArray[np.int64], 
     angles D (B, Nd) (:func:`radius_step`); their covariances with ``a`` marginalised,
     in place.
 
-    From the fit's covariance C (its information matrix, inflated as the fit's) and the
-    TOF Jacobian's column ``c`` for ``a``: with ``b = J^T c``, ``s = c^T c + 1 /
+    With the TOF Jacobian J, its column ``c`` for ``a`` (both whitened, weights deflated
+    as the fit's covariance C is inflated), ``b = J^T c``, ``s = c^T c + 1 /
     RADIUS_SD_M^2`` and ``g = c^T e - a0 / RADIUS_SD_M^2`` (whitened residuals ``e``),
-    the step is ``g / (s - b^T C b)`` (with (r, phi, kappa) moving by ``-C b`` times
-    it) and C gains ``(C b)(C b)^T / (s - b^T C b)`` (Sherman-Morrison). The estimates
+    the radius's information given (r, phi, kappa) is ``d = s - b^T (J^T J)^-1 b``:
+    the step is ``g / d`` and its variance ``1 / d``; the fit's response to it is ``-C
+    b`` per unit of ``a`` (its information, detection terms included, as the odometry
+    terms take it), so C gains ``(C b)(C b)^T / d``. The estimates
     are not moved: the TOF chi-square the status test reads can rise where the
     detection terms pull (a corner's noise radius of -4 +- 3 cm on a room drive turned
     it from 122 to 130 for 75 echoes); :func:`radius_step` refits where the radius
@@ -770,9 +772,14 @@ def _radius_update(batch: SegmentBatch, sel: Selection, jdx: NDArray[np.int64], 
     b = np.einsum("bkn,bn->bk", J, c * u)
     s = (c * c * u).sum(1) + prior
     g = (c * sel.resid[jdx] * u).sum(1) - (0.0 if a0 is None else a0 * prior)
-    C = sel.cov[jdx]
-    Cb = np.einsum("bij,bj->bi", C, b)
-    den = s - np.einsum("bi,bi->b", b, Cb)
+    Cb = np.einsum("bij,bj->bi", sel.cov[jdx], b)
+    # the radius's information given (r, phi, kappa), from the TOFs: the Schur
+    # complement of their Gram matrix (positive: at least the prior's), not of the fit's
+    # C, whose information can fall short of the TOFs' Gram matrix (the detection terms'
+    # observed curvature, the weights of the round's start): b^T C b exceeded s by up to
+    # 5x on poles seen by 4-6 ring transducers, leaving them without the step
+    JJ = np.einsum("bkn,bln->bkl", J * u[:, None, :], J)
+    den = s - np.einsum("bi,bi->b", b, _solve_pivoted(JJ, b))
     ok = np.isfinite(den) & (den > 0.0) & np.isfinite(Cb).all(1) & np.isfinite(g)
     a = np.where(ok, g / np.where(ok, den, 1.0), 0.0)
     kdx = jdx[ok]
