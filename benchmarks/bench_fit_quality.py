@@ -273,11 +273,17 @@ def landmarks_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | 
                         if d < 0:
                             nx, ny, d = -nx, -ny, -d
                     elif lm.kind == "point" and refl.kind in _POINT_KINDS:
-                        # the reflecting surface's point nearest the reference position
+                        # the surface point facing the mean position of the echoes'
+                        # transducers (what a fitted point is: sonarloc.fit.select
+                        # .radius_step), relative to the reference position
                         group = "point"
-                        cx, cy = refl.geometry.x - p.x_m, refl.geometry.y - p.y_m
-                        d = math.hypot(cx, cy) - refl.radius_m
-                        nx, ny = cx / math.hypot(cx, cy), cy / math.hypot(cx, cy)
+                        vx = np.mean([pings[i].x_m for i in idx]) - refl.geometry.x
+                        vy = np.mean([pings[i].y_m for i in idx]) - refl.geometry.y
+                        v = math.hypot(vx, vy)
+                        cx = refl.geometry.x + refl.radius_m * vx / v - p.x_m
+                        cy = refl.geometry.y + refl.radius_m * vy / v - p.y_m
+                        d = math.hypot(cx, cy)
+                        nx, ny = cx / d, cy / d
                     else:
                         continue
                     t_b = math.atan2(ny, nx) - p.yaw_rad
@@ -400,8 +406,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         tbl = walls_table(rows_d["point"], "points")
         lines += ["## Points from a moving robot: reported SD against the error (the same "
                   "drives; poles, rods and corners fitted as points; local range and "
-                  "bearing of the reflecting surface's point nearest the reference "
-                  "position)", "", "Rows as in the walls' table.", ""] + tbl + [""]
+                  "bearing, from the reference position, of the surface point facing the "
+                  "mean position of the echoes' transducers)", "",
+                  "Rows as in the walls' table.", ""] + tbl + [""]
         print("\n".join(tbl), flush=True)
     lines.append(f"Machine: {platform.machine()} {platform.python_version()}, "
                  f"{datetime.date.today().isoformat()}; {'--quick' if q else 'full run'}; "

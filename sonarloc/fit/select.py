@@ -689,10 +689,12 @@ def radius_step(batch: SegmentBatch, sel: Selection, cfg: FitConfig) -> None:
     marginalised, in place (``extra["radius_m"]`` / ``"radius_sd_m"``).
 
     The point model is a reflector of radius 0. A cylinder's reflecting point moves over
-    its surface as the transducer moves: with the point placed where it faces the
-    reference position, each echo's range is longer than the model's by
-    ``a (1 - cos D)``, D the angle at the landmark between that transducer and the
-    reference one. From one spot D = 0 (pans are unchanged); over a pass D spans 10-40
+    its surface as the transducer moves: with the point placed where the surface faces
+    the mean position of the echoes' transducers (where the localizer, relocalization
+    and the map builder take a fitted point to face: ``extra["view_xy"]``), each echo's
+    range is longer than the model's by ``a (1 - cos D)``, D the angle at the landmark
+    between that echo's transducer and that mean position. From one spot D = 0 (pans are
+    unchanged); over a pass D spans 10-40
     deg and the fit moves the point sideways and lowers kappa to absorb it: on ring16
     drives through maps/room.geojson (benchmarks/bench_fit_quality.py), poles (a =
     4.45 cm) had a bearing RMSE of 1.1 deg and a range RMSE of 6 mm with odometry poses,
@@ -712,7 +714,7 @@ def radius_step(batch: SegmentBatch, sel: Selection, cfg: FitConfig) -> None:
     tau = M.us_per_m(cfg.module)
     for tier in set(sel.tier[idx]):
         jdx = idx[sel.tier[idx] == tier]
-        a, sd_a, angle = _radius_update(batch, sel, jdx, str(tier), cfg)
+        a, sd_a = _radius_update(batch, sel, jdx, str(tier), cfg)
         step = a.copy()
         fitted = np.zeros(jdx.size)      # the radius the TOFs were corrected for
         for _ in range(RADIUS_REFITS):
@@ -720,7 +722,8 @@ def radius_step(batch: SegmentBatch, sel: Selection, cfg: FitConfig) -> None:
             if big.size == 0:
                 break
             kdx = jdx[big]
-            offsets = -tau * a[big, None] * (1.0 - np.cos(angle[big]))
+            offsets = _radius_offsets(_take(batch, kdx), sel.local[kdx], sel.used[kdx],
+                                      a[big], tau)
             before = sel.rows(kdx)
             refit = fit_batch(_take(batch, kdx), "point", str(tier), cfg, offsets_us=offsets,
                               start=before)
@@ -732,7 +735,7 @@ def radius_step(batch: SegmentBatch, sel: Selection, cfg: FitConfig) -> None:
             sel.put(kdx, refit.take(np.flatnonzero(better)))
             fitted[big] = a[big]
             step[:] = 0.0
-            step[big], sd_a[big], _ = _radius_update(batch, sel, kdx, str(tier), cfg, a[big])
+            step[big], sd_a[big] = _radius_update(batch, sel, kdx, str(tier), cfg, a[big])
             a[big] += step[big]
         for j, a_j, sd_j in zip(jdx.tolist(), a.tolist(), sd_a.tolist(), strict=True):
             if np.isfinite(sd_j):
@@ -740,8 +743,24 @@ def radius_step(batch: SegmentBatch, sel: Selection, cfg: FitConfig) -> None:
                 sel.extra[j]["radius_sd_m"] = sd_j
 
 
+def _radius_offsets(batch: SegmentBatch, p: Array, used: NDArray[np.bool_], a: Array,
+                    tau: float) -> Array:
+    """What a cylinder of radius ``a`` (B,) adds to its echoes' TOFs (B, Nd) [us] over
+    the point ``p`` (local (r, phi, kappa)) where its surface faces the mean position of
+    the ``used`` echoes' transducers: the offsets that make the point model fit it
+    (exact, not the first order ``a (1 - cos D)`` of :func:`_radius_update`)."""
+    qx, qy = p[:, 0:1] * np.cos(p[:, 1:2]), p[:, 0:1] * np.sin(p[:, 1:2])
+    n = np.maximum(used.sum(1), 1)[:, None]
+    vx = (batch.px * used).sum(1)[:, None] / n - qx
+    vy = (batch.py * used).sum(1)[:, None] / n - qy
+    norm = np.maximum(np.hypot(vx, vy), 1e-9)
+    cx, cy = qx - a[:, None] * vx / norm, qy - a[:, None] * vy / norm    # the centre
+    to_point = np.hypot(qx - batch.px, qy - batch.py)
+    return -tau * (to_point - np.hypot(cx - batch.px, cy - batch.py) + a[:, None])
+
+
 def _radius_update(batch: SegmentBatch, sel: Selection, jdx: NDArray[np.int64], tier: str,
-                   cfg: FitConfig, a0: Array | None = None) -> tuple[Array, Array, Array]:
+                   cfg: FitConfig, a0: Array | None = None) -> tuple[Array, Array]:
     """The Gauss-Newton step of the radius ``a`` of point rows ``jdx`` (one tier) from
     their fits, whose TOFs were corrected for radii ``a0`` (None: 0), its SD and the
     angles D (B, Nd) (:func:`radius_step`); their covariances with ``a`` marginalised,
@@ -761,12 +780,16 @@ def _radius_update(batch: SegmentBatch, sel: Selection, jdx: NDArray[np.int64], 
     sub = _take(batch, jdx)
     p = sel.local[jdx]
     J, _, sd = tof_jacobian("point", tier, p, sub, cfg)
-    # the angle D at the point between each echo's transducer and the reference's
+    # the angle D at the point between each echo's transducer and the mean position of
+    # the used echoes' transducers (where the point's surface faces)
     qx, qy = p[:, 0:1] * np.cos(p[:, 1:2]), p[:, 0:1] * np.sin(p[:, 1:2])
-    d = M.wrap_angle(np.arctan2(sub.py - qy, sub.px - qx) - np.arctan2(-qy, -qx))
+    used = sel.used[jdx]
+    n = np.maximum(used.sum(1), 1)[:, None]
+    mx, my = (sub.px * used).sum(1)[:, None] / n, (sub.py * used).sum(1)[:, None] / n
+    d = M.wrap_angle(np.arctan2(sub.py - qy, sub.px - qx) - np.arctan2(my - qy, mx - qx))
     dof = np.maximum(sel.n_used[jdx] - 3, 1)
     inflate = np.maximum(sel.chi2[jdx] / dof, 1.0)
-    u = sel.used[jdx] / inflate[:, None]
+    u = used / inflate[:, None]
     c = -M.us_per_m(cfg.module) * (1.0 - np.cos(d)) / sd          # d TOF / d a, whitened
     prior = 1.0 / RADIUS_SD_M ** 2
     b = np.einsum("bkn,bn->bk", J, c * u)
@@ -785,4 +808,4 @@ def _radius_update(batch: SegmentBatch, sel: Selection, jdx: NDArray[np.int64], 
     kdx = jdx[ok]
     sel.cov[kdx] += Cb[ok, :, None] * Cb[ok, None, :] / den[ok, None, None]
     sd_a = np.where(ok, np.sqrt(1.0 / np.where(ok, den, 1.0)), np.nan)
-    return a, sd_a, d
+    return a, sd_a
