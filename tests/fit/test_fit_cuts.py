@@ -39,8 +39,7 @@ def test_probed_cuts_split_as_fitting_every_cut_does():
     # a moving ring's drive on odometry poses: where a probe's part is hopeless the
     # cuts past it are never fitted (here two of the splits are found on the side left
     # open), and the cuts whose parts pass get the odometry term added to those fits
-    # (40 s: since session 13's point starts 30 s leave too few cuts for the staged search)
-    scan = _ring_drive(40.0)
+    scan = _ring_drive()
     cfg = FitConfig()
     segs = list(Segmenter().feed(scan))
     groups = resolve_pair_groups(segs, fit_segments(segs, cfg), cfg)
