@@ -1467,7 +1467,7 @@ def _path_start(tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: Fit
     The bracket's nodes place the point at one range along each bearing (the segment's
     nearest echo's) and profile To as an offset, which holds while the path's ranges
     move together (a short or radial path). On a long pass they do not: a room corner
-    seen for 20 s by six ring transducers (nearest 1.3 m, last reading 3.5 m) was
+    seen for 20 s by seven ring transducers (nearest 1.3 m, last reading 3.5 m) was
     bracketed to the wrong place, fitted as a wall and a fifth of its echoes dropped as
     spikes, where the trilaterated point fits them all (the simulator's truth)."""
     q, ok = _trilaterate(batch, y, use, cfg)
