@@ -90,6 +90,11 @@ class SegmenterConfig:
         The landmark lies within ``beam_half_width_deg`` of that axis, so twice that
         is safe. None (default): never; fixed transducers keep pointing where they
         did, and a landmark leaving one of them may enter its neighbour's beam.
+    max_travel_m : an echo taken more than this far from where the segment's first
+        echo was taken closes the segment (``"travel"``) and opens the next one: the
+        odometry's error grows with the distance travelled, and within a longer pass
+        the readings' relative poses are too far off for one fit. A pan (transducer
+        standing still) never travels. 0 or inf: no limit.
     """
 
     gate_us: float = 40.0
@@ -103,6 +108,7 @@ class SegmenterConfig:
     censor_window: int = 8
     max_open: int = 64
     sweep_away_deg: float | None = None
+    max_travel_m: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("gate_us", "beam_half_width_deg", "miss_half_width_deg", "max_gap_s",
@@ -121,6 +127,9 @@ class SegmenterConfig:
                 math.isfinite(self.sweep_away_deg) and self.sweep_away_deg > 0):
             raise ValueError(f"`sweep_away_deg` must be positive or None, "
                              f"got {self.sweep_away_deg!r}")
+        if not self.max_travel_m >= 0.0:
+            raise ValueError(f"`max_travel_m` must be non-negative (0 or inf: no limit), "
+                             f"got {self.max_travel_m!r}")
         if self.max_readings < self.min_echoes:
             raise ValueError(f"`max_readings` ({self.max_readings}) must be at least "
                              f"`min_echoes` ({self.min_echoes})")
@@ -134,7 +143,9 @@ class Segment:
     ``occluded`` says which ends of the arc a nearer echo hid.
     ``closed_by``: ``"misses"`` (left the beam or hidden), ``"gap"`` (time gap),
     ``"full"`` (``max_readings``), ``"crowded"`` (``max_open``), ``"swept"`` (a panning
-    beam has moved on, ``sweep_away_deg``) or ``"flush"`` (end of stream). ``seg_id``
+    beam has moved on, ``sweep_away_deg``), ``"travel"`` (the next echo was taken more
+    than ``max_travel_m`` from the first; it opened the next segment) or ``"flush"``
+    (end of stream). ``seg_id``
     counts segments from 0 in the order they were opened.
     """
 
@@ -264,6 +275,7 @@ class _Open:
     arc: list[tuple[float, float]] | None = None      # of ``last`` (cached when needed)
     occluded_lead: bool = False     # the reading before the first echo: a nearer echo
     occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
+    first: tuple[float, float] = (math.nan, math.nan)   # where its first echo was taken
 
 
 class _RecentIndex:
@@ -423,6 +435,8 @@ class Segmenter:
         self._max_gap = cfg.max_gap_s
         self._censor = cfg.censor_window
         self._max_readings = cfg.max_readings
+        # squared, compared with the squared distance (inf: no limit)
+        self._travel2 = cfg.max_travel_m ** 2 if cfg.max_travel_m > 0.0 else math.inf
         self._half_count_us = 0.5 * self.module.count_period_us
         # at most the earliest last echo of the open segments (a lower bound kept
         # cheaply: last echoes only move forward): no gap can close one before
@@ -682,6 +696,11 @@ class Segmenter:
             for s in gone:
                 closed += self._close(s, "misses")
             if best is None:
+                return closed, None
+            fx, fy = best.first
+            if (x - fx) ** 2 + (y - fy) ** 2 > self._travel2:
+                # too far from its first echo: the caller opens the next segment
+                closed += self._close(best, "travel")
                 return closed, None
             best.rows.append(ref)
             best.n_echo += 1
@@ -999,7 +1018,7 @@ class Segmenter:
         # its mid: the middle of :meth:`_arc_points` (the landmark on the echo's axis)
         s = _Open(self._next_id, lead, 1, (t, x, y, yaw, R, sensor), sensors={sensor},
                   mid=(x + R * math.cos(yaw + 0.0), y + R * math.sin(yaw + 0.0)),
-                  occluded_lead=occluded)
+                  occluded_lead=occluded, first=(x, y))
         self._next_id += 1
         self._open.append(s)
         self._oldest_last = min(self._oldest_last, t)

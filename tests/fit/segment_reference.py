@@ -37,6 +37,7 @@ class _Open:
     arc: list[tuple[float, float]] | None = None      # of ``last`` (cached when needed)
     occluded_lead: bool = False     # the reading before the first echo: a nearer echo
     occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
+    first: tuple[float, float] = (math.nan, math.nan)   # where its first echo was taken
 
 
 class Segmenter:
@@ -161,6 +162,11 @@ class Segmenter:
                         closed += self._close(s, "misses")
             if self.config.censor_window:
                 self._remember(row, R)
+            # (session 13) an echo too far from the segment's first closes it and opens
+            # the next
+            if best is not None and self._travelled(best, x, y):
+                closed += self._close(best, "travel")
+                best = None
             if best is not None:
                 best.rows.append(row)
                 best.n_echo += 1
@@ -233,6 +239,14 @@ class Segmenter:
         _, lx, ly, lyaw, lR, _ = s.last
         return lx + lR * math.cos(lyaw + 0.0), ly + lR * math.sin(lyaw + 0.0)
 
+    def _travelled(self, s: _Open, x: float, y: float) -> bool:
+        """Whether (x, y) is more than ``max_travel_m`` from where ``s``'s first echo was
+        taken (0 or inf: never)."""
+        cap = self.config.max_travel_m
+        if not 0.0 < cap < math.inf:
+            return False
+        return (x - s.first[0]) ** 2 + (y - s.first[1]) ** 2 > cap ** 2
+
     def _match(self, s: _Open, x: float, y: float, yaw: float, R: float) -> float:
         """Normalised range mismatch of an echo with segment ``s`` (inf: no match)."""
         _, lx, ly, lyaw, lR, _ = s.last
@@ -290,7 +304,8 @@ class Segmenter:
                         and abs(_wrap(r[3] - yaw)) <= 2.0 * self._beam
                         and r_range > R + self._gate_m):
                     lead.append((r[0], r[1], r[2], r[3], math.nan, r[5]))
-        s = _Open(self._next_id, lead + [row], 1, (t, x, y, yaw, R, sensor), sensors={sensor})
+        s = _Open(self._next_id, lead + [row], 1, (t, x, y, yaw, R, sensor), sensors={sensor},
+                  first=(x, y))
         # the reading of this sensor just before: a nearer echo there hid this landmark
         prev = [(r, rr) for r, rr in dq if r is not row] if dq else []
         if prev:

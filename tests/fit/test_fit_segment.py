@@ -126,7 +126,7 @@ def test_long_wall_is_cut_into_bounded_segments(rng):
     x = 0.02 * np.arange(3000)
     scan = simulate_readings(t, x, 0.0, np.full(3000, np.pi / 2),
                              [Reflector.line(1.0, np.pi / 2, 0.15)], rng)
-    segs, seg = _segments(scan, SegmenterConfig(max_readings=200))
+    segs, seg = _segments(scan, SegmenterConfig(max_readings=200, max_travel_m=0.0))
     assert len(segs) >= 14
     assert max(len(s.readings) for s in segs) <= 200
     assert {s.closed_by for s in segs[:-1]} == {"full"}
@@ -205,6 +205,73 @@ def test_sweep_away_spares_fixed_transducers(rng):
     swept, _ = _segments(scan, SegmenterConfig(max_readings=8, sweep_away_deg=50.0))
     assert [len(s.readings) for s in plain] == [len(s.readings) for s in swept]
     assert all(s.closed_by != "swept" for s in swept)
+
+
+def _echo_keys(segs) -> list[tuple[float, int]]:
+    """(t, sensor) of every echo of the segments, with repeats."""
+    return [(t, k) for s in segs for t, k, tof in zip(s.readings.t_s.tolist(),
+                                                       s.readings.sensor.tolist(),
+                                                       s.readings.tof_us.tolist(), strict=True)
+            if math.isfinite(tof)]
+
+
+@pytest.mark.parametrize("cap", [0.5, 1.0])
+def test_a_long_pass_is_cut_by_travel_without_losing_an_echo(rng, cap):
+    """Two ring transducers 10 deg apart follow a wall for 5 m (odometry error grows with
+    the distance: one fit cannot explain so long a pass). ``max_travel_m`` cuts the pass
+    into segments each taken within the cap of its first echo; the echo beyond a cap
+    opens the next segment, so every echo of the wall is in exactly one segment."""
+    n = 500
+    t = 0.05 * np.arange(n)
+    sensor = np.arange(n) % 2
+    x = 0.01 * np.arange(n)
+    yaw = np.pi / 2 + np.deg2rad(10.0) * (sensor - 0.5)
+    scan = simulate_readings(t, x, 0.05 * sensor, yaw, [Reflector.line(1.2, np.pi / 2, 0.15)],
+                             rng, sensor=sensor)
+    echoes = sorted((t, k) for t, k, tof in zip(scan.t_s.tolist(), scan.sensor.tolist(),
+                                                  scan.tof_us.tolist(), strict=True)
+                    if math.isfinite(tof))
+    assert len(echoes) > 0.9 * n
+    segs, seg = _segments(scan, SegmenterConfig(max_travel_m=cap))
+    assert sorted(_echo_keys(segs)) == echoes          # each echo once, none lost
+    assert seg.stats.spikes == 0
+    assert len(segs) >= math.floor(4.99 / cap)
+    assert [s.closed_by for s in segs] == ["travel"] * (len(segs) - 1) + ["flush"]
+    for s in segs:
+        e = np.isfinite(s.readings.tof_us)
+        x0, y0 = s.readings.x_m[e][0], s.readings.y_m[e][0]
+        travel = np.hypot(s.readings.x_m[e] - x0, s.readings.y_m[e] - y0)
+        assert travel.max() <= cap
+        assert travel.max() > cap - 0.05 or s is segs[-1]   # cut at the cap, not before
+
+
+def test_a_pan_never_travels(rng):
+    """A transducer panning on the spot (and a ring turning in place, whose transducers
+    move 0.4 m at most) gives the same segments whatever the travel cap."""
+    scans = [pan_scan(FIG5, rng, -40, 40, 0.3, repeat=3)]
+    n = 1200   # a ring of 4 transducers 0.2 m from the centre, turning 1 deg a ping
+    sensor = np.arange(n) % 4
+    yaw = np.deg2rad(np.arange(n) * 1.0) + sensor * np.pi / 2
+    scans.append(simulate_readings(0.03 * np.arange(n), 0.2 * np.cos(yaw), 0.2 * np.sin(yaw),
+                                   yaw, [Reflector.polar(r, b, 0.67) for r, b in
+                                         ((1.5, 180.0), (2.0, -60.0), (2.5, 45.0))], rng,
+                                   sensor=sensor))
+    for scan, cap in zip(scans, (1e-6, 0.5), strict=True):
+        off, _ = _segments(scan, SegmenterConfig(max_travel_m=0.0))
+        on, _ = _segments(scan, SegmenterConfig(max_travel_m=cap))
+        assert len(off) > 2
+        assert [s.closed_by for s in on] == [s.closed_by for s in off]
+        for a, b in zip(on, off, strict=True):
+            np.testing.assert_array_equal(a.readings.t_s, b.readings.t_s)
+            np.testing.assert_array_equal(a.readings.tof_us, b.readings.tof_us)
+
+
+def test_travel_cap_must_not_be_negative():
+    with pytest.raises(ValueError, match="max_travel_m"):
+        SegmenterConfig(max_travel_m=-1.0)
+    with pytest.raises(ValueError, match="max_travel_m"):
+        SegmenterConfig(max_travel_m=math.nan)
+    assert SegmenterConfig(max_travel_m=math.inf).max_travel_m == math.inf
 
 
 def test_sweep_away_must_be_positive():

@@ -250,12 +250,14 @@ def _streams(draw) -> list[Push]:
 
 @settings(max_examples=150, deadline=None)
 @given(_streams(), st.sampled_from([None, 50.0]), st.sampled_from([0, 1, 2, 8]),
-       st.sampled_from([2, 64]), st.sampled_from([3, 400]), st.integers(1, 40))
+       st.sampled_from([2, 64]), st.sampled_from([3, 400]), st.integers(1, 40),
+       st.sampled_from([0.0, 0.05, 0.2, 1.0]))
 def test_random_streams_give_identical_segments(pushes, sweep, censor, max_open, max_readings,
-                                                chunk):
+                                                chunk, travel):
     _assert_same(pushes, {"sweep_away_deg": sweep, "censor_window": censor,
                           "max_open": max_open, "max_readings": max_readings,
-                          "min_echoes": 2, "max_gap_s": 1.0}, chunks=(chunk, 65536))
+                          "min_echoes": 2, "max_gap_s": 1.0, "max_travel_m": travel},
+                 chunks=(chunk, 65536))
 
 
 def test_push_many_checks_its_arguments():
