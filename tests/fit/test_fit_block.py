@@ -200,8 +200,14 @@ def test_fit_scan_equals_the_segment_list_path_with_cuts():
     scan = simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
                          duration_s=20.0, seed=5).readings
     cfg = FitConfig()
-    segs = list(Segmenter().feed(scan))
+    whole = SegmenterConfig(max_travel_m=0.0)   # whole passes: walls into corners
+    segs = list(Segmenter(whole).feed(scan))
     want = _resolve(segs, fit_segments(segs, cfg), cfg)
-    got = fit_scan(scan, cfg).landmarks
+    got = fit_scan(scan, cfg, whole).landmarks
     assert sum("split_of" in lm.extra for lm in got) >= 2
     assert _bits(got) == _bits(want)
+    # and with the travel cap's shorter segments
+    segs = list(Segmenter().feed(scan))
+    assert any(s.closed_by == "travel" for s in segs)
+    assert _bits(fit_scan(scan, cfg).landmarks) == _bits(_resolve(segs, fit_segments(segs, cfg),
+                                                                  cfg))

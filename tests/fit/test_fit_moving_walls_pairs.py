@@ -14,7 +14,7 @@ from sonarloc.fit.landmarks import fit_scan, fit_segments, weak_wall
 from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.pair import resolve_pair_groups
 from sonarloc.fit.result import FitStatus
-from sonarloc.fit.segment import Segmenter
+from sonarloc.fit.segment import Segmenter, SegmenterConfig
 from sonarloc.fit.synth import Reflector, simulate_readings
 from sonarloc.maps import load_map
 from sonarloc.world.rig import rig_by_name
@@ -71,7 +71,9 @@ def test_ok_single_is_not_replaced_by_the_two_arms_of_its_u():
     # at half of it the chi-square is strained.)
     scan = simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
                          frame="odom", duration_s=63.0, seed=3).readings
-    (seg,) = [s for s in Segmenter().feed_block(scan) if abs(s.readings.t_s[0] - 54.48) < 1e-6]
+    # the whole pass (13 s, 2.7 m): no travel cap
+    segs = Segmenter(SegmenterConfig(max_travel_m=0.0)).feed_block(scan)
+    (seg,) = [s for s in segs if abs(s.readings.t_s[0] - 54.48) < 1e-6]
     assert fit_segments([seg])[0].ok
     single = fit_segments([seg], odometry_sd_deg_per_m=0.5)[0]
     assert single.status is FitStatus.OK
