@@ -22,7 +22,7 @@ from sonarloc.fit.landmarks import (
 from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.pair import resolve_pair_groups
 from sonarloc.fit.result import FitStatus, Landmark
-from sonarloc.fit.segment import Segment, Segmenter
+from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig
 from sonarloc.fit.select import KAPPA_WALL_US
 
 
@@ -39,9 +39,10 @@ def test_probed_cuts_split_as_fitting_every_cut_does():
     # a moving ring's drive on odometry poses: where a probe's part is hopeless the
     # cuts past it are never fitted (here two of the splits are found on the side left
     # open), and the cuts whose parts pass get the odometry term added to those fits
+    # (whole passes, no travel cap: enough long UNRESOLVED segments for the staged search)
     scan = _ring_drive()
     cfg = FitConfig()
-    segs = list(Segmenter().feed(scan))
+    segs = list(Segmenter(SegmenterConfig(max_travel_m=0.0)).feed(scan))
     groups = resolve_pair_groups(segs, fit_segments(segs, cfg), cfg)
     todo = [k for k, g in enumerate(groups)
             if len(g) == 1 and g[0].status is FitStatus.UNRESOLVED]
