@@ -19,6 +19,7 @@ import numpy as np
 from sonarloc.fit.landmarks import fit_scan
 from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.result import Landmark
+from sonarloc.fit.segment import SegmenterConfig
 from sonarloc.io.scancsv import read_scan_csv
 from sonarloc.physics.sound import speed_of_sound_mps
 from sonarloc.physics.tof import ModuleParams
@@ -41,6 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="SD of the poses' heading-drift rate within a segment (the "
                              "odometry term of moving segments' covariance; default 1.0, "
                              "calibrated on the simulator's odometry; 0 for exact poses)")
+    parser.add_argument("--max-travel", type=float, metavar="M", default=None,
+                        help="close a segment once its transducer is this far from where "
+                             "its first echo was taken (odometry drift makes longer passes "
+                             "unfittable; default 1.0; 0: whole passes, for exact poses)")
 
 
 def _num(v: float) -> float | None:
@@ -86,8 +91,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"sonarloc fit: --odometry-sd must be a non-negative number, got {sd}",
               file=sys.stderr)
         return 2
+    segmenter = None
+    if args.max_travel is not None:
+        if not args.max_travel >= 0.0:
+            print(f"sonarloc fit: --max-travel must be a non-negative number, got "
+                  f"{args.max_travel}", file=sys.stderr)
+            return 2
+        segmenter = SegmenterConfig(max_travel_m=args.max_travel)
     scan = read_scan_csv(args.scan)
-    report = fit_scan(scan, config, odometry_sd_deg_per_m=sd)
+    report = fit_scan(scan, config, segmenter, odometry_sd_deg_per_m=sd)
     landmarks = [lm for lm in report.landmarks if lm.ok or not args.only_ok]
     if args.json:
         st = report.stats

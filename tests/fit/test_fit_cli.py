@@ -106,6 +106,36 @@ def test_fit_odometry_sd_widens_moving_walls_only(tmp_path, rng, run_cli):
     assert bad.stderr.count("\n") == 1
 
 
+def test_fit_max_travel_cuts_a_long_pass(tmp_path, rng, run_cli):
+    # a side-looking transducer driving 3 m along a wall: by default (1 m) the pass is
+    # cut into segments that each stay within the cap; --max-travel 0 keeps it whole
+    from sonarloc.fit.synth import simulate_readings
+
+    n = 300
+    t = np.arange(n) * 0.05
+    x = np.linspace(-1.5, 1.5, n)
+    yaw = np.full(n, np.pi / 2) + np.deg2rad(12.0) * np.sin(2 * np.pi * t / 1.3)
+    scan = simulate_readings(t, x, 0.0, yaw, [Reflector.line(1.5, np.pi / 2, 0.15)], rng)
+    path = tmp_path / "pass.csv"
+    write_scan_csv(path, scan)
+
+    def fit(*extra):
+        return json.loads(run_cli("fit", str(path), "--json", *extra, check=True).stdout)
+
+    whole, default, half = fit("--max-travel", "0"), fit(), fit("--max-travel", "0.5")
+    n_seg = [out["readings"]["segments"] for out in (whole, default, half)]
+    assert n_seg[0] == 1 and 3 <= n_seg[1] < n_seg[2]
+    echoes = int(np.isfinite(scan.tof_us).sum())
+    for out in (whole, default, half):      # every echo in some landmark or dropped
+        lms = out["landmarks"]
+        assert sum(lm["n_readings"] + lm.get("n_spikes", 0) for lm in lms) == echoes
+        for lm in lms:                       # every piece is the wall
+            assert lm["kind"] == "line"
+    bad = run_cli("fit", str(path), "--max-travel", "-1")
+    assert bad.returncode == 2 and "--max-travel" in bad.stderr
+    assert bad.stderr.count("\n") == 1
+
+
 _BLAS_PROBE = """
 import contextlib, io, os, sys
 import sonarloc.cli as cli
