@@ -1452,28 +1452,38 @@ def _trilaterate(batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
     return q, ok
 
 
-_TRILATERATION_SPREAD = 1e-4
+_TRILATERATION_SPREAD = 2.5e-3
 """Smallest eigenvalue of the mean outer product of the unit directions from a
 trilaterated point to the transducers (about spread^2 / 12 for directions spread
-evenly over ``spread`` rad: 2 deg) for it to start a moving point fit."""
+evenly over ``spread`` rad: 10 deg) for it to start a moving point fit. A long pass
+spreads them by tens of degrees; a short one gives a poorly placed point (the
+neglected delays, a few mm of range, move it by cm) whose refinement may end in
+another minimum: at 2 deg, a corner seen for 0.9 s (0.2 m of travel at 3.3 m) came
+out a wall, and the no-prior relocalization of that room drive waited 2 s more."""
 
 
 def _path_start(tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: FitConfig,
-                start: Array) -> Array:
-    """A moving point fit's start: the bracket's ``start`` (B, 3) or the trilaterated
-    point (:func:`_trilaterate`, its (To, kappa) profiled at its bearing), whichever has
-    the lower -2 log-likelihood.
+                start: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """A moving point fit's start from its path: the trilaterated point
+    (:func:`_trilaterate`, its (To, kappa) profiled at its bearing) (B, 3), and where its
+    -2 log-likelihood is below that of the bracket's ``start`` (B,); :func:`_solve`
+    refines it there beside the bracket's start, the better converged fit winning.
 
     The bracket's nodes place the point at one range along each bearing (the segment's
     nearest echo's) and profile To as an offset, which holds while the path's ranges
     move together (a short or radial path). On a long pass they do not: a room corner
     seen for 20 s by seven ring transducers (nearest 1.3 m, last reading 3.5 m) was
     bracketed to the wrong place, fitted as a wall and a fifth of its echoes dropped as
-    spikes, where the trilaterated point fits them all (the simulator's truth)."""
+    spikes, where the trilaterated point fits them all (the simulator's truth). Refined
+    beside the bracket's start rather than instead of it (as first landed in session
+    13): a start that looks better need not converge to the better fit."""
+    B = batch.size
+    tri = np.zeros((B, 3))
+    better = np.zeros(B, dtype=bool)
     q, ok = _trilaterate(batch, y, use, cfg)
     idx = np.flatnonzero(ok)
     if idx.size == 0:
-        return start
+        return tri, better
     tau = M.us_per_m(cfg.module)
     sub, ys, us = _take(batch, idx), y[idx], use[idx]
     r = np.hypot(q[idx, 0], q[idx, 1])
@@ -1482,18 +1492,15 @@ def _path_start(tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: Fit
     yc = np.where(us, ys - y0[:, None], 0.0)
     T, K, _ = _node_profile("point", tier, sub, phi[:, None], r, yc, us, us.astype(float),
                             True, cfg, detection_cost=False)
-    tri = np.stack([(T[:, 0] + y0) / tau, phi, np.maximum(K[:, 0], cfg.kappa_min_us)],
-                   axis=-1)
-    both = np.concatenate([start[idx], tri])
+    tri[idx] = np.stack([(T[:, 0] + y0) / tau, phi, np.maximum(K[:, 0], cfg.kappa_min_us)],
+                        axis=-1)
+    both = np.concatenate([start[idx], tri[idx]])
     F, _, _, _, s2 = _evaluate_s2("point", tier, both, _take(sub, np.tile(
         np.arange(idx.size), 2)), np.tile(ys, (2, 1)), np.tile(us, (2, 1)), None, cfg,
         want_derivs=False)
     full = F + np.where(np.tile(us, (2, 1)), np.log(2.0 * np.pi * s2), 0.0).sum(1)
-    better = np.flatnonzero(full[idx.size:] < full[:idx.size])
-    if better.size:
-        start = start.copy()
-        start[idx[better]] = tri[better]
-    return start
+    better[idx] = full[idx.size:] < full[:idx.size]
+    return tri, better
 
 
 def _arc_start(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray,
@@ -1752,7 +1759,13 @@ def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cf
         start, start2, second, arc = _grid_start(kind, tier, batch, y, use, cfg)
         whole = np.zeros(batch.size, dtype=bool)
     if kind == "point" and _is_moving(batch):
-        start = _path_start(tier, batch, y, use, cfg, start)
+        # the path's start, where it looks better, is refined as the second start (it
+        # takes the place of the bracket's own second start there)
+        tri, looks = _path_start(tier, batch, y, use, cfg, start)
+        if looks.any():
+            start2 = start2.copy()
+            start2[looks] = tri[looks]
+            second = second | looks
     cfg_arc = cfg if cfg.arc_iterations is None else replace(cfg,
                                                               iterations=cfg.arc_iterations)
     sa = stop_above
