@@ -93,11 +93,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     segmenter = None
     if args.max_travel is not None:
-        if not args.max_travel >= 0.0:
-            print(f"sonarloc fit: --max-travel must be a non-negative number, got "
-                  f"{args.max_travel}", file=sys.stderr)
+        try:
+            segmenter = SegmenterConfig(max_travel_m=args.max_travel)
+        except ValueError as exc:     # (the config's own check of the value)
+            print(f"sonarloc fit: --max-travel: {exc}", file=sys.stderr)
             return 2
-        segmenter = SegmenterConfig(max_travel_m=args.max_travel)
     scan = read_scan_csv(args.scan)
     report = fit_scan(scan, config, segmenter, odometry_sd_deg_per_m=sd)
     landmarks = [lm for lm in report.landmarks if lm.ok or not args.only_ok]

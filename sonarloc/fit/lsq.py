@@ -1498,7 +1498,7 @@ def _path_start(tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: Fit
     F, _, _, _, s2 = _evaluate_s2("point", tier, both, _take(sub, np.tile(
         np.arange(idx.size), 2)), np.tile(ys, (2, 1)), np.tile(us, (2, 1)), None, cfg,
         want_derivs=False)
-    full = F + np.where(np.tile(us, (2, 1)), np.log(2.0 * np.pi * s2), 0.0).sum(1)
+    full = F + _log_det(s2, np.tile(us, (2, 1)))
     better[idx] = full[idx.size:] < full[:idx.size]
     return tri, better
 
@@ -1612,7 +1612,7 @@ class _State:
 
     def full_cost(self, use: NDArray) -> Array:
         """-2 log-likelihood (B,) with the TOF variances' log-determinant."""
-        return self.F + np.where(use, np.log(2.0 * np.pi * self.s2), 0.0).sum(1)
+        return self.F + _log_det(self.s2, use)
 
     def take(self, idx: NDArray[np.int64]) -> _State:
         """The state of segments ``idx``."""
@@ -1622,6 +1622,12 @@ class _State:
         """Replace segments ``idx`` by ``other``'s (same width)."""
         for name in _STATE_FIELDS:
             getattr(self, name)[idx] = getattr(other, name)
+
+
+def _log_det(s2: Array, use: NDArray) -> Array:
+    """The TOF variances' share of the -2 log-likelihood (B,): the sum of ln(2 pi s2)
+    over the used echoes (what the objective F leaves out)."""
+    return np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
 
 
 _STEP_MAX = np.array([0.17, 3.0])
@@ -1656,7 +1662,7 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
         tol = cfg.tolerance * (1.0 if rnd == rounds - 1 else _EARLY_TOLERANCE)
         done = given_up.copy()
         if stop_above is not None:      # the objective less the full cost
-            stop_F = stop_above - np.where(use, np.log(2.0 * np.pi * s2), 0.0).sum(1)
+            stop_F = stop_above - _log_det(s2, use)
         act = np.arange(B)
         sub, ys, us, s2s = batch, y, use, s2
         for it in range(cfg.iterations):
