@@ -16,11 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from sonarloc.fit.landmarks import fit_scan
+from sonarloc.errors import LogFormatError
+from sonarloc.fit.landmarks import OnlineFitter
 from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.result import Landmark
-from sonarloc.fit.segment import SegmenterConfig
-from sonarloc.io.scancsv import read_scan_csv
+from sonarloc.fit.segment import SegmenterConfig, SegmenterStats
+from sonarloc.io.scancsv import BLOCK_ROWS, iter_scan_csv
 from sonarloc.physics.sound import speed_of_sound_mps
 from sonarloc.physics.tof import ModuleParams
 
@@ -46,6 +47,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="close a segment once its transducer is this far from where "
                              "its first echo was taken (odometry drift makes longer passes "
                              "unfittable; default 1.0; 0: whole passes, for exact poses)")
+
+
+    parser.add_argument("--block-rows", type=int, metavar="N", default=BLOCK_ROWS,
+                        help="lines of the CSV read and fitted at a time: memory is bounded "
+                             f"by a block whatever the file's size (default {BLOCK_ROWS})")
 
 
 def _num(v: float) -> float | None:
@@ -98,25 +104,75 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:     # (the config's own check of the value)
             print(f"sonarloc fit: --max-travel: {exc}", file=sys.stderr)
             return 2
-    scan = read_scan_csv(args.scan)
-    report = fit_scan(scan, config, segmenter, odometry_sd_deg_per_m=sd)
-    landmarks = [lm for lm in report.landmarks if lm.ok or not args.only_ok]
-    if args.json:
-        st = report.stats
-        sys.stdout.write(json.dumps(
-            {"landmarks": [landmark_to_json(lm) for lm in landmarks],
-             "readings": {"total": st.readings, "echoes": st.echoes, "no_echo": st.no_echo,
-                          "bad": st.bad, "spikes": st.spikes, "segments": st.segments}},
-            allow_nan=False) + "\n")
-        return 0
-    print(f"{len(landmarks)} landmark(s) from {report.stats.readings} readings "
-          f"({report.stats.echoes} echoes, {report.stats.spikes} spike echoes dropped)")
-    print(f"{'kind':5} {'range_m':>8} {'bearing':>8} {'kappa_us':>8} {'sd_deg':>7} {'n':>4} "
-          f"{'tier':6} status")
-    for lm in landmarks:
-        sd = lm.extra.get("bearing_sd_deg", float("nan"))
-        sd_f = float(sd) if isinstance(sd, (int, float)) else float("nan")
-        print(f"{lm.kind:5} {lm.range_m:8.4f} {math.degrees(lm.bearing_rad):8.2f} "
-              f"{lm.kappa_us:8.3f} {sd_f:7.2f} {lm.n_readings:4d} {lm.tier:6} {lm.status.value}"
-              + (f" ({lm.reason})" if lm.reason else ""))
+    if args.block_rows < 1:
+        print(f"sonarloc fit: --block-rows must be a positive integer, got {args.block_rows}",
+              file=sys.stderr)
+        return 2
+    fitter = OnlineFitter(config, segmenter, odometry_sd_deg_per_m=sd)
+    out = _JsonOut() if args.json else _TableOut()
+    keep = (lambda lm: lm.ok) if args.only_ok else (lambda lm: True)
+    try:
+        for block in iter_scan_csv(args.scan, args.block_rows):   # memory bounded by a block
+            out.write([lm for lm in fitter.push_block(block) if keep(lm)])
+    except LogFormatError as err:
+        if not out.started:   # nothing printed yet: the command's usual one-line error
+            raise
+        # a bad line after landmarks went out: the rest of what was read, the output
+        # closed (valid JSON, naming the line), and the error
+        out.write([lm for lm in fitter.flush() if keep(lm)])
+        out.close(fitter.stats, error=str(err))
+        print(f"sonarloc fit: error: {err}", file=sys.stderr)
+        return 2
+    out.write([lm for lm in fitter.flush() if keep(lm)])
+    out.close(fitter.stats)
     return 0
+
+
+class _JsonOut:
+    """FORMATS.md section 2 written as landmarks come: byte for byte the one JSON object
+    of ``json.dumps({"landmarks": [...], "readings": {...}})``."""
+
+    def __init__(self) -> None:
+        self.started = False
+
+    def write(self, landmarks: list[Landmark]) -> None:
+        for lm in landmarks:
+            sys.stdout.write((", " if self.started else '{"landmarks": [')
+                             + json.dumps(landmark_to_json(lm), allow_nan=False))
+            self.started = True
+
+    def close(self, st: SegmenterStats, error: str | None = None) -> None:
+        if not self.started:
+            sys.stdout.write('{"landmarks": [')
+        tail: dict[str, Any] = {"readings": {
+            "total": st.readings, "echoes": st.echoes, "no_echo": st.no_echo, "bad": st.bad,
+            "spikes": st.spikes, "segments": st.segments}}
+        if error is not None:
+            tail["error"] = error
+        sys.stdout.write("], " + json.dumps(tail, allow_nan=False)[1:] + "\n")
+
+
+class _TableOut:
+    """A table, a row per landmark as they come, the counts last."""
+
+    def __init__(self) -> None:
+        self.started = False
+        self.n = 0
+
+    def write(self, landmarks: list[Landmark]) -> None:
+        if landmarks and not self.started:
+            print(f"{'kind':5} {'range_m':>8} {'bearing':>8} {'kappa_us':>8} {'sd_deg':>7} "
+                  f"{'n':>4} {'tier':6} status")
+            self.started = True
+        for lm in landmarks:
+            sd = lm.extra.get("bearing_sd_deg", float("nan"))
+            sd_f = float(sd) if isinstance(sd, (int, float)) else float("nan")
+            print(f"{lm.kind:5} {lm.range_m:8.4f} {math.degrees(lm.bearing_rad):8.2f} "
+                  f"{lm.kappa_us:8.3f} {sd_f:7.2f} {lm.n_readings:4d} {lm.tier:6} "
+                  f"{lm.status.value}" + (f" ({lm.reason})" if lm.reason else ""))
+        self.n += len(landmarks)
+
+    def close(self, st: SegmenterStats, error: str | None = None) -> None:
+        print(f"{self.n} landmark(s) from {st.readings} readings ({st.echoes} echoes, "
+              f"{st.spikes} spike echoes dropped)"
+              + (f"; stopped at a bad line: {error}" if error else ""))

@@ -879,11 +879,17 @@ class OnlineFitter:
         closed = self.segmenter.push(t_s, x_m, y_m, yaw_rad, tof_us, sensor)
         return self._fit(closed) if closed else []
 
+    def push_block(self, scan: ScanReadings) -> list[Landmark]:
+        """:meth:`push` of many readings: the landmarks of the segments they closed, fitted
+        together (a scan read in blocks: :func:`sonarloc.io.scancsv.iter_scan_csv`)."""
+        closed = self.segmenter.push_block(scan)
+        return self._fit(closed) if len(closed) else []
+
     def flush(self) -> list[Landmark]:
         closed = self.segmenter.flush()
         return self._fit(closed) if closed else []
 
-    def _fit(self, closed: list[Segment]) -> list[Landmark]:
+    def _fit(self, closed: Sequence[Segment]) -> list[Landmark]:
         return _resolve(closed, fit_segments(closed, self.config, self.odometry_sd_deg_per_m),
                         self.config, self.odometry_sd_deg_per_m)
 

@@ -196,24 +196,20 @@ class SegmentBlock(Sequence[Segment]):
     @classmethod
     def of(cls, segments: Sequence[Segment]) -> SegmentBlock:
         """The block of ``segments`` (their readings copied end to end)."""
-        cols = [np.concatenate([getattr(s.readings, f) for s in segments]
-                               + [np.empty(0, dtype=dt)])
-                for f, dt in _READING_FIELDS]
         bounds = np.cumsum([0] + [len(s.readings) for s in segments]).tolist()
-        return cls(ScanReadings(*cols), bounds, [s.seg_id for s in segments],
-                   [s.closed_by for s in segments], [s.occluded for s in segments])
+        return cls(ScanReadings.concat([s.readings for s in segments]), bounds,
+                   [s.seg_id for s in segments], [s.closed_by for s in segments],
+                   [s.occluded for s in segments])
 
     @classmethod
     def join(cls, blocks: Sequence[SegmentBlock]) -> SegmentBlock:
         """One block of the segments of ``blocks``, in order."""
-        cols = [np.concatenate([getattr(b.readings, f) for b in blocks]
-                               + [np.empty(0, dtype=dt)])
-                for f, dt in _READING_FIELDS]
         bounds, base = [0], 0
         for b in blocks:
             bounds += [base + k for k in b.bounds[1:]]
             base += b.bounds[-1]
-        return cls(ScanReadings(*cols), bounds, [k for b in blocks for k in b.seg_id],
+        return cls(ScanReadings.concat([b.readings for b in blocks]), bounds,
+                   [k for b in blocks for k in b.seg_id],
                    [w for b in blocks for w in b.closed_by],
                    [o for b in blocks for o in b.occluded])
 
@@ -239,9 +235,6 @@ class SegmentBlock(Sequence[Segment]):
         return Segment(self.readings.select(slice(self.bounds[k], self.bounds[k + 1])),
                        self.seg_id[k], self.closed_by[k], self.occluded[k])
 
-
-_READING_FIELDS = (("t_s", np.float64), ("x_m", np.float64), ("y_m", np.float64),
-                   ("yaw_rad", np.float64), ("tof_us", np.float64), ("sensor", np.int64))
 
 
 @dataclass
@@ -573,9 +566,16 @@ class Segmenter:
     def feed_block(self, scan: ScanReadings, chunk: int = 65536) -> SegmentBlock:
         """:meth:`feed`, the segments in one :class:`SegmentBlock` (the same segments in
         the same order, without an object each)."""
-        blocks = [b for _, b in self._push_blocks(scan.t_s, scan.x_m, scan.y_m, scan.yaw_rad,
-                                                  scan.tof_us, scan.sensor, chunk)]
-        return SegmentBlock.join([*blocks, SegmentBlock.of(self.flush())])
+        return SegmentBlock.join([*self._blocks(scan, chunk), SegmentBlock.of(self.flush())])
+
+    def push_block(self, scan: ScanReadings, chunk: int = 65536) -> SegmentBlock:
+        """:meth:`feed_block` without the flush: the segments these readings closed, in
+        one block; the others stay open for the next readings."""
+        return SegmentBlock.join(self._blocks(scan, chunk))
+
+    def _blocks(self, scan: ScanReadings, chunk: int) -> list[SegmentBlock]:
+        return [b for _, b in self._push_blocks(scan.t_s, scan.x_m, scan.y_m, scan.yaw_rad,
+                                                scan.tof_us, scan.sensor, chunk)]
 
     # -- the per-reading decisions (shared by push and push_many) ----------------------
 

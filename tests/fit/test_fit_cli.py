@@ -163,3 +163,53 @@ def test_commands_set_one_blas_thread_before_numpy_loads(command, preset, want):
                          capture_output=True, text=True, check=True).stdout.split()
     # set before numpy (which reads it when it loads BLAS) comes with the command
     assert out == ["False", want, "1"]
+
+
+def test_fit_reads_a_large_csv_in_blocks(tmp_path, rng, run_cli):
+    # `sonarloc fit` reads and fits a scan a block of lines at a time (bounded memory):
+    # blocks of 700 lines give the landmarks of one block for the whole file
+    from sonarloc.fit.synth import rotation_scan
+
+    path = tmp_path / "rotation.csv"
+    write_scan_csv(path, rotation_scan(4000, rng))
+
+    def fit(*extra):
+        return json.loads(run_cli("fit", str(path), "--json", *extra, check=True).stdout)
+
+    whole, blocks = fit(), fit("--block-rows", "700")
+    assert whole["readings"] == blocks["readings"] and whole["readings"]["total"] == 4000
+    assert len(whole["landmarks"]) == len(blocks["landmarks"]) > 50
+    for a, b in zip(whole["landmarks"], blocks["landmarks"], strict=True):
+        assert (a["kind"], a["status"], a["n_readings"]) == (b["kind"], b["status"],
+                                                             b["n_readings"])
+        assert b["range_m"] == pytest.approx(a["range_m"], abs=1e-6)
+        assert b["bearing_deg"] == pytest.approx(a["bearing_deg"], abs=1e-4)
+    bad = run_cli("fit", str(path), "--block-rows", "0")
+    assert bad.returncode == 2 and "--block-rows" in bad.stderr
+
+
+def test_fit_bad_line_after_the_first_block_keeps_what_was_fitted(tmp_path, rng, run_cli):
+    # a bad line found after landmarks went out: the JSON object is closed with the
+    # error (naming the line) and the landmarks of the lines before its block, exit 2
+    from sonarloc.fit.synth import rotation_scan
+
+    path = tmp_path / "rotation.csv"
+    write_scan_csv(path, rotation_scan(3000, rng))
+    lines = path.read_text().splitlines(keepends=True)
+    lines[2501] = lines[2501].replace(",", ",oops", 1)       # line 2502 of the file
+    path.write_text("".join(lines))
+    good = tmp_path / "first.csv"
+    good.write_text("".join(lines[:2001]))                   # the blocks before it
+    proc = run_cli("fit", str(path), "--json", "--block-rows", "1000")
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "line 2502" in proc.stderr
+    out = json.loads(proc.stdout)
+    assert "line 2502" in out["error"] and out["readings"]["total"] == 2000
+    want = json.loads(run_cli("fit", str(good), "--json", check=True).stdout)
+    assert [lm["n_readings"] for lm in out["landmarks"]] == [
+        lm["n_readings"] for lm in want["landmarks"]]
+    # within the first block: nothing printed, the one-line error as for a small file
+    early = run_cli("fit", str(path), "--json", "--block-rows", "5000")
+    assert early.returncode == 2 and early.stdout == "" and "line 2502" in early.stderr
+    table = run_cli("fit", str(path), "--block-rows", "1000")
+    assert table.returncode == 2 and "stopped at a bad line" in table.stdout

@@ -6,7 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from sonarloc.errors import LogFormatError
-from sonarloc.io.scancsv import ScanReadings, read_scan_csv, write_scan_csv
+from sonarloc.io.scancsv import ScanReadings, iter_scan_csv, read_scan_csv, write_scan_csv
 
 
 def test_columns_any_order_unknown_ignored_empty_is_no_echo():
@@ -34,6 +34,26 @@ def test_columns_any_order_unknown_ignored_empty_is_no_echo():
 def test_bad_files_name_the_line(text, match):
     with pytest.raises(LogFormatError, match=match):
         read_scan_csv(io.StringIO(text))
+    for block_rows in (1, 2):     # read in blocks: the same line named, across blocks
+        with pytest.raises(LogFormatError, match=match):
+            list(iter_scan_csv(io.StringIO(text), block_rows))
+
+
+@pytest.mark.parametrize("block_rows", [1, 2, 3, 7, 100])
+def test_blocks_join_to_the_whole_file(block_rows):
+    rows = [f"{0.1 * i:.1f},{i},0,{3 * i},{'' if i % 4 == 1 else 8000 + i},{i % 3}\n"
+            for i in range(17)]
+    rows[5:5] = ["\n", "\n"]                              # blank lines are allowed
+    text = "t_s,x_m,y_m,yaw_deg,tof_us,sensor\n" + "".join(rows)
+    whole = read_scan_csv(io.StringIO(text))
+    blocks = list(iter_scan_csv(io.StringIO(text), block_rows))
+    assert all(len(b) <= block_rows for b in blocks) and len(blocks) >= 17 // block_rows
+    joined = ScanReadings.concat(blocks)
+    for name, _ in ScanReadings.FIELDS:
+        np.testing.assert_array_equal(getattr(joined, name), getattr(whole, name))
+    assert len(whole) == 17 and whole.sensor[4] == 1
+    with pytest.raises(ValueError, match="block_rows"):
+        list(iter_scan_csv(io.StringIO(text), 0))
 
 
 finite = st.floats(-1e4, 1e4, allow_nan=False)
