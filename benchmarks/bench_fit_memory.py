@@ -9,7 +9,7 @@ scan is a continuous rotation over the eight reflectors of bench_fit.py section 
 peak resident set and CPU time; medians of the repeats, alternating the block sizes. The
 JSON output of every block size is compared with the baseline's: byte for byte, and
 landmark by landmark (kind, status, readings; the largest change of range and bearing:
-the lockstep fits of a smaller batch may stop an iteration apart, at the rounding level).
+the fits of a smaller batch converge a little differently).
 
 Run: ``python benchmarks/bench_fit_memory.py [--quick] [--lines N]``; writes
 benchmarks/results/fit_memory.md.
@@ -39,14 +39,16 @@ import numpy as np  # noqa: E402
 from sonarloc.fit.synth import rotation_scan  # noqa: E402
 from sonarloc.io.scancsv import BLOCK_ROWS, write_scan_csv  # noqa: E402
 
-# a child process: `sonarloc fit` as the command line runs it, then its own peak RSS
-# (KiB on Linux) and CPU seconds on stderr's last line
+# a child process: `sonarloc fit` as the command line runs it, then its own peak resident
+# set (VmHWM, KiB: that of its own address space; ru_maxrss would carry the forking
+# parent's) and CPU seconds on stderr's last line
 _CHILD = """
-import resource, sys, time
+import resource, sys
 from sonarloc.cli import main
 code = main(sys.argv[1:])
 ru = resource.getrusage(resource.RUSAGE_SELF)
-print(f"PEAK {ru.ru_maxrss} CPU {ru.ru_utime + ru.ru_stime}", file=sys.stderr)
+hwm = next(line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM"))
+print(f"PEAK {hwm} CPU {ru.ru_utime + ru.ru_stime}", file=sys.stderr)
 sys.exit(code)
 """
 
@@ -95,19 +97,22 @@ def _differences(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> dict[str, 
     """Landmarks of ``b`` against ``a``: how many differ in kind, status or readings (all
     of ``a`` if the counts differ), the largest range (mm) and bearing (deg) change."""
     if len(a) != len(b):
-        return {"kind_diff": float(len(a)), "d_range_mm": np.inf, "d_bearing_deg": np.inf}
+        return {"kind_diff": float(len(a)), "d_range_mm": np.inf, "d_bearing_deg": np.inf,
+                "d_bearing_sd": np.inf}
     pairs = list(zip(a, b, strict=True))
     keys = ("kind", "status", "n_readings")
 
-    def largest(key: str, wrap: bool = False) -> float:
-        d = [float(x[key]) - float(y[key]) for x, y in pairs
-             if x[key] is not None and y[key] is not None]
+    def largest(key: str, wrap: bool = False, sd: str = "") -> float:
+        d = [(float(x[key]) - float(y[key])) / (float(x[sd]) if sd else 1.0)
+             for x, y in pairs if x[key] is not None and y[key] is not None
+             and (not sd or x.get(sd) not in (None, 0.0))]
         return max((abs((v + 180.0) % 360.0 - 180.0) if wrap else abs(v) for v in d),
                    default=0.0)
 
     return {"kind_diff": float(sum(any(x[k] != y[k] for k in keys) for x, y in pairs)),
             "d_range_mm": 1e3 * largest("range_m"),
-            "d_bearing_deg": largest("bearing_deg", wrap=True)}
+            "d_bearing_deg": largest("bearing_deg", wrap=True),
+            "d_bearing_sd": largest("bearing_deg", sd="bearing_sd_deg")}
 
 
 def table(rows: list[dict[str, float | str]], n_lines: int, repeats: int) -> list[str]:
@@ -121,14 +126,15 @@ def table(rows: list[dict[str, float | str]], n_lines: int, repeats: int) -> lis
              "status or readings, the largest change of a range and a bearing.", "",
              "| lines per block | blocks | peak RSS (MB) | peak vs whole file | CPU (s) | "
              "CPU vs whole file | JSON identical | landmarks differing | largest range "
-             "change (mm) | largest bearing change (deg) |",
-             "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|"]
+             "change (mm) | largest bearing change (deg) | largest bearing change (its SDs) |",
+             "|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['block']} | {int(float(r['blocks']))} | {float(r['peak']):.0f} | "
                      f"{float(r['peak']) / float(base['peak']):.2f}x | {float(r['cpu']):.2f} | "
                      f"{float(r['cpu']) / float(base['cpu']):.2f}x | {r['same']} | "
                      f"{int(float(r['kind_diff']))} of {int(float(base['n']))} | "
-                     f"{float(r['d_range_mm']):.2g} | {float(r['d_bearing_deg']):.2g} |")
+                     f"{float(r['d_range_mm']):.2g} | {float(r['d_bearing_deg']):.2g} | "
+                     f"{float(r['d_bearing_sd']):.2g} |")
     return lines
 
 
