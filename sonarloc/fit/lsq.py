@@ -2144,49 +2144,11 @@ def _fit_direct(batch: SegmentBatch, kind: str, tier: str, cfg: FitConfig,
     n_used = use0.sum(1)
     dof = np.maximum(n_used - 3, 1)
     inflate = np.maximum(chi2 / dof, 1.0)
-    if kind == "point" and cfg.detection and _is_moving(batch):
-        H = _echo_information(tier, p, batch, y, use0, H, cfg)
     cov = _covariance(H) * inflate[:, None, None]
     # not converged: the mean squared error adds the (expected) distance to the optimum
     cov += st.pending[:, :, None] * st.pending[:, None, :]
     robust = F + cfg.outlier_sigma ** 2 * (n_avail - n_used)
     return BatchFit(kind, tier, p, cov, F, chi2, n_used, use0, e, arc, conv, robust)
-
-
-def _echo_information(tier: str, p: Array, batch: SegmentBatch, y: Array, use: NDArray,
-                      H: Array, cfg: FitConfig) -> Array:
-    """The Fisher matrices ``H`` (B, 3, 3) of point fits at ``p`` with those of the
-    segments whose transducer moved replaced by their echoes' TOF information alone:
-    the covariance of a moving point does not count what the detection model adds (each
-    echo's probability of being detected, the truncation of its mean delay, the no-echo
-    readings).
-
-    That information is real only as far as the detection model is right, and for a
-    point seen from a moving transducer it is not delivered: on bench_fit_quality's ten
-    30 s ring16 drives through maps/room.geojson with the true poses, points fitted
-    without the detection terms are as accurate (range RMSE 1.04 mm against 1.00, bearing
-    0.172 deg against 0.289), while the full fits' SDs, shrunk by them (median 0.44 mm),
-    were 1.76x (range) and 1.56x (bearing) too small in RMS; with odometry poses (1 deg/m)
-    1.39x for the range, 1.61x for points of fewer than 15 echoes (the short pieces a
-    travel cut leaves, where the odometry term is small and the detection terms' share
-    of the information largest). The cause is the model's, not the noise's: the
-    simulator's detection differs from the fitter's (cylinders' strength grows with
-    range, the ``auto`` tier's waveform crossing, occluded stretches read as misses), so
-    detection terms bias kappa, and with it the range, rather than pin them. With the
-    echoes' information alone the RMS of error/SD is 1.21 / 1.28 (true poses) and 1.10
-    / 0.93 (odometry poses), 0.98 / 0.96 for 11-14 echoes (docs/FITTING.md). The
-    estimate itself is the full fit's (its kind and tier choices rest on the full
-    likelihood). Pans (no motion) keep the full information: their arc's edges are what
-    fixes a flat curve's bearing. Walls too: their ends' no-echo readings are what bounds
-    a short wall's normal (echoes alone leave some with SDs of tens of millimetres).
-    """
-    rows = np.flatnonzero(np.any(batch.px != 0.0, axis=1) | np.any(batch.py != 0.0, axis=1))
-    if rows.size == 0:
-        return H
-    out = H.copy()
-    out[rows] = _evaluate_s2("point", tier, p[rows], _take(batch, rows), y[rows], use[rows],
-                             None, replace(cfg, detection=False, float32=False))[2]
-    return out
 
 
 def _readmit(kind: str, tier: str, st: _State, batch: SegmentBatch, y: Array, use: NDArray,
