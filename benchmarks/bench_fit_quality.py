@@ -221,18 +221,20 @@ def fig5_table(results: list[dict[str, object]]) -> list[str]:
 _POINT_KINDS = ("pole", "rod", "point", "corner", "edge")
 
 
-def landmarks_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | None]
-                         ) -> dict[str, list[dict[str, float | str]]]:
-    """Walls and points (poles, rods, corners) fitted from a ring16 drive through
-    maps/room.geojson (world simulator, default odometry), poses from odometry (``odom``)
-    and true (``map``): errors of the local range and bearing (of a wall's normal, of the
-    direction to a point's reflecting surface) against the truth seen from the true
-    reference pose, and the reported SDs, for each odometry curvature SD in ``sds``
-    (None = default). Returns the rows of each kind (``"wall"``, ``"point"``)."""
+def drive_landmarks(n_seeds: int, duration_s: float, sds: Sequence[float | None],
+                    frames: Sequence[str] = ("odom", "map")) -> list[dict[str, float | str]]:
+    """Walls and points (poles, rods, corners) fitted from ring16 drives through
+    maps/room.geojson (world simulator, default odometry, seeds 0..n-1), poses from
+    odometry (``odom``, once for each odometry curvature SD in ``sds``, None = default)
+    and true (``map``, with 0): one row per ``OK`` landmark on a map reflector of its
+    kind, with ``group`` (``"wall"`` or ``"point"``), ``frame``, ``sd``, ``n`` (echoes
+    used), ``p_fit`` (of the TOF chi-square without the odometry's walk), the errors of
+    the local range and bearing (``er`` [m], ``eb`` [rad]: of a wall's normal, of the
+    direction to a point's reflecting surface, against the truth seen from the true
+    reference pose) and the reported SDs (``sr``, ``sb``)."""
     from scipy.special import chdtrc
 
     from sonarloc.fit.landmarks import fit_segments
-    from sonarloc.fit.lsq import FitConfig
     from sonarloc.fit.odomcov import CURVATURE_SD_DEG_PER_M
     from sonarloc.fit.segment import Segmenter
     from sonarloc.maps.geojson import load_map
@@ -240,14 +242,14 @@ def landmarks_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | 
     from sonarloc.world.simulate import PingTruth, scan_from_pings, simulate_records
 
     room = load_map(ROOT / "maps" / "room.geojson")
-    res: dict[tuple[str, str, float, str], list[tuple[float, float, float, float]]] = {}
+    out: list[dict[str, float | str]] = []
     for seed in range(n_seeds):
         pings: list[PingTruth] = []
         for _ in simulate_records(room, rig_by_name("ring16"), duration_s=duration_s,
                                   seed=seed, on_ping=pings.append):
             pass
         key = {(float(p.t_s), int(p.sensor)): i for i, p in enumerate(pings)}
-        for frame in ("odom", "map"):
+        for frame in frames:
             segs = list(Segmenter().feed(scan_from_pings(pings, frame).readings))
             for sd in (sds if frame == "odom" else [0.0]):
                 sdv = CURVATURE_SD_DEG_PER_M if sd is None else float(sd)
@@ -288,16 +290,42 @@ def landmarks_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | 
                         continue
                     t_b = math.atan2(ny, nx) - p.yaw_rad
                     f_b = lm.bearing_rad - lm.ref_pose[2]
-                    eb = (f_b - t_b + math.pi) % (2 * math.pi) - math.pi
-                    row = (lm.range_m - d, eb, float(lm.extra["range_sd_m"]),  # type: ignore[arg-type]
-                           math.radians(float(lm.extra["bearing_sd_deg"])))  # type: ignore[arg-type]
-                    res.setdefault((group, frame, sdv, ""), []).append(row)
-                    if frame == "odom" and sdv > 0.0:
-                        # OK only with the odometry's walk in the chi-square test, or
-                        # passing the jitter-only test as well
-                        p_fit = float(chdtrc(max(lm.n_readings - 3, 1), float(lm.extra["chi2"])))  # type: ignore[arg-type]
-                        res.setdefault((group, frame, sdv, "rescued" if p_fit < FitConfig(
-                        ).min_fit_p else "jitter test passes"), []).append(row)
+                    out.append(dict(
+                        group=group, frame=frame, sd=sdv, n=float(lm.n_readings),
+                        p_fit=float(chdtrc(max(lm.n_readings - 3, 1), float(lm.extra["chi2"]))),  # type: ignore[arg-type]
+                        er=lm.range_m - d, eb=(f_b - t_b + math.pi) % (2 * math.pi) - math.pi,
+                        sr=float(lm.extra["range_sd_m"]),  # type: ignore[arg-type]
+                        sb=math.radians(float(lm.extra["bearing_sd_deg"]))))  # type: ignore[arg-type]
+    return out
+
+
+SHORT_ECHOES = 15
+"""Landmarks of fewer echoes get rows of their own (the pieces a travel cut leaves)."""
+
+
+def landmarks_from_drive(n_seeds: int, duration_s: float, sds: Sequence[float | None]
+                         ) -> dict[str, list[dict[str, float | str]]]:
+    """:func:`drive_landmarks` summed up per group, frame and odometry SD (None =
+    default): range and bearing RMSE, bearing bias, median reported SDs and the RMS of
+    error/SD; with odometry poses also split into the landmarks whose TOF chi-square
+    passes the status test without the odometry's walk ('jitter test passes') and those
+    ``OK`` only with it ('rescued'), and those of fewer than :data:`SHORT_ECHOES`
+    echoes. Returns the rows of each group (``"wall"``, ``"point"``)."""
+    from sonarloc.fit.lsq import FitConfig
+
+    min_p = FitConfig().min_fit_p
+    res: dict[tuple[str, str, float, str], list[tuple[float, float, float, float]]] = {}
+    for lm in drive_landmarks(n_seeds, duration_s, sds):
+        group, frame, sdv = str(lm["group"]), str(lm["frame"]), float(lm["sd"])
+        row = (float(lm["er"]), float(lm["eb"]), float(lm["sr"]), float(lm["sb"]))
+        res.setdefault((group, frame, sdv, ""), []).append(row)
+        if frame == "odom" and sdv > 0.0:
+            # OK only with the odometry's walk in the chi-square test, or passing the
+            # jitter-only test as well
+            res.setdefault((group, frame, sdv, "rescued" if float(lm["p_fit"]) < min_p
+                            else "jitter test passes"), []).append(row)
+        if float(lm["n"]) < SHORT_ECHOES:
+            res.setdefault((group, frame, sdv, f"under {SHORT_ECHOES} echoes"), []).append(row)
     rows: dict[str, list[dict[str, float | str]]] = {"wall": [], "point": []}
     for (group, frame, sdv, subset), v in res.items():
         a = np.array(v)

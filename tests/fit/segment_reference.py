@@ -164,7 +164,9 @@ class Segmenter:
                 self._remember(row, R)
             # (session 13) an echo too far from the segment's first closes it and opens
             # the next
-            if best is not None and self._travelled(best, x, y):
+            cut = best is not None and self._travelled(best, x, y)
+            if cut:
+                assert best is not None
                 closed += self._close(best, "travel")
                 best = None
             if best is not None:
@@ -180,7 +182,7 @@ class Segmenter:
                 if len(best.rows) >= self.config.max_readings:
                     closed += self._close(best, "full")
             else:
-                closed += self._start(row, R)
+                closed += self._start(row, R, cut)
         else:
             st.no_echo += 1
             wide = self._tan_miss_wide
@@ -288,14 +290,17 @@ class Segmenter:
         lim = self.config.miss_limit
         return (s.misses >= lim and off >= self._miss_angle) or s.misses >= 4 * lim
 
-    def _start(self, row: tuple[float, float, float, float, float, int], R: float
-               ) -> list[Segment]:
+    def _start(self, row: tuple[float, float, float, float, float, int], R: float,
+               cut: bool = False) -> list[Segment]:
+        """Open a segment with the echo ``row``; ``cut``: the next piece of a pass whose
+        segment this echo closed by travel (no lead rows, not occluded: the sensor's
+        earlier readings are that piece's own echoes)."""
         t, x, y, yaw, _, sensor = row
         closed: list[Segment] = []
         if len(self._open) >= self.config.max_open:
             closed += self._close(min(self._open, key=lambda s: s.last[0]), "crowded")
         lead: list[tuple[float, float, float, float, float, int]] = []
-        dq = self._recent.get(sensor)
+        dq = None if cut else self._recent.get(sensor)
         if dq:
             # earlier readings of this sensor that saw nothing here: no echo, or a
             # farther echo won (the first crossing would have been this landmark's)
