@@ -405,10 +405,9 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 
 # ---------------------------------------------------------------- 4. large CSV
 
-BASELINE_REV = "cbe464d"
-"""main at the start of session 12 (2026-11-27; session 11's wall ends and float32 model
-passes of moving batches landed): section 4's "before" columns, run from a `git
-archive` of it."""
+BASELINE_REV = "3890255"
+"""main at the start of session 14 (2026-11-27; session 13's travel cap and moving point
+starts landed): section 4's "before" columns, run from a `git archive` of it."""
 
 _STAGES = r"""
 import json, sys, time
@@ -682,7 +681,7 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
         "",
         "CPU seconds of each stage (medians of "
         f"{'1' if q else '3'} in a fresh process per code version), *now* and *before* "
-        f"(main at {BASELINE_REV}, the start of session 13, run from a `git archive` of it "
+        f"(main at {BASELINE_REV}, the start of session 14, run from a `git archive` of it "
         "in the same run, alternating with *now*); CPU and wall clock of the whole "
         "command (`python -m sonarloc fit SCAN.csv --json`, medians) and the wall clock of "
         "its start-up (`import sonarloc.commands.fit`). With the machine shared, wall "
