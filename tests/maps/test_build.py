@@ -252,3 +252,20 @@ def test_vertex_just_inside_a_walls_built_end_is_kept(rng, end_gate_m, kept):
     kinds = sorted(f.kind for f in b.features())
     assert (len(kinds) == 2) == kept, kinds
     assert b.stats["dropped_on_wall"] == (0 if kept else 1)
+
+
+def test_a_landmark_its_fit_cannot_place_is_skipped_not_fatal():
+    # a FLAT wall driven past at one angle (bench_localize's map building, seed 200):
+    # rho and alpha undetermined together, SDs of 7e7 m at correlation 1; the builder
+    # inverted that covariance and stopped
+    v = 5.74206347e15
+    cov = np.array([[v, v, 28.36], [v, v, 28.36], [28.36, 28.36, 1.15e-3]])
+    flat = Landmark("line", np.array([7.9997, 0.0, 0.05]), cov, 1.0, 0.0, 28, 0.0,
+                    (6.472, 1.0, 0.0), FitStatus.FLAT)
+    b = MapBuilder(BuildConfig(min_observations=1))
+    assert b.add(flat, np.array([6.5, 1.0]), feet=np.array([[8.0, 0.9], [8.0, 1.1]])) == \
+        "skipped_vague"
+    wide = point_lm([1.0, 1.0], sd=1.5)              # SD 15 gates: nowhere in particular
+    assert b.add(wide, np.array([0.0, 1.0])) == "skipped_vague"
+    assert b.add(point_lm([1.0, 1.0], sd=0.2), np.array([0.0, 1.0])) == "point"   # 2 gates
+    assert b.stats["skipped_vague"] == 2 and len(b.features()) == 1
