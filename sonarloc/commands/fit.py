@@ -47,8 +47,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="close a segment once its transducer is this far from where "
                              "its first echo was taken (odometry drift makes longer passes "
                              "unfittable; default 1.0; 0: whole passes, for exact poses)")
-
-
     parser.add_argument("--block-rows", type=int, metavar="N", default=BLOCK_ROWS,
                         help="lines of the CSV read and fitted at a time: memory is bounded "
                              f"by a block whatever the file's size (default {BLOCK_ROWS})")
