@@ -1,5 +1,6 @@
 """Cutting ``UNRESOLVED`` segments in two (:func:`sonarloc.fit.landmarks.split_unresolved`):
-the probed search with hopeless parts ruling cuts out picks what fitting every cut picks."""
+the staged search (short parts first, the other part only where that one fits alone)
+picks what fitting every cut picks."""
 
 from __future__ import annotations
 
@@ -35,10 +36,10 @@ def _ring_drive(duration_s=30.0, seed=2):
                          frame="odom", duration_s=duration_s, seed=seed).readings
 
 
-def test_probed_cuts_split_as_fitting_every_cut_does():
-    # a moving ring's drive on odometry poses: where a probe's part is hopeless the
-    # cuts past it are never fitted (here two of the splits are found on the side left
-    # open), and the cuts whose parts pass get the odometry term added to those fits
+def test_staged_cuts_split_as_fitting_every_cut_does():
+    # a moving ring's drive on odometry poses: a cut whose shorter part does not fit
+    # alone has its other part never fitted, and the cuts whose parts pass get the
+    # odometry term added to those fits
     # (whole passes, no travel cap: enough long UNRESOLVED segments for the staged search)
     scan = _ring_drive()
     cfg = FitConfig()
@@ -75,7 +76,7 @@ def test_probed_cuts_split_as_fitting_every_cut_does():
 def _plain_split(seg: Segment, whole: Landmark, cfg: FitConfig
                  ) -> tuple[Landmark, Landmark] | None:
     """The split that fitting both parts of every cut (with the odometry term) gives,
-    None if none: the plain search the probed one must agree with."""
+    None if none: the plain search the staged one must agree with."""
     r = seg.readings
     echo = np.flatnonzero(np.isfinite(r.tof_us))
     n = echo.size
