@@ -559,20 +559,12 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     consecutive echoes (each part keeping ``min_echoes`` echoes), fit both parts,
     and keep the best cut if both parts are ``OK`` and -2 log-likelihood drops by more
     than the BIC price of three more parameters; the two landmarks then replace the
-    one (``extra["split_of"]`` = the segment id). Returns the landmarks in order. ``odometry_sd_deg_per_m``: that of :func:`fit_segments`, for
-    the parts (the same as the whole segments were fitted with).
+    one (``extra["split_of"]`` = the segment id). Returns the landmarks in order.
+    ``odometry_sd_deg_per_m``: that of :func:`fit_segments`, for the parts (the same as
+    the whole segments were fitted with).
     """
     return [lm for g in _split_groups(segments, landmarks, config, n_cuts,
                                       odometry_sd_deg_per_m) for lm in g]
-
-
-CUT_STAGED_MIN = 128
-"""Fewer cuts than this (all segments together) are all fitted in one batch, without the
-odometry term: the staged search's five or more batches cost more in per-call overhead
-than they save. Measured (CPU, fresh processes): a continuous rotation's two
-``UNRESOLVED`` segments, 17 cuts, 0.075 s in one batch and 0.11 s staged; a ring16
-drive of 10 s (9 segments, 92 cuts) 0.73 s either way; of 30 s (26 segments, 261 cuts)
-2.3 s in one batch, 1.6 s staged."""
 
 
 @dataclass
@@ -637,12 +629,6 @@ class _Parts:
         self.bare.update(zip(todo, fitted.landmarks(cfg, 0.0), strict=True))
         self._fits.update((part, (fitted, k)) for k, part in enumerate(todo))
 
-    def cuts(self, plans: dict[int, _Cuts], todo: Sequence[tuple[int, int]],
-             cfg: FitConfig) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
-        """Fit both parts of cuts ``todo``; their landmarks without the term."""
-        self.fit(plans, [(i, c, side) for i, c in todo for side in (0, 1)], cfg)
-        return {(i, c): (self.bare[i, c, 0], self.bare[i, c, 1]) for i, c in todo}
-
     def with_odometry(self, todo: Sequence[tuple[int, int]], cfg: FitConfig,
                       odometry_sd: float | None
                       ) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
@@ -684,18 +670,23 @@ def _search(plans: dict[int, _Cuts], cfg: FitConfig) -> tuple[
     pass: it is missing). Returns the fits and the cuts' landmarks without the odometry
     term: the cuts that pass are those of fitting every cut.
 
-    Two batches. Until session 14 a probing batch came first (the middle cut of each
-    segment, both parts), a part of it whose fit found a plausible reflector with a
-    chi-square p below 1e-8 ruling out every cut that would leave a part holding it
-    (such a part fits no better, up to the fits' local minima). On the moving ring's
-    drives of ``/work/scratch`` (300 s: 139 ``UNRESOLVED`` segments; 60 s: 27) that
-    rule lost splits fitting every cut finds, 3 of 51 and 2 of 14 (two of them a corner
-    and a wall each, both parts within 2.8 cm of the simulator's reflectors; the third a
-    corner cut into a line and a point), and its batch cost more than it saved: the
-    middle cut's parts, holding both reflectors' echoes, are the slowest to fit (their
-    spike refits, tier trials and fresh brackets: twice the CPU per echo of the other
-    batches). Without it: 1459 -> 1650 parts, the stage's CPU 2.41 -> 1.72 s (300 s)
-    and 0.99 -> 0.76 s (60 s; medians of alternating runs in one process)."""
+    Two batches, whatever the number of cuts. Until session 14 small inputs (fewer than
+    128 cuts) fitted every cut in one batch, larger ones began with a probing batch: the
+    middle cut of each segment, both parts, a part whose fit found a plausible reflector
+    with a chi-square p below 1e-8 ruling out the cuts that would leave a part holding
+    it (such a part fits no better, up to the fits' local minima). On the moving ring's
+    drives of ``/work/scratch`` (300 s: 139 ``UNRESOLVED`` segments; 60 s: 27) that rule
+    lost splits fitting every cut finds, 3 of 51 and 2 of 14 (two a corner and a wall
+    each, both parts within 2.8 cm of the simulator's reflectors; one a corner cut into
+    a line and a point), and its batch cost more than it saved: the middle cut's parts
+    hold both reflectors' echoes, the slowest to fit (spike refits, tier trials, fresh
+    brackets). Cachegrind, the stage alone (1.8 G of start-up left out): 300 s 11.98 ->
+    10.78 G instructions (1459 -> 1650 parts), 60 s 5.03 -> 4.58 G; the two batches
+    against one of every cut: 10.78 / 12.47 G (300 s), 4.58 / 4.29 (60 s), 6.91 / 8.56
+    (a 30 s drive, 261 cuts), 2.45 / 2.73 (10 s, 92 cuts), 0.669 / 0.660 (a rotation's
+    17 cuts). The cost goes mostly with the number of model evaluations (~2 M
+    instructions each, against ~700 per padded reading): lockstep tails of the tier
+    fits, half of them on <= 10 rows."""
     parts = _Parts()
     short = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items() for c in p.cuts]
     parts.fit(plans, short, cfg)
@@ -711,8 +702,7 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                   odometry_sd_deg_per_m: float | None = None) -> list[list[Landmark]]:
     """:func:`split_unresolved`, the result of each segment in its own list.
 
-    The cuts are fitted without the odometry term: all at once if few
-    (:data:`CUT_STAGED_MIN`), else those that can win (:func:`_search`). Cuts whose
+    The cuts that can win are fitted without the odometry term (:func:`_search`). Cuts whose
     parts both pass are ranked by total cost, and the first whose parts still pass with
     the term wins (the term only widens covariances, so it can only fail a part: the
     winner is the one fitting every cut with it would give). The term is added to the
@@ -728,12 +718,8 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                 plans[i] = plan
     if not plans:
         return [[lm] for lm in landmarks]
-    if sum(len(p.cuts) for p in plans.values()) >= CUT_STAGED_MIN:
-        parts, fits = _search(plans, cfg)
-    else:   # the staged search's five or more batches would cost more than they save
-        parts = _Parts()
-        fits = parts.cuts(plans, [(i, c) for i, p in plans.items() for c in p.cuts], cfg)
-    # each segment's passing cuts (still open), best total first (ties: the earlier cut)
+    parts, fits = _search(plans, cfg)
+    # each segment's passing cuts, best total first (ties: the earlier cut)
     ranked: dict[int, list[tuple[float, int]]] = {}
     for (i, c), (a, b) in sorted(fits.items()):
         p = plans[i]

@@ -11,8 +11,6 @@ import pytest
 from conftest import MAPS
 
 from sonarloc.fit.landmarks import (
-    CUT_STAGED_MIN,
-    _cut_plan,
     _fit_p,
     _fits_alone,
     _select_segments,
@@ -40,15 +38,13 @@ def test_staged_cuts_split_as_fitting_every_cut_does():
     # a moving ring's drive on odometry poses: a cut whose shorter part does not fit
     # alone has its other part never fitted, and the cuts whose parts pass get the
     # odometry term added to those fits
-    # (whole passes, no travel cap: enough long UNRESOLVED segments for the staged search)
+    # (whole passes, no travel cap: long UNRESOLVED segments to cut)
     scan = _ring_drive()
     cfg = FitConfig()
     segs = list(Segmenter(SegmenterConfig(max_travel_m=0.0)).feed(scan))
     groups = resolve_pair_groups(segs, fit_segments(segs, cfg), cfg)
     todo = [k for k, g in enumerate(groups)
             if len(g) == 1 and g[0].status is FitStatus.UNRESOLVED]
-    plans = [_cut_plan(segs[k], groups[k][0], cfg, 8) for k in todo]
-    assert sum(len(p.cuts) for p in plans if p is not None) >= CUT_STAGED_MIN   # staged
     got = _split_groups([segs[k] for k in todo], [groups[k][0] for k in todo], cfg)
     n_split = 0
     for k, parts in zip(todo, got, strict=True):
