@@ -39,8 +39,8 @@ Array = NDArray[np.float64]
 WEAK_WALL_KAPPA_US = 3.0 * KAPPA_WALL_US
 """Kappa [us] above which a wall fit is ``UNRESOLVED`` where the data say so
 (:func:`weak_wall`: walls echo strongly at normal incidence, a weak "wall" is a corner
-or merged echoes); the cut stage's weak-wall rules (:func:`_fits_alone`,
-:func:`_hopeless`) use the same bound."""
+or merged echoes); the cut stage's weak-wall rule (:func:`_fits_alone`) uses the same
+bound."""
 
 
 def weak_wall(kind: ArrayLike, kappa_us: ArrayLike, kappa_sd_us: ArrayLike) -> NDArray[np.bool_]:
@@ -559,67 +559,24 @@ def split_unresolved(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     consecutive echoes (each part keeping ``min_echoes`` echoes), fit both parts,
     and keep the best cut if both parts are ``OK`` and -2 log-likelihood drops by more
     than the BIC price of three more parameters; the two landmarks then replace the
-    one (``extra["split_of"]`` = the segment id). Cuts that would leave a part holding
-    a hopeless one of a tried cut are not fitted (:data:`CUT_HOPELESS_P`). Returns the
-    landmarks in order. ``odometry_sd_deg_per_m``: that of :func:`fit_segments`, for
-    the parts (the same as the whole segments were fitted with).
+    one (``extra["split_of"]`` = the segment id). Returns the landmarks in order.
+    ``odometry_sd_deg_per_m``: that of :func:`fit_segments`, for the parts (the same as
+    the whole segments were fitted with).
     """
     return [lm for g in _split_groups(segments, landmarks, config, n_cuts,
                                       odometry_sd_deg_per_m) for lm in g]
 
 
-CUT_HOPELESS_P = 1e-8
-"""A part of a cut whose fit finds a plausible reflector (kappa in the range of real
-ones, no weak wall) but with a TOF chi-square p-value below this rules out the cuts that
-would leave a part holding it: a part must fit with p > 0.01, and one holding these
-readings fits no better (its chi-square is at least theirs, up to the fits' local
-minima: hence the margin, and no verdict from a fit with an implausible kappa, which has
-found no reflector). Measured on a moving ring's drive (benchmarks/bench_fit.py section
-4, second table: 242 segments cut, 2412 cuts): the same splits at the same cuts as
-fitting every cut, from 2435 of the 4824 parts (64,000 of 194,000 echoes); of the 63
-segments split (before the weak-wall rule of :func:`_fits_alone`), the part of the
-middle cut that would have ruled out the winning cut had p >= 6e-4. Without the kappa
-condition a split was lost and another's cut changed at every threshold tried down to
-1e-15: halves fitted as weak walls (p 1e-64, 1e-86) whose longer parts fitted well."""
-
-CUT_PROBES = 1
-"""Rounds of probing cuts (the middle of the cuts still open) before fitting the rest.
-One: a second round's parts are long (a quarter and three quarters of a segment whose
-half was hopeless) and rule out fewer short parts than they cost. Measured (cachegrind,
-the cut stage alone, session 12): the 300 s drive's 155 ``UNRESOLVED`` segments 1317 ->
-1441 parts in 4 -> 3 batches, 23.98 -> 23.39 G instructions; the 60 s drive's 31
-segments 9.38 -> 9.14 G (-2.7 and -3.1 % of the stages without the 1.8 G of start-up).
-The same splits at the same cuts (27 and 6), kinds, tiers and statuses; the parts'
-estimates within 0.009 SD (the batches' chunks converge a little differently). (Counted in echoes
-fitted, as until session 12, two rounds fitted fewer: 64,000 against 66,000.)"""
-
-CUT_STAGED_MIN = 128
-"""Fewer cuts than this (all segments together) are all fitted in one batch, without the
-odometry term: the staged search's five or more batches cost more in per-call overhead
-than they save. Measured (CPU, fresh processes): a continuous rotation's two
-``UNRESOLVED`` segments, 17 cuts, 0.075 s in one batch and 0.11 s staged; a ring16
-drive of 10 s (9 segments, 92 cuts) 0.73 s either way; of 30 s (26 segments, 261 cuts)
-2.3 s in one batch, 1.6 s staged."""
-
-
 @dataclass
 class _Cuts:
     """Where an ``UNRESOLVED`` segment is cut: the readings' positions of its echoes, the
-    cuts (echo indices, sorted), whether its single fit is a weak wall
-    (:func:`_fits_alone`), and the open range ``lo < cut < hi`` that no hopeless part
-    of a fitted cut rules out."""
+    cuts (echo indices, sorted) and whether its single fit is a weak wall
+    (:func:`_fits_alone`)."""
 
     seg: Segment
     echo: NDArray[np.int64]
     cuts: list[int]
     weak_wall: bool
-    lo: int = -1
-    hi: int = 1 << 62
-
-    def open(self, done: dict[tuple[int, int], tuple[Landmark, Landmark]], i: int
-             ) -> list[int]:
-        """Cuts still open and not fitted yet."""
-        return [c for c in self.cuts if self.lo < c < self.hi and (i, c) not in done]
 
 
 def _cut_plan(seg: Segment, whole: Landmark, cfg: FitConfig, n_cuts: int
@@ -672,12 +629,6 @@ class _Parts:
         self.bare.update(zip(todo, fitted.landmarks(cfg, 0.0), strict=True))
         self._fits.update((part, (fitted, k)) for k, part in enumerate(todo))
 
-    def cuts(self, plans: dict[int, _Cuts], todo: Sequence[tuple[int, int]],
-             cfg: FitConfig) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
-        """Fit both parts of cuts ``todo``; their landmarks without the term."""
-        self.fit(plans, [(i, c, side) for i, c in todo for side in (0, 1)], cfg)
-        return {(i, c): (self.bare[i, c, 0], self.bare[i, c, 1]) for i, c in todo}
-
     def with_odometry(self, todo: Sequence[tuple[int, int]], cfg: FitConfig,
                       odometry_sd: float | None
                       ) -> dict[tuple[int, int], tuple[Landmark, Landmark]]:
@@ -694,15 +645,6 @@ class _Parts:
         for fitted, group, rows in by_batch.values():
             out.update(zip(group, fitted.landmarks(cfg, odometry_sd, rows), strict=True))
         return {(i, c): (out[i, c, 0], out[i, c, 1]) for i, c in todo}
-
-
-def _hopeless(lm: Landmark, cfg: FitConfig) -> bool:
-    """A part no longer part can rescue (:data:`CUT_HOPELESS_P`): a plausible reflector
-    (the kappa tests of the statuses passed) that fits the TOFs that badly."""
-    kappa = float(lm.params[2])
-    return (_fit_p(lm) < CUT_HOPELESS_P
-            and 0.5 * cfg.kappa_lo_us <= kappa <= 2.0 * cfg.kappa_hi_us
-            and not weak_wall(lm.kind, kappa, _kappa_sd(lm)))
 
 
 def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
@@ -723,34 +665,35 @@ def _fits_alone(lm: Landmark, weak_wall: bool) -> bool:
 
 def _search(plans: dict[int, _Cuts], cfg: FitConfig) -> tuple[
         _Parts, dict[tuple[int, int], tuple[Landmark, Landmark]]]:
-    """The cuts fitted, those a hopeless part rules out (:data:`CUT_HOPELESS_P`) left
-    out: (:data:`CUT_PROBES` rounds) the middle cut of each segment (then the middle
-    of those still open), then of the rest the part with fewer echoes, the other part
-    only where that one fits alone (the cuts whose other part is not fitted are
-    missing). Returns the fits and the cuts' landmarks without the odometry term."""
+    """The cuts that can win, fitted: of every cut the part with fewer echoes, the other
+    part only where that one fits alone (a cut whose other part is not fitted cannot
+    pass: it is missing). Returns the fits and the cuts' landmarks without the odometry
+    term: the cuts that pass are those of fitting every cut.
+
+    Two batches, whatever the number of cuts. Until session 14 small inputs (fewer than
+    128 cuts) fitted every cut in one batch, larger ones began with a probing batch: the
+    middle cut of each segment, both parts, a part whose fit found a plausible reflector
+    with a chi-square p below 1e-8 ruling out the cuts that would leave a part holding
+    it (such a part fits no better, up to the fits' local minima). On the moving ring's
+    drives of ``/work/scratch`` (300 s: 139 ``UNRESOLVED`` segments; 60 s: 27) that rule
+    lost splits fitting every cut finds, 3 of 51 and 2 of 14 (two a corner and a wall
+    each, both parts within 2.8 cm of the simulator's reflectors; one a corner cut into
+    a line and a point), and its batch cost more than it saved: the middle cut's parts
+    hold both reflectors' echoes, the slowest to fit (spike refits, tier trials, fresh
+    brackets). Cachegrind, the stage alone (1.8 G of start-up left out): 300 s 11.98 ->
+    10.78 G instructions (1459 -> 1650 parts), 60 s 5.03 -> 4.58 G; the two batches
+    against one of every cut: 10.78 / 12.47 G (300 s), 4.58 / 4.29 (60 s), 6.91 / 8.56
+    (a 30 s drive, 261 cuts), 2.45 / 2.73 (10 s, 92 cuts), 0.669 / 0.660 (a rotation's
+    17 cuts). The cost goes mostly with the number of model evaluations (~2 M
+    instructions each, against ~700 per padded reading): lockstep tails of the tier
+    fits, half of them on <= 10 rows."""
     parts = _Parts()
-    fits: dict[tuple[int, int], tuple[Landmark, Landmark]] = {}
-    probe = [(i, p.cuts[len(p.cuts) // 2]) for i, p in plans.items()]
-    for _ in range(CUT_PROBES):
-        fits.update(parts.cuts(plans, probe, cfg))
-        nxt = []
-        for i, c in probe:
-            p, (a, b) = plans[i], fits[i, c]
-            if _hopeless(a, cfg):     # every later cut's first part holds this one
-                p.hi = min(p.hi, c)
-            if _hopeless(b, cfg):     # every earlier cut's second part holds this one
-                p.lo = max(p.lo, c)
-            left = p.open(fits, i)
-            if left and (p.lo, p.hi) != (-1, 1 << 62):   # ruled some out: probe again
-                nxt.append((i, left[len(left) // 2]))
-        probe = nxt
-    rest = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items()
-            for c in p.open(fits, i)]
-    parts.fit(plans, rest, cfg)
-    other = [(i, c, 1 - side) for i, c, side in rest
+    short = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items() for c in p.cuts]
+    parts.fit(plans, short, cfg)
+    other = [(i, c, 1 - side) for i, c, side in short
              if _fits_alone(parts.bare[i, c, side], plans[i].weak_wall)]
     parts.fit(plans, other, cfg)
-    fits.update(((i, c), (parts.bare[i, c, 0], parts.bare[i, c, 1])) for i, c, _ in other)
+    fits = {(i, c): (parts.bare[i, c, 0], parts.bare[i, c, 1]) for i, c, _ in other}
     return parts, fits
 
 
@@ -759,8 +702,7 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                   odometry_sd_deg_per_m: float | None = None) -> list[list[Landmark]]:
     """:func:`split_unresolved`, the result of each segment in its own list.
 
-    The cuts are fitted without the odometry term: all at once if few
-    (:data:`CUT_STAGED_MIN`), else those that can win (:func:`_search`). Cuts whose
+    The cuts that can win are fitted without the odometry term (:func:`_search`). Cuts whose
     parts both pass are ranked by total cost, and the first whose parts still pass with
     the term wins (the term only widens covariances, so it can only fail a part: the
     winner is the one fitting every cut with it would give). The term is added to the
@@ -776,16 +718,12 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
                 plans[i] = plan
     if not plans:
         return [[lm] for lm in landmarks]
-    if sum(len(p.cuts) for p in plans.values()) >= CUT_STAGED_MIN:
-        parts, fits = _search(plans, cfg)
-    else:   # the staged search's five or more batches would cost more than they save
-        parts = _Parts()
-        fits = parts.cuts(plans, [(i, c) for i, p in plans.items() for c in p.cuts], cfg)
-    # each segment's passing cuts (still open), best total first (ties: the earlier cut)
+    parts, fits = _search(plans, cfg)
+    # each segment's passing cuts, best total first (ties: the earlier cut)
     ranked: dict[int, list[tuple[float, int]]] = {}
     for (i, c), (a, b) in sorted(fits.items()):
         p = plans[i]
-        if p.lo < c < p.hi and _fits_alone(a, p.weak_wall) and _fits_alone(b, p.weak_wall):
+        if _fits_alone(a, p.weak_wall) and _fits_alone(b, p.weak_wall):
             ranked.setdefault(i, []).append(
                 (float(a.extra["cost"]) + float(b.extra["cost"]), c))  # type: ignore[arg-type]
     checked = parts.with_odometry([(i, c) for i, v in ranked.items() for _, c in v], cfg,

@@ -1,5 +1,6 @@
 """Cutting ``UNRESOLVED`` segments in two (:func:`sonarloc.fit.landmarks.split_unresolved`):
-the probed search with hopeless parts ruling cuts out picks what fitting every cut picks."""
+the staged search (short parts first, the other part only where that one fits alone)
+picks what fitting every cut picks."""
 
 from __future__ import annotations
 
@@ -10,8 +11,6 @@ import pytest
 from conftest import MAPS
 
 from sonarloc.fit.landmarks import (
-    CUT_STAGED_MIN,
-    _cut_plan,
     _fit_p,
     _fits_alone,
     _select_segments,
@@ -35,19 +34,17 @@ def _ring_drive(duration_s=30.0, seed=2):
                          frame="odom", duration_s=duration_s, seed=seed).readings
 
 
-def test_probed_cuts_split_as_fitting_every_cut_does():
-    # a moving ring's drive on odometry poses: where a probe's part is hopeless the
-    # cuts past it are never fitted (here two of the splits are found on the side left
-    # open), and the cuts whose parts pass get the odometry term added to those fits
-    # (whole passes, no travel cap: enough long UNRESOLVED segments for the staged search)
+def test_staged_cuts_split_as_fitting_every_cut_does():
+    # a moving ring's drive on odometry poses: a cut whose shorter part does not fit
+    # alone has its other part never fitted, and the cuts whose parts pass get the
+    # odometry term added to those fits
+    # (whole passes, no travel cap: long UNRESOLVED segments to cut)
     scan = _ring_drive()
     cfg = FitConfig()
     segs = list(Segmenter(SegmenterConfig(max_travel_m=0.0)).feed(scan))
     groups = resolve_pair_groups(segs, fit_segments(segs, cfg), cfg)
     todo = [k for k, g in enumerate(groups)
             if len(g) == 1 and g[0].status is FitStatus.UNRESOLVED]
-    plans = [_cut_plan(segs[k], groups[k][0], cfg, 8) for k in todo]
-    assert sum(len(p.cuts) for p in plans if p is not None) >= CUT_STAGED_MIN   # staged
     got = _split_groups([segs[k] for k in todo], [groups[k][0] for k in todo], cfg)
     n_split = 0
     for k, parts in zip(todo, got, strict=True):
@@ -75,7 +72,7 @@ def test_probed_cuts_split_as_fitting_every_cut_does():
 def _plain_split(seg: Segment, whole: Landmark, cfg: FitConfig
                  ) -> tuple[Landmark, Landmark] | None:
     """The split that fitting both parts of every cut (with the odometry term) gives,
-    None if none: the plain search the probed one must agree with."""
+    None if none: the plain search the staged one must agree with."""
     r = seg.readings
     echo = np.flatnonzero(np.isfinite(r.tof_us))
     n = echo.size
