@@ -674,8 +674,9 @@ def _search(plans: dict[int, _Cuts], cfg: FitConfig) -> tuple[
     128 cuts) fitted every cut in one batch, larger ones began with a probing batch: the
     middle cut of each segment, both parts, a part whose fit found a plausible reflector
     with a chi-square p below 1e-8 ruling out the cuts that would leave a part holding
-    it (such a part fits no better, up to the fits' local minima). On the moving ring's
-    drives of ``/work/scratch`` (300 s: 139 ``UNRESOLVED`` segments; 60 s: 27) that rule
+    it (such a part fits no better, up to the fits' local minima). On moving ring16 room
+    drives (benchmarks/bench_fit.py section 4's 300 s CSV: 139 ``UNRESOLVED`` segments;
+    a 60 s one: 27) that rule
     lost splits fitting every cut finds, 3 of 51 and 2 of 14 (two a corner and a wall
     each, both parts within 2.8 cm of the simulator's reflectors; one a corner cut into
     a line and a point), and its batch cost more than it saved: the middle cut's parts
