@@ -21,7 +21,7 @@ from sonarloc.fit.landmarks import OnlineFitter
 from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.result import Landmark
 from sonarloc.fit.segment import SegmenterConfig, SegmenterStats
-from sonarloc.io.scancsv import BLOCK_ROWS, iter_scan_csv
+from sonarloc.io.scancsv import BLOCK_ROWS, ScanReadings, iter_scan_csv
 from sonarloc.physics.sound import speed_of_sound_mps
 from sonarloc.physics.tof import ModuleParams
 
@@ -109,20 +109,26 @@ def run(args: argparse.Namespace) -> int:
     fitter = OnlineFitter(config, segmenter, odometry_sd_deg_per_m=sd)
     out = _JsonOut() if args.json else _TableOut()
     keep = (lambda lm: lm.ok) if args.only_ok else (lambda lm: True)
+    # one block behind the reader (memory bounded by two blocks), so the last one is
+    # fitted with the segments the end of the file closes, in one batch: a file of one
+    # block is fitted as fit_scan fits it
+    pending: ScanReadings | None = None
+    error: LogFormatError | None = None
     try:
-        for block in iter_scan_csv(args.scan, args.block_rows):   # memory bounded by a block
-            out.write([lm for lm in fitter.push_block(block) if keep(lm)])
+        for block in iter_scan_csv(args.scan, args.block_rows):
+            if pending is not None:
+                out.write([lm for lm in fitter.push_block(pending) if keep(lm)])
+            pending = block
     except LogFormatError as err:
-        if not out.started:   # nothing printed yet: the command's usual one-line error
+        if pending is None:   # in the first block: the command's usual one-line error
             raise
-        # a bad line after landmarks went out: the rest of what was read, the output
-        # closed (valid JSON, naming the line), and the error
-        out.write([lm for lm in fitter.flush() if keep(lm)])
-        out.close(fitter.stats, error=str(err))
-        print(f"sonarloc fit: error: {err}", file=sys.stderr)
+        error = err           # later: what was read before its block, then the error
+    assert pending is not None   # (iter_scan_csv yields at least one block)
+    out.write([lm for lm in fitter.push_block(pending, flush=True) if keep(lm)])
+    out.close(fitter.stats, error=None if error is None else str(error))
+    if error is not None:
+        print(f"sonarloc fit: error: {error}", file=sys.stderr)
         return 2
-    out.write([lm for lm in fitter.flush() if keep(lm)])
-    out.close(fitter.stats)
     return 0
 
 

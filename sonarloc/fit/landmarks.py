@@ -818,10 +818,14 @@ class OnlineFitter:
         closed = self.segmenter.push(t_s, x_m, y_m, yaw_rad, tof_us, sensor)
         return self._fit(closed) if closed else []
 
-    def push_block(self, scan: ScanReadings) -> list[Landmark]:
+    def push_block(self, scan: ScanReadings, flush: bool = False) -> list[Landmark]:
         """:meth:`push` of many readings: the landmarks of the segments they closed, fitted
-        together (a scan read in blocks: :func:`sonarloc.io.scancsv.iter_scan_csv`)."""
+        together (a scan read in blocks: :func:`sonarloc.io.scancsv.iter_scan_csv`).
+        ``flush``: the last block; the segments still open are closed and fitted in the
+        same batch (one block with ``flush`` is :func:`fit_scan`)."""
         closed = self.segmenter.push_block(scan)
+        if flush:
+            closed = SegmentBlock.join([closed, SegmentBlock.of(self.segmenter.flush())])
         return self._fit(closed) if len(closed) else []
 
     def flush(self) -> list[Landmark]:
