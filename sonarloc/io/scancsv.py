@@ -138,6 +138,7 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
             break
         block = _parse_block(rows, first_line, names, col, t_before)
         first_line += len(rows)
+        rows = []   # the text goes before the block is yielded (and fitted)
         if len(block):
             t_before = float(block.t_s[-1])
         if len(block) or not any_block:

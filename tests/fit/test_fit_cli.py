@@ -178,6 +178,13 @@ def test_fit_reads_a_large_csv_in_blocks(tmp_path, rng, run_cli):
 
     whole, blocks = fit(), fit("--block-rows", "700")
     assert whole["readings"] == blocks["readings"] and whole["readings"]["total"] == 4000
+    # a file of one block: fit_scan's landmarks exactly (the end's segments in its batch)
+    from sonarloc.commands.fit import landmark_to_json
+    from sonarloc.fit.landmarks import fit_scan
+    from sonarloc.io.scancsv import read_scan_csv
+
+    same = [landmark_to_json(lm) for lm in fit_scan(read_scan_csv(path)).landmarks]
+    assert json.loads(json.dumps(same)) == whole["landmarks"]
     assert len(whole["landmarks"]) == len(blocks["landmarks"]) > 50
     for a, b in zip(whole["landmarks"], blocks["landmarks"], strict=True):
         assert (a["kind"], a["status"], a["n_readings"]) == (b["kind"], b["status"],
