@@ -85,10 +85,10 @@ def _column(rows: list[list[str]], index: int, name: str, line_of: list[int],
 BLOCK_ROWS = 1 << 18
 """Lines of a scan CSV parsed at a time by :func:`iter_scan_csv` (and fitted at a time by
 ``sonarloc fit``). Measured (benchmarks/bench_fit_memory.py, a 1,000,000-line continuous
-rotation, 43 MB): ``sonarloc fit`` peaks at 350 MB with blocks of this size, 858 MB
-reading the whole file at once, 146 MB at 2**16 lines and 101 MB at 2**14, for 1.07x,
-1.13x and 1.34x the CPU of one block (each batch of lockstep fits has a fixed cost);
-files up to this size are one block, as before."""
+rotation, 43 MB): ``sonarloc fit`` peaks at 261 MB with blocks of this size against 604
+MB with the whole file as one block (588 MB for the command before session 14), 122 MB
+at 2**16 lines and 99 MB at 2**14, for 1.04x, 1.21x and 1.63x the CPU of one block
+(each batch of lockstep fits has a fixed cost); files up to this size are one block."""
 
 
 def read_scan_csv(source: str | Path | IO[str]) -> ScanReadings:
