@@ -28,8 +28,12 @@ from sonarloc.physics.tof import ModuleParams
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scan", metavar="SCAN.csv", help="scan CSV (FORMATS.md section 1)")
-    parser.add_argument("--json", action="store_true",
-                        help="print one JSON object {\"landmarks\": [...]} (FORMATS.md section 2)")
+    form = parser.add_mutually_exclusive_group()
+    form.add_argument("--json", action="store_true",
+                      help="print one JSON object {\"landmarks\": [...]} (FORMATS.md section 2)")
+    form.add_argument("--jsonl", action="store_true",
+                      help="print one line per landmark as it is fitted (the objects of "
+                           "--json's list), then a line {\"readings\": {...}}")
     sound = parser.add_mutually_exclusive_group()
     sound.add_argument("--speed-of-sound", type=float, metavar="M/S", default=None,
                        help="speed of sound in m/s (default 343)")
@@ -107,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     fitter = OnlineFitter(config, segmenter, odometry_sd_deg_per_m=sd)
-    out = _JsonOut() if args.json else _TableOut()
+    out = _JsonOut() if args.json else _JsonLinesOut() if args.jsonl else _TableOut()
     keep = (lambda lm: lm.ok) if args.only_ok else (lambda lm: True)
     # one block behind the reader (memory bounded by two blocks), so the last one is
     # fitted with the segments the end of the file closes, in one batch: a file of one
@@ -148,12 +152,30 @@ class _JsonOut:
     def close(self, st: SegmenterStats, error: str | None = None) -> None:
         if not self.started:
             sys.stdout.write('{"landmarks": [')
+        sys.stdout.write("], " + json.dumps(self._tail(st, error), allow_nan=False)[1:] + "\n")
+
+    @staticmethod
+    def _tail(st: SegmenterStats, error: str | None) -> dict[str, Any]:
+        """What follows the landmarks: the readings' counts, and the error if any."""
         tail: dict[str, Any] = {"readings": {
             "total": st.readings, "echoes": st.echoes, "no_echo": st.no_echo, "bad": st.bad,
             "spikes": st.spikes, "segments": st.segments}}
         if error is not None:
             tail["error"] = error
-        sys.stdout.write("], " + json.dumps(tail, allow_nan=False)[1:] + "\n")
+        return tail
+
+
+class _JsonLinesOut(_JsonOut):
+    """JSON Lines: a landmark's object per line as it comes, the counts (and an error)
+    on the last line (for a consumer that reads a big file's landmarks as a stream)."""
+
+    def write(self, landmarks: list[Landmark]) -> None:
+        for lm in landmarks:
+            sys.stdout.write(json.dumps(landmark_to_json(lm), allow_nan=False) + "\n")
+            self.started = True
+
+    def close(self, st: SegmenterStats, error: str | None = None) -> None:
+        sys.stdout.write(json.dumps(self._tail(st, error), allow_nan=False) + "\n")
 
 
 class _TableOut:

@@ -185,6 +185,10 @@ def test_fit_reads_a_large_csv_in_blocks(tmp_path, rng, run_cli):
 
     same = [landmark_to_json(lm) for lm in fit_scan(read_scan_csv(path)).landmarks]
     assert json.loads(json.dumps(same)) == whole["landmarks"]
+    # JSON Lines: the same objects, a line each, then the counts
+    lines = [json.loads(line) for line in run_cli("fit", str(path), "--jsonl", "--block-rows",
+                                                  "700", check=True).stdout.splitlines()]
+    assert lines[:-1] == blocks["landmarks"] and lines[-1] == {"readings": blocks["readings"]}
     assert len(whole["landmarks"]) == len(blocks["landmarks"]) > 50
     for a, b in zip(whole["landmarks"], blocks["landmarks"], strict=True):
         assert (a["kind"], a["status"], a["n_readings"]) == (b["kind"], b["status"],
@@ -220,3 +224,7 @@ def test_fit_bad_line_after_the_first_block_keeps_what_was_fitted(tmp_path, rng,
     assert early.returncode == 2 and early.stdout == "" and "line 2502" in early.stderr
     table = run_cli("fit", str(path), "--block-rows", "1000")
     assert table.returncode == 2 and "stopped at a bad line" in table.stdout
+    jsonl = run_cli("fit", str(path), "--jsonl", "--block-rows", "1000")
+    last = json.loads(jsonl.stdout.splitlines()[-1])
+    assert jsonl.returncode == 2 and "line 2502" in last["error"]
+    assert len(jsonl.stdout.splitlines()) == len(out["landmarks"]) + 1
