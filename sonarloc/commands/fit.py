@@ -1,9 +1,11 @@
-"""Landmarks from TOF readings: `sonarloc fit SCAN.csv [--json]`.
+"""Landmarks from TOF readings: `sonarloc fit SCAN.csv [--json | --jsonl]`.
 
 Reads a scan CSV (one row per ping with the transducer pose; FORMATS.md section 1),
 segments it into one U-shaped TOF curve per landmark pass, fits each with Kuc's
 forward model (range, bearing, reflecting strength kappa) and prints the landmarks
-(FORMATS.md section 2 with --json; a table otherwise).
+(FORMATS.md section 2 with --json, a line each with --jsonl; a table otherwise). The
+file is read and fitted a block of lines at a time (--block-rows) and the landmarks are
+written as they come: memory is bounded by a block, whatever the file's size.
 """
 
 from __future__ import annotations
