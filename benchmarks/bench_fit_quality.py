@@ -276,8 +276,9 @@ def drive_landmarks(n_seeds: int, duration_s: float, sds: Sequence[float | None]
                             nx, ny, d = -nx, -ny, -d
                     elif lm.kind == "point" and refl.kind in _POINT_KINDS:
                         # the surface point facing the mean position of the echoes'
-                        # transducers (what a fitted point is: sonarloc.fit.select
-                        # .radius_step), relative to the reference position
+                        # transducers (what the localizer and the map builder take a
+                        # fitted point to be, seen from `view_xy`), relative to the
+                        # reference position
                         group = "point"
                         vx = np.mean([pings[i].x_m for i in idx]) - refl.geometry.x
                         vy = np.mean([pings[i].y_m for i in idx]) - refl.geometry.y

@@ -174,7 +174,6 @@ class _JsonLinesOut(_JsonOut):
     def write(self, landmarks: list[Landmark]) -> None:
         for lm in landmarks:
             sys.stdout.write(json.dumps(landmark_to_json(lm), allow_nan=False) + "\n")
-            self.started = True
 
     def close(self, st: SegmenterStats, error: str | None = None) -> None:
         sys.stdout.write(json.dumps(self._tail(st, error), allow_nan=False) + "\n")

@@ -241,7 +241,6 @@ class SegmentBlock(Sequence[Segment]):
                        self.seg_id[k], self.closed_by[k], self.occluded[k])
 
 
-
 @dataclass
 class SegmenterStats:
     """Counters of what the segmenter saw and dropped."""
