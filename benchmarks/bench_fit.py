@@ -405,9 +405,10 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 
 # ---------------------------------------------------------------- 4. large CSV
 
-BASELINE_REV = "3890255"
-"""main at the start of session 14 (2026-11-27; session 13's travel cap and moving point
-starts landed): section 4's "before" columns, run from a `git archive` of it."""
+BASELINE_REV = "8bf243e"
+"""main at the start of session 15 (2026-11-27; session 14's block reading, segmenter
+travel-cut fix and simpler cut search landed): section 4's "before" columns, run from a
+`git archive` of it."""
 
 _STAGES = r"""
 import json, sys, time
@@ -732,8 +733,10 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
             f"covariance, n_readings or tier ({int(csv['diff_kind_status'])} in kind or "
             f"status; bearing changes median {csv['dbear_med']:.2g} deg, largest "
             f"{csv['dbear_max']:.2g} deg; range median {csv['drange_med_mm']:.2g} mm, largest "
-            f"{csv['drange_max_mm']:.2g} mm: the fit stage, `fit_segments`, changed since "
-            f"{BASELINE_REV}); {int(csv['diff_reasons'])} only in their "
+            f"{csv['drange_max_mm']:.2g} mm"
+            + (f": the fit stage, `fit_segments`, changed since {BASELINE_REV}"
+               if csv["diff_fields"] else "")
+            + f"); {int(csv['diff_reasons'])} only in their "
             "reason text. The segmenter and the pair/cut stage alone, both versions on the "
             "same input (*now*'s segments and single fits, so changes of `fit_segments` "
             f"since {BASELINE_REV} stay out): {int(csv['seg_diff'])} of "
@@ -741,40 +744,48 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
             f"{int(csv['n_resolved'])} landmarks differ (kind, parameters, covariance, "
             f"range, bearing, status, n_readings, tier), {int(csv['resolve_reason_diff'])} "
             "in their reason.")
-    if "drive_now_readings" in csv:
-        lines += _drive_lines({k[len("drive_"):]: v for k, v in csv.items()
-                               if k.startswith("drive_")})
+    drives = []
+    for i in range(len(DRIVE_S)):
+        p = f"drive{i}_"
+        if p + "now_readings" in csv:
+            drives.append({k[len(p):]: v for k, v in csv.items() if k.startswith(p)})
+    if drives:
+        lines += _drive_lines(drives)
     return lines
 
 
-def _drive_lines(d: dict[str, float]) -> list[str]:
-    """Section 4's second table (:func:`drive_csv`)."""
-    n = {k[len("now_"):]: v for k, v in d.items() if k.startswith("now_")}
-    names = [k for k in ("before", "now") if f"{k}_parse" in d]
+def _drive_lines(drives: list[dict[str, float]]) -> list[str]:
+    """Section 4's second table (:func:`drive_csv` of each log)."""
     lines = [
         "",
-        f"The same command's stages on a moving ring's scan CSV (the room, `ring16`, "
-        f"{d['duration_s']:.0f} s driven, transducer poses from odometry, as a robot logs "
-        f"them: {int(n['readings'])} readings, {int(n['echoes'])} echoes, "
-        f"{int(n['segments'])} segments); CPU s, medians of {int(d['repeats'])} fresh "
-        "processes per code version, alternating. "
+        "The same command's stages on a moving ring's scan CSV (the room, `ring16`, "
+        "transducer poses from odometry, as a robot logs them), a short log and one as "
+        "large as the rotation scan above; CPU s, medians of "
+        f"{int(drives[0]['repeats'])} fresh processes per code version, alternating. "
         "`UNRESOLVED`: segments no single landmark explains; the cuts are tried on those "
-        "still unresolved after the pair stage.",
+        "still unresolved after the pair stage. *fit ms / segment*: the fitting side "
+        "less the segmenter, per segment.",
         "",
-        "| code | parse | segment | fit + model selection | pairs | cuts of `UNRESOLVED` "
-        "segments | fitting side / parse | `UNRESOLVED` | cuts tried / made | landmarks "
-        "(OK) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| log | code | parse | segment | fit + model selection | pairs | cuts of "
+        "`UNRESOLVED` segments | fitting side / parse | fit ms / segment | `UNRESOLVED` | "
+        "cuts tried / made | landmarks (OK) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for name in names:
-        v = {k[len(name) + 1:]: x for k, x in d.items() if k.startswith(name + "_")}
-        side = v["segment"] + v["fit"] + v["pairs"] + v["split"]
-        kept = (f"{int(v['landmarks'])} ({int(v['ok'])})" if "landmarks" in v else "-")
-        lines.append(
-            f"| {name} | {v['parse']:.2f} | {v['segment']:.2f} | {v['fit']:.2f} | "
-            f"{v['pairs']:.2f} | {v['split']:.2f} | **{side / v['parse']:.0f}** | "
-            f"{int(v['unresolved'])} | {int(v['split_tried'])} / {int(v['split_done'])} | "
-            f"{kept} |")
+    for d in drives:
+        n = {k[len("now_"):]: v for k, v in d.items() if k.startswith("now_")}
+        log = (f"{d['duration_s']:.0f} s: {int(n['readings'])} readings, "
+               f"{int(n['echoes'])} echoes, {int(n['segments'])} segments")
+        for name in (k for k in ("before", "now") if f"{k}_parse" in d):
+            v = {k[len(name) + 1:]: x for k, x in d.items() if k.startswith(name + "_")}
+            fit = v["fit"] + v["pairs"] + v["split"]
+            side = v["segment"] + fit
+            kept = (f"{int(v['landmarks'])} ({int(v['ok'])})" if "landmarks" in v else "-")
+            lines.append(
+                f"| {log} | {name} | {v['parse']:.2f} | {v['segment']:.2f} | "
+                f"{v['fit']:.2f} | {v['pairs']:.2f} | {v['split']:.2f} | "
+                f"**{side / v['parse']:.0f}** | {1e3 * fit / v['segments']:.2f} | "
+                f"{int(v['unresolved'])} | {int(v['split_tried'])} / "
+                f"{int(v['split_done'])} | {kept} |")
     return lines
 
 
@@ -946,9 +957,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+DRIVE_S = (300.0, 1500.0)
+"""Section 4's moving-ring logs (s driven): 40,000 readings, and 200,000 (as many as the
+rotation scan: the fixed costs of a batch, the lockstep tails of its fits, weigh less in a
+larger one)."""
+
+
 def _drive_part(q: bool) -> dict[str, float]:
-    print("drive CSV ...", file=sys.stderr)
-    return {f"drive_{k}": v for k, v in drive_csv(30.0 if q else 300.0, 1 if q else 3).items()}
+    """:func:`drive_csv` of each log of :data:`DRIVE_S` (``--quick``: one 30 s log), keys
+    ``drive{i}_*``."""
+    out: dict[str, float] = {}
+    for i, dur in enumerate((30.0,) if q else DRIVE_S):
+        print(f"drive CSV, {dur:.0f} s ...", file=sys.stderr)
+        out.update({f"drive{i}_{k}": v for k, v in drive_csv(dur, 1 if q else 3).items()})
+    return out
 
 
 def _kept_large_csv(out: Path) -> list[str]:
