@@ -382,9 +382,15 @@ def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Ar
         if width == 1:      # one transducer (the sort below takes milliseconds)
             sensors = [(s_lo,)] * todo.size
         else:
+            ids = None
+            if width * todo.size >= 1 << 62:
+                # ids too far apart for the keys below in int64 (they would overflow or
+                # wrap): keyed by their rank instead
+                ids, s_echo = np.unique(s_echo, return_inverse=True)
+                s_lo, width = 0, ids.size
             keys = np.unique(seg[echo] * width + (s_echo - s_lo))
             cut = np.searchsorted(keys // width, np.arange(todo.size + 1))
-            vals = (keys % width + s_lo).tolist()
+            vals = (keys % width + s_lo if ids is None else ids[keys % width]).tolist()
             sensors = [tuple(vals[a:b]) for a, b in zip(cut[:-1].tolist(), cut[1:].tolist(),
                                                          strict=True)]
     to_ref, arm = None, 0.0
@@ -467,7 +473,10 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     weak_l = weak.tolist()
     occluded = np.array(["occluded" in m for m in meta], dtype=bool)
     overlap = np.array(["overlap" in ex for ex in sel.extra], dtype=bool)
-    check_l = (~finite | (n_used < cfg.min_echoes) | overlap | occluded
+    reach_lo, reach_hi = M.module_reach_m(mod)
+    rng_l = local[:, 0]
+    check_l = (~finite | ~((reach_lo <= rng_l) & (rng_l <= reach_hi))
+               | (n_used < cfg.min_echoes) | overlap | occluded
                | ~((0.5 * cfg.kappa_lo_us <= kap) & (kap <= 2.0 * cfg.kappa_hi_us))
                | weak
                | (p_fit < cfg.min_fit_p) | ((outside > math.radians(1.0)) & (span > 3.0))
@@ -484,6 +493,11 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             pass                  # passes every test below
         elif not finite_l[j]:
             status, reason = FitStatus.BAD_INPUT, "non-finite fit (bad input)"
+        elif not reach_lo <= local_l[j][0] <= reach_hi:
+            status = FitStatus.BAD_INPUT
+            reason = (f"range {local_l[j][0]:.4g} m is outside what the module measures "
+                      f"({reach_lo:.3g}..{reach_hi:.3g} m): TOFs in other units, or from "
+                      "another module (its blanking and maximum range)?")
         elif n_used_l[j] < cfg.min_echoes:
             status = FitStatus.TOO_FEW_POINTS
             reason = (f"{n_used_l[j]} echoes (after removing spikes); {cfg.min_echoes} are "

@@ -379,9 +379,11 @@ class _Chunk:
         i[bare] = ~i[bare]
         cols, sensor = self.cols, self.sensor
         if extra:
-            more = np.array(extra, dtype=float).T
-            cols = np.concatenate([cols, more[:5]], axis=1)
-            sensor = np.concatenate([sensor, more[5].astype(np.int64)])
+            more = np.array([r[:5] for r in extra], dtype=float).T
+            cols = np.concatenate([cols, more], axis=1)
+            # the ids apart: through float64 an id beyond 2**53 would change (and one
+            # near 2**63 overflow), splitting a segment's readings between two sensors
+            sensor = np.concatenate([sensor, np.array([r[5] for r in extra], dtype=np.int64)])
         v = np.take(cols, i, axis=1)      # (a third of the time of cols[:, i])
         v[4, bare] = np.nan
         t, x, y, yaw, tof = v

@@ -126,6 +126,10 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
         header = next(reader)
     except StopIteration:
         raise LogFormatError("line 1: empty file, expected a header row") from None
+    except csv.Error as err:
+        raise LogFormatError(f"line {reader.line_num}: {err}") from None
+    if header:   # a byte-order mark (spreadsheets write one) is not part of the first name
+        header[0] = header[0].removeprefix("\ufeff")
     names = [h.strip() for h in header]
     missing = [c for c in REQUIRED if c not in names]
     if missing:
@@ -133,7 +137,10 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
     col = {name: names.index(name) for name in names if name in (*REQUIRED, "sensor")}
     first_line, t_before, any_block = 2, -math.inf, False
     while True:
-        rows = list(itertools.islice(reader, block_rows))
+        try:
+            rows = list(itertools.islice(reader, block_rows))
+        except csv.Error as err:   # a field over csv's size limit, say: a line, not a crash
+            raise LogFormatError(f"line {reader.line_num}: {err}") from None
         if not rows:
             break
         block = _parse_block(rows, first_line, names, col, t_before)
@@ -172,10 +179,10 @@ def _parse_block(rows: list[list[str]], first_line: int, names: list[str],
         raw = [row[col["sensor"]].strip() or "0" for row in rows]
         try:
             sensor = np.array([int(v) for v in raw], dtype=np.int64)
-        except ValueError:
-            i = next(i for i, v in enumerate(raw) if not v.lstrip("-").isdigit())
-            raise LogFormatError(f"line {line_of[i]}: column `sensor` must be an integer, "
-                                 f"got {raw[i]!r}") from None
+        except (ValueError, OverflowError):   # (OverflowError: beyond 64 bits)
+            i = _bad_sensor(raw)
+            raise LogFormatError(f"line {line_of[i]}: column `sensor` must be a 64-bit "
+                                 f"integer, got {raw[i]!r}") from None
     else:
         sensor = np.zeros(len(rows), dtype=np.int64)
     t = arrays["t_s"]
@@ -186,6 +193,19 @@ def _parse_block(rows: list[list[str]], first_line: int, names: list[str],
         raise LogFormatError(f"line {line_of[i]}: `t_s` went backwards ({t[i]} after {before})")
     return ScanReadings(t, arrays["x_m"], arrays["y_m"], np.deg2rad(arrays["yaw_deg"]),
                         arrays["tof_us"], sensor)
+
+
+def _bad_sensor(raw: list[str]) -> int:
+    """Index of the first of ``raw`` that is not an integer of int64's range (which
+    ``str.isdigit`` cannot tell: it passes "²", which ``int`` refuses)."""
+    for i, v in enumerate(raw):
+        try:
+            if -(1 << 63) <= int(v) < (1 << 63):
+                continue
+        except ValueError:
+            pass
+        return i
+    raise LogFormatError("column `sensor` could not be parsed")  # pragma: no cover
 
 
 def write_scan_csv(target: str | Path | IO[str], scan: ScanReadings) -> None:
