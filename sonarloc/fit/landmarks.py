@@ -97,6 +97,11 @@ def _arrays(seg: SegmentLike) -> _Cleaned:
     if isinstance(seg, ScanReadings):
         return seg.t_s, seg.x_m, seg.y_m, seg.yaw_rad, seg.tof_us, seg.sensor
     t, x, y, yaw, tof = (np.asarray(a, dtype=float) for a in seg)
+    if not all(a.ndim == 1 and a.size == t.size for a in (t, x, y, yaw, tof)):
+        # (numpy's own error further on names no argument, or there is none: a segment
+        # of scalars failed in len(), a 2-D one in indexing)
+        raise ValueError("a segment's (t_s, x_m, y_m, yaw_rad, tof_us) must be 1-D arrays "
+                         f"of one length, got shapes {[a.shape for a in (t, x, y, yaw, tof)]}")
     return t, x, y, yaw, tof, np.zeros(len(t), dtype=np.int64)
 
 
@@ -357,7 +362,12 @@ def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Ar
     for i in np.flatnonzero(n_echo < 3).tolist():
         a, b = bounds[i], bounds[i + 1]
         arrs = (t[a:b], x[a:b], y[a:b], yaw[a:b], tof[a:b], sensor[a:b])
-        if n_echo[i] == 0:
+        if n_echo[i] == 0 and n_bad[i]:
+            # its echoes (if any) were unusable: say so, not "no echo"
+            out[i] = _fallback(arrs, FitStatus.BAD_INPUT,
+                               f"no usable echo: {n_bad[i]} reading(s) with a non-finite "
+                               "pose or an inf, zero or negative TOF dropped", cfg, meta[i])
+        elif n_echo[i] == 0:
             out[i] = _fallback(arrs, FitStatus.NO_ECHO, "no echo in the segment", cfg, meta[i])
         else:
             out[i] = _fallback(arrs, FitStatus.TOO_FEW_POINTS,
