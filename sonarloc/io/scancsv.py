@@ -143,8 +143,9 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
             raise LogFormatError(f"line {reader.line_num}: {err}") from None
         if not rows:
             break
-        block = _parse_block(rows, first_line, names, col, t_before)
-        first_line += len(rows)
+        block = _parse_block(rows, _row_lines(rows, first_line, reader.line_num), names, col,
+                             t_before)
+        first_line = reader.line_num + 1
         rows = []   # the text goes before the block is yielded (and fitted)
         if len(block):
             t_before = float(block.t_s[-1])
@@ -152,14 +153,27 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
             any_block = True
             yield block
     if not any_block:   # a header and nothing else: no readings
-        yield _parse_block([], first_line, names, col, t_before)
+        yield _parse_block([], range(first_line, first_line), names, col, t_before)
 
 
-def _parse_block(rows: list[list[str]], first_line: int, names: list[str],
+def _row_lines(rows: list[list[str]], first_line: int, last_line: int) -> Sequence[int]:
+    """The file's line number of each of ``rows``, read from lines ``first_line`` to
+    ``last_line``: one line each, unless a quoted field spans lines (then counted from
+    the line breaks the fields keep: an error names the line it is on, not the record)."""
+    if last_line - first_line + 1 == len(rows):
+        return range(first_line, last_line + 1)
+    out, line = [], first_line
+    for row in rows:
+        out.append(line)
+        line += 1 + sum(f.count("\n") + f.count("\r") - f.count("\r\n") for f in row)
+    return out
+
+
+def _parse_block(rows: list[list[str]], row_line: Sequence[int], names: list[str],
                  col: dict[str, int], t_before: float) -> ScanReadings:
-    """The readings of ``rows`` (lines from ``first_line`` on; blank lines allowed);
-    ``t_before``: the last ``t_s`` of the lines before."""
-    line_of = [i + first_line for i, row in enumerate(rows)
+    """The readings of ``rows`` (``row_line``: the line each is on; blank lines
+    allowed); ``t_before``: the last ``t_s`` of the lines before."""
+    line_of = [line for line, row in zip(row_line, rows, strict=True)
                if row and any(c.strip() for c in row)]
     rows = [row for row in rows if row and any(c.strip() for c in row)]
     for i, row in enumerate(rows):

@@ -51,6 +51,9 @@ def test_sensor_ids_of_64_bits_read_exactly():
         ("t_s,x_m,y_m,yaw_deg,tof_us,sensor\n1,0,0,0,1,\u00b2\n", "line 2: column `sensor`"),
         ("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,1\n1,0,0,0," + "9" * 140_000 + "\n",
          "line 3: field larger than field limit"),
+        # a quoted field spanning lines: the line named is the file's, not the record's
+        ('t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,"1\r\n\n",1\n0.1,0,oops,0,1\n',
+         "line 5: column `y_m`"),
     ],
 )
 def test_bad_files_name_the_line(text, match):
