@@ -31,7 +31,12 @@ to twice its maximum range (:func:`sonarloc.fit.model.module_reach_m`)."""
 def check_invariants(landmarks: list[Landmark]) -> None:
     """What every result must satisfy, whatever the input: ``OK`` means finite
     parameters, range and bearing, a symmetric positive semi-definite covariance, a range
-    the module can measure and at least 3 readings; anything else has a reason."""
+    the module can measure and at least 3 readings; anything else has a reason.
+
+    Semi-definite up to rounding: a wall's (rho, alpha) covariance far from the frame's
+    origin is ill-conditioned by its parameterisation (rho's SD grows with alpha's times
+    the distance; at 1e5 m its eigenvalues span 20 decades, beyond float64's resolution,
+    and the smallest comes out as +-1e-16 of the largest)."""
     for lm in landmarks:
         if not lm.ok:
             assert lm.reason, lm
