@@ -97,6 +97,11 @@ def _arrays(seg: SegmentLike) -> _Cleaned:
     if isinstance(seg, ScanReadings):
         return seg.t_s, seg.x_m, seg.y_m, seg.yaw_rad, seg.tof_us, seg.sensor
     t, x, y, yaw, tof = (np.asarray(a, dtype=float) for a in seg)
+    if not all(a.ndim == 1 and a.size == t.size for a in (t, x, y, yaw, tof)):
+        # (numpy's own error further on names no argument, or there is none: a segment
+        # of scalars failed in len(), a 2-D one in indexing)
+        raise ValueError("a segment's (t_s, x_m, y_m, yaw_rad, tof_us) must be 1-D arrays "
+                         f"of one length, got shapes {[a.shape for a in (t, x, y, yaw, tof)]}")
     return t, x, y, yaw, tof, np.zeros(len(t), dtype=np.int64)
 
 
@@ -357,7 +362,12 @@ def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Ar
     for i in np.flatnonzero(n_echo < 3).tolist():
         a, b = bounds[i], bounds[i + 1]
         arrs = (t[a:b], x[a:b], y[a:b], yaw[a:b], tof[a:b], sensor[a:b])
-        if n_echo[i] == 0:
+        if n_echo[i] == 0 and n_bad[i]:
+            # its echoes (if any) were unusable: say so, not "no echo"
+            out[i] = _fallback(arrs, FitStatus.BAD_INPUT,
+                               f"no usable echo: {n_bad[i]} reading(s) with a non-finite "
+                               "pose or an inf, zero or negative TOF dropped", cfg, meta[i])
+        elif n_echo[i] == 0:
             out[i] = _fallback(arrs, FitStatus.NO_ECHO, "no echo in the segment", cfg, meta[i])
         else:
             out[i] = _fallback(arrs, FitStatus.TOO_FEW_POINTS,
@@ -382,9 +392,15 @@ def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Ar
         if width == 1:      # one transducer (the sort below takes milliseconds)
             sensors = [(s_lo,)] * todo.size
         else:
+            ids = None
+            if width * todo.size >= 1 << 62:
+                # ids too far apart for the keys below in int64 (they would overflow or
+                # wrap): keyed by their rank instead
+                ids, s_echo = np.unique(s_echo, return_inverse=True)
+                s_lo, width = 0, ids.size
             keys = np.unique(seg[echo] * width + (s_echo - s_lo))
             cut = np.searchsorted(keys // width, np.arange(todo.size + 1))
-            vals = (keys % width + s_lo).tolist()
+            vals = (keys % width + s_lo if ids is None else ids[keys % width]).tolist()
             sensors = [tuple(vals[a:b]) for a, b in zip(cut[:-1].tolist(), cut[1:].tolist(),
                                                          strict=True)]
     to_ref, arm = None, 0.0
@@ -467,7 +483,10 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
     weak_l = weak.tolist()
     occluded = np.array(["occluded" in m for m in meta], dtype=bool)
     overlap = np.array(["overlap" in ex for ex in sel.extra], dtype=bool)
-    check_l = (~finite | (n_used < cfg.min_echoes) | overlap | occluded
+    reach_lo, reach_hi = M.module_reach_m(mod)
+    rng_l = local[:, 0]
+    check_l = (~finite | ~((reach_lo <= rng_l) & (rng_l <= reach_hi))
+               | (n_used < cfg.min_echoes) | overlap | occluded
                | ~((0.5 * cfg.kappa_lo_us <= kap) & (kap <= 2.0 * cfg.kappa_hi_us))
                | weak
                | (p_fit < cfg.min_fit_p) | ((outside > math.radians(1.0)) & (span > 3.0))
@@ -484,6 +503,11 @@ def _landmarks(batch: SegmentBatch, sel: Selection, cfg: FitConfig,
             pass                  # passes every test below
         elif not finite_l[j]:
             status, reason = FitStatus.BAD_INPUT, "non-finite fit (bad input)"
+        elif not reach_lo <= local_l[j][0] <= reach_hi:
+            status = FitStatus.BAD_INPUT
+            reason = (f"range {local_l[j][0]:.4g} m is outside what the module measures "
+                      f"({reach_lo:.3g}..{reach_hi:.3g} m): TOFs in other units, or from "
+                      "another module (its blanking and maximum range)?")
         elif n_used_l[j] < cfg.min_echoes:
             status = FitStatus.TOO_FEW_POINTS
             reason = (f"{n_used_l[j]} echoes (after removing spikes); {cfg.min_echoes} are "

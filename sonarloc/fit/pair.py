@@ -1398,6 +1398,7 @@ def pair_landmarks(pf: PairFit, single: Landmark, cfg: FitConfig) -> list[Landma
     ref = np.array(single.ref_pose[:2])
     out = []
     mod = cfg.module
+    reach = M.module_reach_m(mod)
     for k in range(2):
         local = pf.local[k]
         params, cov, _ = M.to_frame("point", local, pf.cov[k], ref)
@@ -1406,6 +1407,10 @@ def pair_landmarks(pf: PairFit, single: Landmark, cfg: FitConfig) -> list[Landma
         status, reason = FitStatus.OK, ""
         if not (np.all(np.isfinite(params)) and np.all(np.isfinite(cov))):
             status, reason = FitStatus.BAD_INPUT, "non-finite pair fit"
+        elif not reach[0] <= local[0] <= reach[1]:
+            status = FitStatus.BAD_INPUT
+            reason = (f"one of two overlapping reflectors at {local[0]:.4g} m, outside what "
+                      f"the module measures ({reach[0]:.3g}..{reach[1]:.3g} m)")
         elif not (0.5 * cfg.kappa_lo_us <= K <= 2.0 * cfg.kappa_hi_us):
             status = FitStatus.UNRESOLVED
             reason = (f"kappa {K:.3g} us of one of two overlapping reflectors is outside any "

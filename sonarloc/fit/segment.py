@@ -379,9 +379,11 @@ class _Chunk:
         i[bare] = ~i[bare]
         cols, sensor = self.cols, self.sensor
         if extra:
-            more = np.array(extra, dtype=float).T
-            cols = np.concatenate([cols, more[:5]], axis=1)
-            sensor = np.concatenate([sensor, more[5].astype(np.int64)])
+            more = np.array([r[:5] for r in extra], dtype=float).T
+            cols = np.concatenate([cols, more], axis=1)
+            # the ids apart: through float64 an id beyond 2**53 would change (and one
+            # near 2**63 overflow), splitting a segment's readings between two sensors
+            sensor = np.concatenate([sensor, np.array([r[5] for r in extra], dtype=np.int64)])
         v = np.take(cols, i, axis=1)      # (a third of the time of cols[:, i])
         v[4, bare] = np.nan
         t, x, y, yaw, tof = v
@@ -461,10 +463,15 @@ class Segmenter:
         """Add one reading; returns the segments this reading closed (often none).
 
         ``tof_us`` NaN means no echo; inf, zero or negative TOFs and non-finite poses are
-        counted as bad and ignored, as are readings older than the previous one.
+        counted as bad and ignored, as are readings older than the previous one. A
+        ``sensor`` id beyond int64 raises ``ValueError`` (a bad argument, as in
+        :class:`~sonarloc.io.scancsv.ScanReadings`).
         """
+        sensor = int(sensor)
+        if not -(1 << 63) <= sensor < (1 << 63):   # ScanReadings keeps ids as int64
+            raise ValueError(f"`sensor` must be a 64-bit integer, got {sensor!r}")
         return self._push(float(t_s), float(x_m), float(y_m), float(yaw_rad), float(tof_us),
-                          int(sensor))
+                          sensor)
 
     def _push(self, t: float, x: float, y: float, yaw: float, tof: float, sensor: int
               ) -> list[Segment]:
@@ -1096,6 +1103,9 @@ class Segmenter:
             ch.closed.append((ch.at, s, why))
             return []
         cols = np.array(s.rows, dtype=float).T.copy()   # (6, n), one conversion
-        readings = ScanReadings(cols[0], cols[1], cols[2], cols[3], cols[4],
-                                cols[5].astype(np.int64))
+        # the ids from the rows, not through float64 (see _Chunk.block)
+        # (outside a chunk the rows are tuples)
+        sensor = np.fromiter((r[5] for r in s.rows), dtype=np.int64,  # type: ignore[index]
+                             count=len(s.rows))
+        readings = ScanReadings(cols[0], cols[1], cols[2], cols[3], cols[4], sensor)
         return [Segment(readings, s.seg_id, why, (s.occluded_lead, s.occluded_trail))]

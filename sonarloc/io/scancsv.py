@@ -126,6 +126,10 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
         header = next(reader)
     except StopIteration:
         raise LogFormatError("line 1: empty file, expected a header row") from None
+    except csv.Error as err:
+        raise LogFormatError(f"line {reader.line_num}: {err}") from None
+    if header:   # a byte-order mark (spreadsheets write one) is not part of the first name
+        header[0] = header[0].removeprefix("\ufeff")
     names = [h.strip() for h in header]
     missing = [c for c in REQUIRED if c not in names]
     if missing:
@@ -133,11 +137,15 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
     col = {name: names.index(name) for name in names if name in (*REQUIRED, "sensor")}
     first_line, t_before, any_block = 2, -math.inf, False
     while True:
-        rows = list(itertools.islice(reader, block_rows))
+        try:
+            rows = list(itertools.islice(reader, block_rows))
+        except csv.Error as err:   # a field over csv's size limit, say: a line, not a crash
+            raise LogFormatError(f"line {reader.line_num}: {err}") from None
         if not rows:
             break
-        block = _parse_block(rows, first_line, names, col, t_before)
-        first_line += len(rows)
+        block = _parse_block(rows, _row_lines(rows, first_line, reader.line_num), names, col,
+                             t_before)
+        first_line = reader.line_num + 1
         rows = []   # the text goes before the block is yielded (and fitted)
         if len(block):
             t_before = float(block.t_s[-1])
@@ -145,14 +153,27 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
             any_block = True
             yield block
     if not any_block:   # a header and nothing else: no readings
-        yield _parse_block([], first_line, names, col, t_before)
+        yield _parse_block([], range(first_line, first_line), names, col, t_before)
 
 
-def _parse_block(rows: list[list[str]], first_line: int, names: list[str],
+def _row_lines(rows: list[list[str]], first_line: int, last_line: int) -> Sequence[int]:
+    """The file's line number of each of ``rows``, read from lines ``first_line`` to
+    ``last_line``: one line each, unless a quoted field spans lines (then counted from
+    the line breaks the fields keep: an error names the line it is on, not the record)."""
+    if last_line - first_line + 1 == len(rows):
+        return range(first_line, last_line + 1)
+    out, line = [], first_line
+    for row in rows:
+        out.append(line)
+        line += 1 + sum(f.count("\n") + f.count("\r") - f.count("\r\n") for f in row)
+    return out
+
+
+def _parse_block(rows: list[list[str]], row_line: Sequence[int], names: list[str],
                  col: dict[str, int], t_before: float) -> ScanReadings:
-    """The readings of ``rows`` (lines from ``first_line`` on; blank lines allowed);
-    ``t_before``: the last ``t_s`` of the lines before."""
-    line_of = [i + first_line for i, row in enumerate(rows)
+    """The readings of ``rows`` (``row_line``: the line each is on; blank lines
+    allowed); ``t_before``: the last ``t_s`` of the lines before."""
+    line_of = [line for line, row in zip(row_line, rows, strict=True)
                if row and any(c.strip() for c in row)]
     rows = [row for row in rows if row and any(c.strip() for c in row)]
     for i, row in enumerate(rows):
@@ -172,10 +193,10 @@ def _parse_block(rows: list[list[str]], first_line: int, names: list[str],
         raw = [row[col["sensor"]].strip() or "0" for row in rows]
         try:
             sensor = np.array([int(v) for v in raw], dtype=np.int64)
-        except ValueError:
-            i = next(i for i, v in enumerate(raw) if not v.lstrip("-").isdigit())
-            raise LogFormatError(f"line {line_of[i]}: column `sensor` must be an integer, "
-                                 f"got {raw[i]!r}") from None
+        except (ValueError, OverflowError):   # (OverflowError: beyond 64 bits)
+            i = _bad_sensor(raw)
+            raise LogFormatError(f"line {line_of[i]}: column `sensor` must be a 64-bit "
+                                 f"integer, got {raw[i]!r}") from None
     else:
         sensor = np.zeros(len(rows), dtype=np.int64)
     t = arrays["t_s"]
@@ -186,6 +207,19 @@ def _parse_block(rows: list[list[str]], first_line: int, names: list[str],
         raise LogFormatError(f"line {line_of[i]}: `t_s` went backwards ({t[i]} after {before})")
     return ScanReadings(t, arrays["x_m"], arrays["y_m"], np.deg2rad(arrays["yaw_deg"]),
                         arrays["tof_us"], sensor)
+
+
+def _bad_sensor(raw: list[str]) -> int:
+    """Index of the first of ``raw`` that is not an integer of int64's range (which
+    ``str.isdigit`` cannot tell: it passes "²", which ``int`` refuses)."""
+    for i, v in enumerate(raw):
+        try:
+            if -(1 << 63) <= int(v) < (1 << 63):
+                continue
+        except ValueError:
+            pass
+        return i
+    raise LogFormatError("column `sensor` could not be parsed")  # pragma: no cover
 
 
 def write_scan_csv(target: str | Path | IO[str], scan: ScanReadings) -> None:

@@ -228,3 +228,23 @@ def test_fit_bad_line_after_the_first_block_keeps_what_was_fitted(tmp_path, rng,
     last = json.loads(jsonl.stdout.splitlines()[-1])
     assert jsonl.returncode == 2 and "line 2502" in last["error"]
     assert len(jsonl.stdout.splitlines()) == len(out["landmarks"]) + 1
+
+
+def test_fit_spreadsheet_csv_and_overlong_field(tmp_path, rng, run_cli):
+    # found by the session-15 sweep (tests/fit/test_fit_fuzz.py): a byte-order mark read
+    # as a header without `t_s`; a field over csv's size limit (a line of junk) and a
+    # sensor id beyond 64 bits crashed with a traceback (exit 1)
+    path = _fig5_csv(tmp_path, rng)
+    text = path.read_text()
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    want = run_cli("fit", str(path), "--json", check=True).stdout
+    assert run_cli("fit", str(bom), "--json", check=True).stdout == want
+    lines = text.splitlines(keepends=True)
+    for name, junk, match in [("field", "9" * 140_000, "line 4: field larger than field limit"),
+                              ("sensor", "0,0,0,0,8000," + "9" * 30, "line 4: column `sensor`")]:
+        bad = tmp_path / f"{name}.csv"
+        bad.write_text("".join(lines[:3] + [junk + "\n"] + lines[3:]))
+        proc = run_cli("fit", str(bad), "--json")
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+        assert match in proc.stderr

@@ -19,6 +19,19 @@ def test_columns_any_order_unknown_ignored_empty_is_no_echo():
     assert (scan.sensor == 0).all()
 
 
+def test_byte_order_mark_is_not_part_of_the_header():
+    # a spreadsheet's "CSV UTF-8" starts with one; it read as a missing `t_s` column
+    text = "\ufefft_s,x_m,y_m,yaw_deg,tof_us,sensor\n0,0,0,4,8746,2\n"
+    scan = read_scan_csv(io.StringIO(text))
+    assert len(scan) == 1 and scan.t_s[0] == 0.0 and scan.sensor[0] == 2
+
+
+def test_sensor_ids_of_64_bits_read_exactly():
+    text = ("t_s,x_m,y_m,yaw_deg,tof_us,sensor\n"
+            "0,0,0,0,1,9223372036854775807\n0,0,0,0,1,-9223372036854775808\n")
+    assert read_scan_csv(io.StringIO(text)).sensor.tolist() == [2**63 - 1, -(2**63)]
+
+
 @pytest.mark.parametrize(
     ("text", "match"),
     [
@@ -29,6 +42,18 @@ def test_columns_any_order_unknown_ignored_empty_is_no_echo():
         ("t_s,x_m,y_m,yaw_deg,tof_us\n1,0,0,0,1\n0.5,0,0,0,1\n", "line 3: `t_s` went backwards"),
         ("t_s,x_m,y_m,yaw_deg,tof_us,sensor\n1,0,0,0,1,x\n", "line 2: column `sensor`"),
         ("t_s,x_m,y_m,yaw_deg,tof_us\n1,0,0\n", "line 2: 3 fields"),
+        # found by the session-15 sweep (tests/fit/test_fit_fuzz.py): these raised
+        # OverflowError, RuntimeError (StopIteration) and csv.Error, naming no line
+        ("t_s,x_m,y_m,yaw_deg,tof_us,sensor\n1,0,0,0,1,0\n2,0,0,0,1,9223372036854775808\n",
+         "line 3: column `sensor` must be a 64-bit integer"),
+        ("t_s,x_m,y_m,yaw_deg,tof_us,sensor\n1,0,0,0,1,-18446744073709551616\n",
+         "line 2: column `sensor`"),
+        ("t_s,x_m,y_m,yaw_deg,tof_us,sensor\n1,0,0,0,1,\u00b2\n", "line 2: column `sensor`"),
+        ("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,1\n1,0,0,0," + "9" * 140_000 + "\n",
+         "line 3: field larger than field limit"),
+        # a quoted field spanning lines: the line named is the file's, not the record's
+        ('t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,"1\r\n\n",1\n0.1,0,oops,0,1\n',
+         "line 5: column `y_m`"),
     ],
 )
 def test_bad_files_name_the_line(text, match):
