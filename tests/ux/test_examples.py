@@ -81,3 +81,5 @@ def test_embed_node(tmp_path: Path, seed: int):
     assert len(errors) == 13
     assert errors[-1] < 5.0  # after 12 s with landmarks the estimate is within 5 cm
     assert "map->odom" in out and "fused" in out
+    shown = re.findall(r"^  t=.*$", out, re.M)  # the last landmarks, with their numbers
+    assert shown and not any("nan" in line for line in shown), out
