@@ -24,8 +24,9 @@ ROOM = Path(__file__).resolve().parents[1] / "maps" / "room.geojson"
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=20.0, help="simulated seconds")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--duration", type=float, default=20.0,
+                        help="simulated seconds (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=1, help="random seed (default %(default)s)")
     args = parser.parse_args(argv)
 
     world = load_map(ROOM)
