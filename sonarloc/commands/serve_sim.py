@@ -79,6 +79,11 @@ def _transport(args: argparse.Namespace) -> Transport:
         interface, sep, channel = args.can.partition(":")
         if not (interface and sep and channel):
             raise ValueError(f"--can must be INTERFACE:CHANNEL, got {args.can!r}")
+        if interface == "virtual":  # a `sonarloc record` in another process hears nothing
+            print(f"sonarloc serve-sim: note: python-can's virtual bus reaches only this "
+                  f"process, where no host runs: nothing will read {args.can} (and no Start "
+                  f"will come); for another process use a real or virtual kernel bus, e.g. "
+                  f"--can socketcan:vcan0, or --pty / --listen", file=sys.stderr, flush=True)
         return CanBusTransport(interface, channel)
     if args.candump:
         return CandumpTransport(args.candump)
