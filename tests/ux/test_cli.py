@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import subprocess
 import sys
@@ -41,3 +42,21 @@ def test_only_a_closed_stdout_counts_as_the_reader_gone(monkeypatch, tmp_path: P
     with open(tmp_path / "out.txt", "w") as out:
         monkeypatch.setattr(sys, "stdout", out)
         assert not stdout_reader_gone()
+
+
+def test_every_command_help_says_what_it_does():
+    # `sonarloc plot scan --help` printed only usage and options: each (sub)command's
+    # --help starts with a description, as `sonarloc fit --help` does.
+    from sonarloc.cli import build_parser
+
+    def parsers(parser: argparse.ArgumentParser, name: str):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub_name, sub in action.choices.items():
+                    yield f"{name} {sub_name}", sub
+                    yield from parsers(sub, f"{name} {sub_name}")
+
+    found = dict(parsers(build_parser(), "sonarloc"))
+    assert {"sonarloc fit", "sonarloc plot scan", "sonarloc rosbag export"} <= set(found)
+    missing = [name for name, p in found.items() if not (p.description or "").strip()]
+    assert not missing, missing
