@@ -44,7 +44,7 @@ def test_only_a_closed_stdout_counts_as_the_reader_gone(monkeypatch, tmp_path: P
         assert not stdout_reader_gone()
 
 
-def test_every_command_help_says_what_it_does():
+def test_every_command_and_option_help_says_what_it_is():
     # `sonarloc plot scan --help` printed only usage and options: each (sub)command's
     # --help starts with a description, as `sonarloc fit --help` does.
     from sonarloc.cli import build_parser
@@ -60,3 +60,8 @@ def test_every_command_help_says_what_it_does():
     assert {"sonarloc fit", "sonarloc plot scan", "sonarloc rosbag export"} <= set(found)
     missing = [name for name, p in found.items() if not (p.description or "").strip()]
     assert not missing, missing
+    # and every option says what it is (serve-sim's --rig/--tier/--seed, rosbag export's
+    # --pose-topic/--map-frame/--odom-frame and plot's --dpi showed a bare metavar)
+    bare = [(name, a.option_strings) for name, p in found.items() for a in p._actions
+            if a.option_strings and not a.help]
+    assert not bare, bare
