@@ -65,3 +65,17 @@ def test_every_command_and_option_help_says_what_it_is():
     bare = [(name, a.option_strings) for name, p in found.items() for a in p._actions
             if a.option_strings and not a.help]
     assert not bare, bare
+
+
+def test_fit_bad_option_values_are_reported_like_any_bad_input(tmp_path: Path, run_cli):
+    # One line "sonarloc fit: error: --OPTION ...", exit 2 (some lacked "error:", and
+    # --speed-of-sound named the library's `c_mps` only).
+    scan = tmp_path / "scan.csv"
+    scan.write_text("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,8000\n")
+    for option, value in (("--speed-of-sound", "-3"), ("--temperature", "-500"),
+                          ("--odometry-sd", "-1"), ("--max-travel", "-1"),
+                          ("--block-rows", "0")):
+        proc = run_cli("fit", str(scan), option, value)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, (option, proc.stderr)
+        assert lines[0].startswith(f"sonarloc fit: error: {option}"), (option, proc.stderr)
