@@ -39,7 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="do not send Start/RequestRig to the module")
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="driver option, e.g. unit=cm or mount=0.1,0,90 (maxbotix: "
-                             "X_M,Y_M,YAW_DEG in base_link), rate=1 (candump); repeatable")
+                             "X_M,Y_M,YAW_DEG in base_link), rig=RIG.json or range_conv=0.268 "
+                             "(pioneer), rate=1 (candump); repeatable")
 
 
 def _value(text: str) -> Any:
