@@ -19,13 +19,20 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(20031)
 
 
-def cli_command(*args: str) -> tuple[list[str], dict[str, str]]:
+def _cli_command(*args: str) -> tuple[list[str], dict[str, str]]:
     """The command line and environment that run ``python -m sonarloc ARGS`` against
-    this checkout (for tests that need a Popen of their own)."""
+    this checkout."""
     env = dict(os.environ)
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
     env.setdefault("MPLBACKEND", "Agg")
     return [sys.executable, "-m", "sonarloc", *args], env
+
+
+@pytest.fixture
+def cli_command():
+    """``cli_command(*ARGS) -> (argv, env)`` of ``python -m sonarloc ARGS`` against this
+    checkout, for a test that needs a Popen of its own."""
+    return _cli_command
 
 
 @pytest.fixture
@@ -34,7 +41,7 @@ def run_cli():
 
     def run(*args: str, timeout: float = 120.0, check: bool = False,
             cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-        cmd, env = cli_command(*args)
+        cmd, env = _cli_command(*args)
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env,
                               cwd=cwd)
         if check and proc.returncode != 0:

@@ -8,12 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-from conftest import MAPS, cli_command
-
 from sonarloc.cli import stdout_reader_gone
 
+MAPS = Path(__file__).resolve().parents[2] / "maps"
 
-def test_a_reader_that_stops_early_is_not_an_error(tmp_path: Path, run_cli):
+
+def test_a_reader_that_stops_early_is_not_an_error(tmp_path: Path, run_cli, cli_command):
     # `sonarloc fit SCAN --jsonl | head`: the reader closes the pipe; the command stops
     # quietly with 128 + SIGPIPE, as shell tools do, instead of "error: Broken pipe"
     # (or Python's "Exception ignored ... BrokenPipeError" when it was the last flush).
