@@ -49,9 +49,11 @@ def _localize(log: str, fmap: FeatureMap) -> PoseTrack:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=58.0, help="simulated seconds")
-    parser.add_argument("--seed", type=int, default=2)
-    parser.add_argument("--out", default="out/built_room.geojson", help="built map")
+    parser.add_argument("--duration", type=float, default=58.0,
+                        help="simulated seconds (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=2, help="random seed (default %(default)s)")
+    parser.add_argument("--out", default="out/built_room.geojson",
+                        help="built map (default %(default)s)")
     args = parser.parse_args(argv)
 
     truth_map = load_map(ROOM)

@@ -18,10 +18,13 @@ from sonarloc.report.plots import matplotlib_available
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=30.0, help="simulated seconds")
-    parser.add_argument("--device", choices=("can", "serial"), default="can")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="out/drive_ring.png", help="figure (PNG)")
+    parser.add_argument("--duration", type=float, default=30.0,
+                        help="simulated seconds (default %(default)s)")
+    parser.add_argument("--device", choices=("can", "serial"), default="can",
+                        help="wire between module and host (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    parser.add_argument("--out", default="out/drive_ring.png",
+                        help="figure, PNG (default %(default)s)")
     args = parser.parse_args(argv)
 
     result = run_drive(DriveConfig(map="room", rig="ring16", device=args.device,

@@ -24,8 +24,9 @@ ROOM = Path(__file__).resolve().parents[1] / "maps" / "room.geojson"
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=20.0, help="simulated seconds")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--duration", type=float, default=20.0,
+                        help="simulated seconds (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=1, help="random seed (default %(default)s)")
     args = parser.parse_args(argv)
 
     world = load_map(ROOM)
@@ -61,8 +62,12 @@ def main(argv: list[str] | None = None) -> int:
                       f"{node.status}")
     node.finish()
     fused = [r for r in node.landmarks() if r.fused]
-    print(f"landmarks: {len(node.landmarks())} fitted, {len(fused)} fused; the last ones:")
-    for r in fused[-5:]:
+    # A short segment (too few echoes for a fit) is fused reading by reading through the
+    # model: its report has no fitted parameters (NaN), so show the fitted ones.
+    fitted = [r for r in fused if r.landmark.ok]
+    print(f"landmarks: {len(node.landmarks())} segments, {len(fused)} fused "
+          f"({len(fitted)} of them fitted ok); the last fitted ones:")
+    for r in fitted[-5:]:
         lm = r.in_map
         assert lm is not None
         what = (f"point ({lm.params[0]:.3f}, {lm.params[1]:.3f})" if lm.kind == "point" else

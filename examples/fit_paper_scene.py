@@ -27,7 +27,7 @@ PAPER = {"pole": (1.462, -17.0, 0.67, 8523.0), "plane": (1.500, 4.0, 0.15, 8746.
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--seed", type=int, default=7, help="random seed (default %(default)s)")
     parser.add_argument("--plot", help="also draw the scan with its fits (PNG)")
     args = parser.parse_args(argv)
 

@@ -39,7 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("device", nargs="?", help="device path or source (default: a "
                                                   "simulated module on a pty)")
-    parser.add_argument("--duration", type=float, default=3.0, help="seconds to read")
+    parser.add_argument("--duration", type=float, default=3.0,
+                        help="seconds to read (default %(default)s)")
     parser.add_argument("--out", help="also record everything into a log JSONL")
     parser.add_argument("--quiet", action="store_true", help="only the summary")
     args = parser.parse_args(argv)

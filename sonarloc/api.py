@@ -176,8 +176,10 @@ class LocalizerNode:
 
     def _require(self) -> PoseEstimate:
         est = self.localizer.estimate
-        if est is None:
-            raise RuntimeError("no estimate yet: call set_pose() and odometry() first")
+        if est is None:  # say why, and what brings one (a node relocalizing needs no prior)
+            how = ("wait for relocalization's fix, or call set_pose()"
+                   if self.localizer.config.relocalize else "call set_pose() and odometry() first")
+            raise RuntimeError(f"no estimate yet ({self.reason}): {how}")
         return est
 
     @property

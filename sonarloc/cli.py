@@ -2,14 +2,18 @@
 
 Each subcommand lives in ``sonarloc/commands/<name>.py`` with ``add_arguments(parser)``
 and ``run(args) -> int``; it is imported only when used. Errors on bad input become a
-one-line message and exit status 2.
+one-line message and exit status 2; a reader of stdout that stops early (``| head``) ends
+the command quietly with 141 (128 + SIGPIPE), as it does a shell tool.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import io
 import os
+import select
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -47,6 +51,32 @@ def one_blas_thread() -> None:
         os.environ.setdefault(var, "1")
 
 
+def stdout_reader_gone() -> bool:
+    """Whether stdout is a pipe whose reader has closed it (``sonarloc localize LOG | head``).
+
+    Tells that broken pipe from one of a device's sockets, which is a real error. Where
+    ``poll`` is missing (Windows), a broken pipe is taken to be stdout's."""
+    if not hasattr(select, "poll"):
+        return True
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, io.UnsupportedOperation):
+        return False
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poller.poll(0))
+
+
+def quit_on_closed_stdout() -> int:
+    """Exit status after stdout's reader went away: 128 + SIGPIPE, silently, as a shell
+    tool does. Later writes, and the interpreter's last flush, go to /dev/null instead of
+    failing again with "Exception ignored ... BrokenPipeError"."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return 128 + int(getattr(signal, "SIGPIPE", 13))
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The argument parser; with ``only``, just that subcommand's module is imported."""
     parser = argparse.ArgumentParser(
@@ -77,8 +107,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args._run(args) or 0)
+        status = int(args._run(args) or 0)
+        sys.stdout.flush()  # here, so that a reader that went away is seen below
+        return status
     except (SonarlocError, ValueError, OSError) as err:
+        if isinstance(err, BrokenPipeError) and stdout_reader_gone():
+            return quit_on_closed_stdout()
         print(f"sonarloc {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -90,28 +90,29 @@ def landmark_to_json(lm: Landmark) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Bad values name the option, and the shell reports them like any bad input
+    # ("sonarloc fit: error: ...", exit 2).
     module = ModuleParams()
-    if args.speed_of_sound is not None:
-        module = ModuleParams(c_mps=args.speed_of_sound)
-    elif args.temperature is not None:
-        module = ModuleParams(c_mps=float(speed_of_sound_mps(args.temperature)))
+    try:
+        if args.speed_of_sound is not None:
+            module = ModuleParams(c_mps=args.speed_of_sound)
+        elif args.temperature is not None:
+            module = ModuleParams(c_mps=float(speed_of_sound_mps(args.temperature)))
+    except ValueError as exc:     # (the module's own check of the speed of sound)
+        option = "--speed-of-sound" if args.speed_of_sound is not None else "--temperature"
+        raise ValueError(f"{option}: {exc}") from None
     config = FitConfig(module=module, detection=not args.no_detection_model)
     sd = args.odometry_sd
     if sd is not None and not (math.isfinite(sd) and sd >= 0.0):
-        print(f"sonarloc fit: --odometry-sd must be a non-negative number, got {sd}",
-              file=sys.stderr)
-        return 2
+        raise ValueError(f"--odometry-sd must be a non-negative number, got {sd}")
     segmenter = None
     if args.max_travel is not None:
         try:
             segmenter = SegmenterConfig(max_travel_m=args.max_travel)
         except ValueError as exc:     # (the config's own check of the value)
-            print(f"sonarloc fit: --max-travel: {exc}", file=sys.stderr)
-            return 2
+            raise ValueError(f"--max-travel: {exc}") from None
     if args.block_rows < 1:
-        print(f"sonarloc fit: --block-rows must be a positive integer, got {args.block_rows}",
-              file=sys.stderr)
-        return 2
+        raise ValueError(f"--block-rows must be a positive integer, got {args.block_rows}")
     fitter = OnlineFitter(config, segmenter, odometry_sd_deg_per_m=sd)
     out = _JsonOut() if args.json else _JsonLinesOut() if args.jsonl else _TableOut()
     keep = (lambda lm: lm.ok) if args.only_ok else (lambda lm: True)

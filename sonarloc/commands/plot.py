@@ -19,21 +19,32 @@ from pathlib import Path
 from typing import Any
 
 
+def _kind(sub: Any, name: str, help_text: str, what: str) -> argparse.ArgumentParser:
+    """A plot kind's parser; its --help says what it draws (and needs), not only usage."""
+    return sub.add_parser(name, help=help_text, description=f"{what} Needs matplotlib "
+                          "(extra `plot`).")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="plot_command", metavar="KIND", required=True)
-    scan = sub.add_parser("scan", help="TOF against bearing with fitted model curves")
+    scan = _kind(sub, "scan", "TOF against bearing with fitted model curves",
+                 "TOF against transducer bearing referenced to the smallest TOF, with the eq. 3 "
+                 "curve of each landmark dashed (the paper's Fig. 4/5).")
     scan.add_argument("scan", help="scan CSV (FORMATS.md section 1)")
     scan.add_argument("--fits", help="landmarks JSON from `sonarloc fit --json` (default: fit "
                                      "the scan here)")
     scan.add_argument("--no-fit", action="store_true", help="draw the readings only")
     scan.add_argument("--sensor", type=int, help="only this transducer's readings")
-    smap = sub.add_parser("map", help="sonar map: readings as arcs in the plane")
+    smap = _kind(sub, "map", "sonar map: readings as arcs in the plane",
+                 "Each echo drawn as an arc at its range across the beam (the classic sonar map).")
     smap.add_argument("log", help="log JSONL (FORMATS.md section 4)")
     smap.add_argument("--poses", help="pose CSV to place the readings (default: truth if the "
                                       "log has it, else odometry)")
     smap.add_argument("--arc", type=float, default=11.0, metavar="DEG",
                       help="half-width of each reading's arc (default 11 deg)")
-    traj = sub.add_parser("trajectory", help="truth, odometry and estimated paths")
+    traj = _kind(sub, "trajectory", "truth, odometry and estimated paths",
+                 "Truth (when the log has it), odometry aligned at the start, and the estimate "
+                 "of --poses.")
     traj.add_argument("log", help="log JSONL (FORMATS.md section 4)")
     traj.add_argument("--poses", help="pose CSV from `sonarloc localize`")
     for p in (smap, traj):
@@ -41,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for p in (scan, smap, traj):
         p.add_argument("--out", required=True, help="PNG (or PDF/SVG) to write")
         p.add_argument("--title", default="", help="figure title")
-        p.add_argument("--dpi", type=int, default=130)
+        p.add_argument("--dpi", type=int, default=130, help="resolution (default 130)")
 
 
 def _scan_figure(args: argparse.Namespace, plt: Any) -> Any:

@@ -38,17 +38,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-start", action="store_true",
                         help="do not send Start/RequestRig to the module")
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
-                        help="driver option, e.g. unit=cm (maxbotix), rate=1 (candump); "
-                             "repeatable")
+                        help="driver option, e.g. unit=cm or mount=0.1,0,90 (maxbotix: "
+                             "X_M,Y_M,YAW_DEG in base_link), rig=RIG.json or range_conv=0.268 "
+                             "(pioneer), rate=1 (candump); repeatable")
 
 
 def _value(text: str) -> Any:
+    """An --option value: a bool, an int, a float, numbers separated by commas as a tuple
+    (``mount=0.1,0,90``), else the text."""
     low = text.lower()
     if low in ("true", "false"):
         return low == "true"
     for kind in (int, float):
         try:
             return kind(text)
+        except ValueError:
+            pass
+    if "," in text:
+        try:
+            return tuple(float(part) for part in text.split(","))
         except ValueError:
             pass
     return text

@@ -69,9 +69,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     exp.add_argument("--ros", type=int, choices=(1, 2), help="bag version (default from --out)")
     exp.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3",
                      help="ROS 2 storage plugin (default sqlite3)")
-    exp.add_argument("--pose-topic", default="/sonarloc/pose")
-    exp.add_argument("--map-frame", default="map")
-    exp.add_argument("--odom-frame", default="odom")
+    exp.add_argument("--pose-topic", default="/sonarloc/pose",
+                     help="topic of the poses (default %(default)s)")
+    exp.add_argument("--map-frame", default="map",
+                     help="frame_id of the poses, parent of the tf (default %(default)s)")
+    exp.add_argument("--odom-frame", default="odom",
+                     help="child frame of the map->odom tf (default %(default)s)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -53,12 +53,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep the transport open S seconds after the stream ends "
                              "(default 1)")
     sim = parser.add_argument_group("simulator (with --map)")
-    sim.add_argument("--rig", default="ring16", metavar="ring16|pan|RIG.json")
+    sim.add_argument("--rig", default="ring16", metavar="ring16|pan|RIG.json",
+                     help="sonar rig (default ring16)")
     sim.add_argument("--at", metavar="X,Y,YAW_DEG", help="keep the robot still at this pose")
     sim.add_argument("--pan", metavar="START:STOP:STEP", help="pan angles (pan rig)")
     sim.add_argument("--repeat", type=int, metavar="N", help="pings per pan angle")
-    sim.add_argument("--tier", default="auto", metavar="gauss|piston|waveform|auto")
-    sim.add_argument("--seed", type=int, default=0, metavar="N")
+    sim.add_argument("--tier", default="auto", metavar="gauss|piston|waveform|auto",
+                     help="sonar model tier (default auto)")
+    sim.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -79,6 +81,11 @@ def _transport(args: argparse.Namespace) -> Transport:
         interface, sep, channel = args.can.partition(":")
         if not (interface and sep and channel):
             raise ValueError(f"--can must be INTERFACE:CHANNEL, got {args.can!r}")
+        if interface == "virtual":  # a `sonarloc record` in another process hears nothing
+            print(f"sonarloc serve-sim: note: python-can's virtual bus reaches only this "
+                  f"process, where no host runs: nothing will read {args.can} (and no Start "
+                  f"will come); for another process use a real or virtual kernel bus, e.g. "
+                  f"--can socketcan:vcan0, or --pty / --listen", file=sys.stderr, flush=True)
         return CanBusTransport(interface, channel)
     if args.candump:
         return CandumpTransport(args.candump)

@@ -113,3 +113,14 @@ def test_record_duration_and_serve_sim_sigterm(run_cli, tmp_path) -> None:
     sent_lines = sent.read_text().splitlines()
     assert sent_lines[:len(lines)] == lines  # what was recorded is what was sent, in order
     assert "recorded" in rec.stderr
+
+
+@pytest.mark.skipif(not os.path.exists(ROOM), reason="needs maps/room.geojson")
+def test_serve_sim_on_a_virtual_can_bus_says_no_other_process_hears_it(run_cli) -> None:
+    # `serve-sim --can virtual:x` then `record can:virtual:x` in another shell hears
+    # nothing (python-can's virtual bus is in-process), and without --no-wait the module
+    # waits forever for a Start: the command says so and names what works instead.
+    proc = run_cli("serve-sim", "--map", ROOM, "--can", "virtual:x", "--no-wait",
+                   "--duration", "0.2", "--linger", "0")
+    assert proc.returncode == 0 and proc.stdout.splitlines()[0] == "can:virtual:x"
+    assert "reaches only this process" in proc.stderr and "socketcan:vcan0" in proc.stderr

@@ -215,3 +215,54 @@ def test_sim_driver_equals_what_a_module_sends(tmp_path) -> None:
         direct = list(sim_drv.records(timeout=1.0))
     assert direct == over_pty == list(iter_log(io.StringIO(sent.getvalue())))
     assert math.isclose(direct[-1].t_s, 0.5)
+
+
+def test_maxbotix_mount_from_the_record_command_line() -> None:
+    # PROTOCOL.md: one sensor at the origin "unless a mount is given"; from `sonarloc
+    # record` that is --option mount=X,Y,YAW_DEG (it failed: "could not convert string
+    # to float: '.'"), and a wrong one is named.
+    import argparse
+
+    from sonarloc.commands.record import add_arguments, driver_options
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["maxbotix:loop://", "--out", "x.jsonl", "--option",
+                              "mount=0.1,-0.05,90", "--option", "sensor=3"])
+    opts = driver_options(args)
+    assert opts == {"mount": (0.1, -0.05, 90.0), "sensor": 3}
+    with open_driver(args.source, **opts) as drv:
+        rig = drv.read(1.0)
+    assert isinstance(rig, RigRecord) and rig.sensors[0].id == 3
+    assert (rig.sensors[0].x_m, rig.sensors[0].y_m, rig.sensors[0].yaw_deg) == (0.1, -0.05, 90.0)
+    with pytest.raises(ValueError, match="`mount` must be x_m, y_m, yaw_deg"):
+        open_driver("maxbotix:loop://", mount=(0.1, 0.0))
+
+
+def test_pioneer_rig_and_converter_from_the_record_command_line(tmp_path) -> None:
+    # `--option rig=RIG.json` crashed `sonarloc record` with a traceback (the path went
+    # through as the rig), and the converter's settings (RangeConvFactor of a P2, ...)
+    # had no command-line form: both are options of their own now.
+    import argparse
+    import json
+
+    from sonarloc.commands.record import add_arguments, driver_options
+
+    rig_file = tmp_path / "rig.json"
+    rig_file.write_text(json.dumps({"sensors": [{"id": 0, "x_m": 0.15, "y_m": 0.0,
+                                                 "yaw_deg": 0.0},
+                                                {"id": 1, "x_m": -0.15, "y_m": 0.0,
+                                                 "yaw_deg": 180.0}]}))
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["pioneer:loop://", "--out", "x.jsonl", "--option",
+                              f"rig={rig_file}", "--option", "range_conv=0.268", "--option",
+                              "speed_of_sound_mps=340", "--option", "handshake=false"])
+    with open_driver(args.source, **driver_options(args)) as drv:
+        rig = drv.read(1.0)
+        conv = drv.converter
+    assert isinstance(rig, RigRecord) and [s.x_m for s in rig.sensors] == [0.15, -0.15]
+    assert rig.speed_of_sound_mps == 340.0 == conv.c  # the c that made the TOFs
+    assert conv.range_conv == 0.268
+    with pytest.raises(ValueError, match="`rig` must be a rig JSON file"):
+        open_driver("pioneer:loop://", rig=5, handshake=False)

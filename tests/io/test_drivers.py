@@ -46,6 +46,11 @@ def test_sources_resolve_to_drivers() -> None:
     assert parse_source("COM3") == ("serial", ("COM3",))
     with pytest.raises(ValueError, match="can:INTERFACE:CHANNEL"):
         parse_source("can:virtual")
+    # a mistyped scheme is named as such (pyserial said "could not open port maxbotics:...")
+    with pytest.raises(ValueError, match="unknown source scheme 'maxbotics'.*maxbotix"):
+        parse_source("maxbotics:/dev/ttyUSB0")
+    assert parse_source("/dev/serial/by-path/pci-0000:00:14.0-usb-0:1") == (
+        "serial", ("/dev/serial/by-path/pci-0000:00:14.0-usb-0:1",))  # colons in a path
     with pytest.raises(ValueError, match="unknown driver"):
         driver_class("nope")
     for name in BACKENDS:

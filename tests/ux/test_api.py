@@ -88,3 +88,25 @@ def test_node_bad_arguments():
         node.set_pose(0, 0, 0, sd_xy_m=-1)
     assert node.odometry(0.0, 0, 0, 0) is None  # no prior yet: no estimate
     assert node.reason.startswith("no prior")
+
+
+def test_no_estimate_says_why_and_what_brings_one():
+    # A node configured to relocalize needs no set_pose(): before its first fix, reading
+    # the pose says it is relocalizing and why it has no fix, not "call set_pose()".
+    from sonarloc.localize.localizer import LocalizerConfig
+
+    rig = ring16()
+    node = LocalizerNode.from_map_file(ROOM, [(s.id, s.x_m, s.y_m, s.yaw_deg)
+                                              for s in rig.sensors],
+                                       config=LocalizerConfig(relocalize=True))
+    for rec in simulate_records(load_map(ROOM), rig, duration_s=1.5, seed=4):
+        if not isinstance(rec, InitRecord):  # no prior: relocalization must find the pose
+            node.feed(rec)
+    assert node.estimate is None and node.reason.startswith("relocalizing: ")
+    with pytest.raises(RuntimeError) as err:
+        _ = node.pose
+    assert node.reason in str(err.value) and "relocalization" in str(err.value)
+    assert "set_pose() and odometry() first" not in str(err.value)
+    plain = LocalizerNode.from_map_file(ROOM, [(0, 0.2, 0.0, 0.0)])  # without: a prior is due
+    with pytest.raises(RuntimeError, match=r"no estimate yet \(no prior.*set_pose\(\) and"):
+        _ = plain.covariance

@@ -31,6 +31,24 @@ def test_every_example_is_covered():
                      "read_serial_sonar.py", "embed_node.py"}
 
 
+# options that have no default: flags, and the "also write this" ones (off unless given)
+NO_DEFAULT = {"--help", "--quiet", "fit_paper_scene.py --plot", "read_serial_sonar.py --out"}
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in EXAMPLES.glob("*.py")))
+def test_help_states_the_defaults(tmp_path: Path, name: str):
+    # `python examples/NAME.py --help` is how README sends a user in: every option with a
+    # default says it (they read "--seed SEED", with no word on what it is or its value).
+    out = run_example(name, "--help", cwd=tmp_path).stdout
+    options = out[out.index("options:"):]
+    blocks = {m[1]: m[0] for m in re.finditer(r"^  (--[a-z-]+).*(?:\n {6,}\S.*)*", options,
+                                              re.M)}
+    assert "--seed" in blocks or "--duration" in blocks, out
+    for option, text in blocks.items():
+        if option not in NO_DEFAULT and f"{name} {option}" not in NO_DEFAULT:
+            assert "(default " in text, f"{name} {option}: {text}"
+
+
 def test_fit_paper_scene(tmp_path: Path):
     out = run_example("fit_paper_scene.py", "--plot", "fig5.png", cwd=tmp_path).stdout
     rows = {m[0]: m for m in re.findall(
@@ -81,3 +99,5 @@ def test_embed_node(tmp_path: Path, seed: int):
     assert len(errors) == 13
     assert errors[-1] < 5.0  # after 12 s with landmarks the estimate is within 5 cm
     assert "map->odom" in out and "fused" in out
+    shown = re.findall(r"^  t=.*$", out, re.M)  # the last landmarks, with their numbers
+    assert shown and not any("nan" in line for line in shown), out

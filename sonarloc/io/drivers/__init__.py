@@ -72,6 +72,13 @@ def parse_source(source: str) -> tuple[str, tuple[Any, ...]]:
                 raise ValueError(f"CAN source must be can:INTERFACE:CHANNEL, got {source!r}")
             return "can", (interface, channel)
         return scheme, (rest,)
+    if sep and len(scheme) > 1 and scheme.isidentifier():
+        # "maxbotics:/dev/ttyUSB0" is a mistyped scheme, not a device: say so, rather than
+        # let pyserial fail to open a port of that name (device paths start with / or are
+        # names like COM3; a drive letter "C:" is one character)
+        raise ValueError(f"unknown source scheme {scheme!r} in {source!r}; known: "
+                         f"{', '.join(BACKENDS)}, a device path or a pyserial URL "
+                         "(socket://HOST:PORT, loop://)")
     return "serial", (source,)  # a device path
 
 

@@ -49,7 +49,12 @@ class MaxbotixDriver(PortDriver):
         self.max_value = DEFAULT_MAX[unit] if max_value is None else int(max_value)
         self.sensor = int(sensor)
         self.c = speed_of_sound_mps
-        self.rig = RigRecord((SensorMount(self.sensor, *map(float, mount)),), speed_of_sound_mps)
+        try:
+            x_m, y_m, yaw_deg = (float(v) for v in mount)
+        except (TypeError, ValueError):
+            raise ValueError(f"`mount` must be x_m, y_m, yaw_deg in base_link (e.g. "
+                             f"0.1,0,90), got {mount!r}") from None
+        self.rig = RigRecord((SensorMount(self.sensor, x_m, y_m, yaw_deg),), speed_of_sound_mps)
         self.decoder = MaxbotixDecoder()
         self._t0 = time.monotonic()
         self._rig_sent = False

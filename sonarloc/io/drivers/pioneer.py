@@ -13,6 +13,7 @@ a Pioneer 3-DX.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any
 
 from sonarloc.errors import DeviceError
@@ -35,6 +36,10 @@ from sonarloc.io.protocol.sip import (
     p3dx_rig,
 )
 
+CONVERTER_OPTIONS = ("dist_conv", "angle_conv_rad", "range_conv", "max_range_mm",
+                     "speed_of_sound_mps")
+"""The :class:`SipConverter` settings a PioneerDriver also takes as keyword arguments."""
+
 
 class PioneerDriver(PortDriver):
     """Reads a Pioneer robot's SIPs.
@@ -42,23 +47,29 @@ class PioneerDriver(PortDriver):
     Parameters
     ----------
     url : serial device or pyserial URL of the robot.
-    rig : the sonar mounts (default :func:`~sonarloc.io.protocol.sip.p3dx_rig`).
+    rig : the sonar mounts: a RigRecord or a rig JSON file (default
+        :func:`~sonarloc.io.protocol.sip.p3dx_rig`).
     handshake : run SYNC0/1/2 + OPEN on connect (False: the robot already streams).
     handshake_timeout_s : per SYNC step.
     pulse_s : watchdog keep-alive period (ARCOS stops the robot after ~2 s of silence).
     converter : :class:`SipConverter` options (``dist_conv``, ``range_conv``,
-        ``max_range_mm``, ``speed_of_sound_mps``, ``angle_conv_rad``).
+        ``max_range_mm``, ``speed_of_sound_mps``, ``angle_conv_rad``); each may also be a
+        keyword argument of its own.
     """
 
     scheme = "pioneer"
     default_baudrate = 9600
 
-    def __init__(self, url: str, *, rig: RigRecord | None = None, handshake: bool = True,
-                 handshake_timeout_s: float = 1.0, pulse_s: float = 1.0,
+    def __init__(self, url: str, *, rig: RigRecord | str | Path | None = None,
+                 handshake: bool = True, handshake_timeout_s: float = 1.0, pulse_s: float = 1.0,
                  converter: dict[str, Any] | None = None, **kwargs: Any):
+        # the converter's settings also come one by one, as `sonarloc record pioneer:PORT
+        # --option range_conv=0.268` gives them
+        conv = {**(converter or {}),
+                **{key: kwargs.pop(key) for key in CONVERTER_OPTIONS if key in kwargs}}
         super().__init__(url, **kwargs)
-        self.converter = SipConverter(**(converter or {}))
-        self.rig = rig if rig is not None else p3dx_rig(self.converter.c)
+        self.converter = SipConverter(**conv)
+        self.rig = self._mounts(rig)
         self.handshake = handshake
         self.handshake_timeout_s = handshake_timeout_s
         self.pulse_s = pulse_s
@@ -68,6 +79,20 @@ class PioneerDriver(PortDriver):
         self._t0 = time.monotonic()
         self._last_pulse = 0.0
         self._rig_sent = False
+
+    def _mounts(self, rig: RigRecord | str | Path | None) -> RigRecord:
+        """The sonar mounts: a RigRecord, a rig JSON file (the log's ``rig`` record without
+        ``type``, as `--option rig=RIG.json` names it) or the P3-DX's. The speed of sound
+        is the converter's in every case: it turned the ranges into times of flight."""
+        if rig is None:
+            return p3dx_rig(self.converter.c)
+        if isinstance(rig, (str, Path)):
+            from sonarloc.io.rosbag import load_rig_json
+
+            return RigRecord(load_rig_json(rig)[0].sensors, self.converter.c)
+        if not isinstance(rig, RigRecord):
+            raise ValueError(f"`rig` must be a rig JSON file or a RigRecord, got {rig!r}")
+        return rig
 
     @property
     def decoder_stats(self) -> DecoderStats:
