@@ -18,6 +18,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import sysconfig
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -43,27 +44,38 @@ _channels = itertools.count()
 DRIVE_PAN = (-180.0, 180.0, 3.0)
 
 
-def find_map(name: str | Path) -> Path:
-    """A map file: a path, or a name in the repository's ``maps/`` (``room``, ``room.geojson``).
+SHARED_MAPS = Path("share", "sonarloc", "maps")
+"""Where an install that is not a checkout puts the shipped maps, under its data prefix
+(pyproject.toml's ``data-files``)."""
 
-    ``maps/`` is looked for next to the installed package (a checkout or an editable
-    install), then in the working directory and its parents.
-    """
+
+def map_dirs() -> list[Path]:
+    """Folders :func:`find_map` searches, in order: ``maps/`` next to the package (a
+    checkout or an editable install), the installed maps (:data:`SHARED_MAPS` under the
+    environment's and the user's data prefix: ``pip install .`` or a wheel), then
+    ``maps/`` in the working directory and its parents."""
+    import sonarloc
+
+    dirs = [Path(sonarloc.__file__).resolve().parent.parent / "maps"]
+    schemes = [sysconfig.get_default_scheme(), sysconfig.get_preferred_scheme("user")]
+    dirs += [Path(sysconfig.get_path("data", scheme)) / SHARED_MAPS for scheme in schemes]
+    cwd = Path.cwd().resolve()
+    return dirs + [d / "maps" for d in (cwd, *cwd.parents)]
+
+
+def find_map(name: str | Path) -> Path:
+    """A map file: a path, or the name of a shipped map (``room``, ``room.geojson``) or
+    of one in a ``maps/`` folder (:func:`map_dirs`)."""
     p = Path(name)
     if p.is_file():
         return p
     names = [p.name] if p.suffix else [p.name + ".geojson", p.name]
-    import sonarloc
-
-    roots = [Path(sonarloc.__file__).resolve().parent.parent / "maps"]
-    cwd = Path.cwd().resolve()
-    roots += [d / "maps" for d in (cwd, *cwd.parents)]
-    for root in roots:
+    for root in map_dirs():
         for n in names:
             if (root / n).is_file():
                 return root / n
-    raise MapError(f"map {str(name)!r} not found (not a file, and not in a maps/ folder next "
-                   "to the sonarloc package or above the working directory)")
+    raise MapError(f"map {str(name)!r} not found (not a file, not a shipped map, and not in a "
+                   "maps/ folder above the working directory)")
 
 
 @dataclass(frozen=True)

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
+import sysconfig
+import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from sonarloc.report.pipeline import DriveConfig, find_map, run_drive
+from sonarloc.report.pipeline import SHARED_MAPS, DriveConfig, find_map, map_dirs, run_drive
 
 REQUIRED = ("pose_rmse_m", "yaw_rmse_deg", "landmarks_fitted", "wall_time_s", "plot")
 
@@ -84,3 +89,45 @@ def test_find_map():
     assert find_map("paper_fig5.geojson").exists()
     with pytest.raises(Exception, match="not found"):
         find_map("no-such-map")
+
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_every_map_is_shipped_where_find_map_looks():
+    # pyproject's data-files put maps/ under <data prefix>/SHARED_MAPS for an install that
+    # is not a checkout (a wheel has no maps/ next to the package): both sides must agree,
+    # and the glob must take every map of maps/
+    files = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "data-files"]
+    assert list(files) == [SHARED_MAPS.as_posix()]
+    shipped = {p.name for pattern in files[SHARED_MAPS.as_posix()]
+               for p in ROOT.glob(pattern)}
+    assert shipped == {p.name for p in (ROOT / "maps").iterdir() if p.is_file()}
+    assert Path(sysconfig.get_path("data")) / SHARED_MAPS in map_dirs()
+
+
+@pytest.mark.slow
+def test_a_regular_install_finds_its_maps_outside_a_checkout(tmp_path: Path):
+    # a real `pip install .` (not editable) into a fresh venv, which sees this
+    # environment's packages for the dependencies; `sonarloc drive` from a folder with no
+    # maps/ above it
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    site = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+                          check=True, capture_output=True, text=True).stdout.strip()
+    Path(site, "deps.pth").write_text(sysconfig.get_path("purelib") + "\n")
+    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(ROOT)], check=True)
+    work = tmp_path / "empty"
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    found = subprocess.run(
+        [str(py), "-c", "from sonarloc.report.pipeline import find_map; print(find_map('room'))"],
+        cwd=work, env=env, check=True, capture_output=True, text=True).stdout.strip()
+    # the installed copy (a maps/ folder above the working directory would do too, and
+    # /tmp may have one)
+    assert Path(found).parent == venv / SHARED_MAPS
+    proc = subprocess.run([str(py), "-m", "sonarloc", "drive", "--duration", "2", "--no-plot"],
+                          cwd=work, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
