@@ -21,6 +21,7 @@ radians, frames per REP-105 (``map``, ``odom``, ``base_link``). See docs/API.md.
 from __future__ import annotations
 
 import math
+import numbers
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -31,7 +32,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sonarloc.fit.result import Landmark
-from sonarloc.io.logfile import Record, SensorMount
+from sonarloc.io.logfile import (
+    InitRecord,
+    OdomRecord,
+    Record,
+    RigRecord,
+    SensorMount,
+    TofRecord,
+    TruthRecord,
+)
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import (
     FusionOutcome,
@@ -58,6 +67,27 @@ class LandmarkReport:
     in_map: Landmark | None
     fused: bool
     outcome: str
+
+
+_RECORDS = (RigRecord, InitRecord, OdomRecord, TofRecord, TruthRecord)
+
+
+def _real(name: str, v: object) -> float:
+    """``v`` as a float; ValueError unless it is a real number (int, float, a NumPy
+    scalar; not a bool, a string, None or an array: a call with those is a bug in the
+    caller, not a fault of the data). Non-finite values pass: they are data faults,
+    skipped and counted by the Localizer."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        raise ValueError(f"`{name}` must be a real number, got {v!r}")
+    return float(v)
+
+
+def _sensor_id(v: object) -> int:
+    """A sensor id as an int; ValueError unless it is an integer (not a bool, a float
+    or a string: ``True`` would silently be sensor 1)."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+        raise ValueError(f"`sensor` must be an integer id, got {v!r}")
+    return int(v)
 
 
 class _HookedLocalizer(Localizer):
@@ -135,32 +165,60 @@ class LocalizerNode:
     def set_pose(self, x_m: float, y_m: float, yaw_rad: float, *, sd_xy_m: float = 0.1,
                  sd_yaw_rad: float = math.radians(5.0), t_s: float = math.nan) -> None:
         """Prior of ``base_link`` in ``map`` (e.g. rviz's "2D Pose Estimate");
-        (re)starts the filter at the next odometry message."""
+        (re)starts the filter at the next odometry message, whose time may be earlier
+        than the last one's (a restarted clock). ValueError for a non-finite pose or
+        time (``t_s`` NaN: unknown) or a non-positive SD: a prior like that would
+        corrupt every later estimate."""
+        for name, v in (("x_m", x_m), ("y_m", y_m), ("yaw_rad", yaw_rad)):
+            if not math.isfinite(_real(name, v)):
+                raise ValueError(f"`{name}` must be finite, got {v!r}")
         for name, v in (("sd_xy_m", sd_xy_m), ("sd_yaw_rad", sd_yaw_rad)):
-            if not (math.isfinite(v) and v > 0):
+            if not (math.isfinite(_real(name, v)) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
+        if math.isinf(_real("t_s", t_s)):
+            raise ValueError(f"`t_s` must be finite (or NaN: unknown), got {t_s!r}")
         self.localizer.set_prior(t_s, x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
 
     def odometry(self, t_s: float, x_m: float, y_m: float, yaw_rad: float
                  ) -> PoseEstimate | None:
         """Wheel odometry: pose of ``base_link`` in ``odom`` at ``t_s`` (integrated).
 
-        Returns the new estimate (None before :meth:`set_pose`).
+        Returns the new estimate (None before :meth:`set_pose`). A message older than
+        the last one, or with a NaN or infinite value, is skipped (counted in
+        ``stats.skipped``: ``odom_time_backwards``, ``bad_odom``) and the current
+        estimate returned. ValueError if an argument is not a real number.
         """
-        return self.localizer.on_odom(t_s, x_m, y_m, yaw_rad)
+        return self.localizer.on_odom(_real("t_s", t_s), _real("x_m", x_m), _real("y_m", y_m),
+                                      _real("yaw_rad", yaw_rad))
 
     def reading(self, t_s: float, sensor: int, tof_us: float | None,
                 pan_rad: float | None = None) -> None:
         """One sonar reading: first-echo time of flight in µs (None = no echo).
 
         Readings are processed once odometry has reached their time (so the transducer
-        pose is interpolated, never extrapolated).
+        pose is interpolated, never extrapolated). A garbage reading is skipped and
+        counted in ``stats.skipped``: an unknown sensor (``unknown_sensor``), a NaN or
+        infinite time or pan angle, a zero, negative or infinite TOF (``bad_tof``).
+        ValueError if an argument has the wrong type (``sensor`` not an integer, a value
+        not a real number).
         """
-        self.localizer.on_tof(t_s, sensor, tof_us, pan_rad)
+        self.localizer.on_tof(_real("t_s", t_s), _sensor_id(sensor),
+                              None if tof_us is None else _real("tof_us", tof_us),
+                              None if pan_rad is None else _real("pan_rad", pan_rad))
 
     def feed(self, rec: Record) -> PoseEstimate | None:
         """A log record or a record from a driver (:func:`sonarloc.io.drivers.open_driver`):
-        rig, init, odom and tof are used, truth is ignored."""
+        rig, init, odom and tof are used, truth is ignored; their values are treated as
+        :meth:`reading`, :meth:`odometry` and :meth:`set_pose` treat them. ValueError
+        for anything but a record."""
+        if not isinstance(rec, _RECORDS):
+            raise ValueError(f"`feed` takes a sonarloc.io.logfile record (rig, init, odom, "
+                             f"tof, truth), got {type(rec).__name__}")
+        if isinstance(rec, InitRecord):
+            self.set_pose(rec.x_m, rec.y_m, math.radians(rec.yaw_deg),
+                          sd_xy_m=rec.sd_xy_m, sd_yaw_rad=math.radians(rec.sd_yaw_deg),
+                          t_s=rec.t_s)
+            return None
         return self.localizer.handle(rec)
 
     def finish(self) -> None:

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol
@@ -470,7 +470,9 @@ class Localizer:
         self._prior: Gaussian | None = None
         self._entries: list[_Entry] = []
         self._times: list[float] = []
-        self._pending: list[TofRecord] = []
+        # readings waiting for odometry at or after their time, in arrival order (a deque:
+        # dropping the oldest when no odometry arrives is O(1))
+        self._pending: deque[TofRecord] = deque()
         self._last_odom_t = -math.inf
         self._consecutive_rejected = 0
         self._last_accept_t = -math.inf
@@ -497,12 +499,14 @@ class Localizer:
 
     def set_prior(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, sd_xy_m: float,
                   sd_yaw_rad: float) -> None:
-        """Prior of ``base_link`` in ``map``; (re)starts the filter at the next odom record."""
+        """Prior of ``base_link`` in ``map``; (re)starts the filter at the next odom record
+        (whose time may be earlier than the last one's: a restarted clock or log)."""
         self._prior = Gaussian.from_pose(x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
         self._unknown = False
         self._entries.clear()
         self._times.clear()
         self._pending.clear()
+        self._last_odom_t = -math.inf
         self._consecutive_rejected = 0
         self._last_accept_t = -math.inf
         self._start_t = t_s
@@ -536,11 +540,21 @@ class Localizer:
     def on_odom(self, t_s: float, x_m: float, y_m: float, yaw_rad: float
                 ) -> PoseEstimate | None:
         """An odometry pose of ``base_link`` in ``odom``; returns the new estimate
-        (None before any prior)."""
+        (None before any prior).
+
+        A pose with a non-finite value (``skipped["bad_odom"]``) or older than the last
+        one (``skipped["odom_time_backwards"]``: a stale message, delivered late) is
+        skipped and the current estimate returned: an old pose taken as the newest would
+        move the belief back and forth and mislocate the readings in between.
+        """
         self.stats.odom += 1
-        odom = np.array([x_m, y_m, se2.wrap_angle(yaw_rad)], dtype=float)
+        odom = np.array([x_m, y_m, yaw_rad], dtype=float)
         if not np.all(np.isfinite(odom)) or not math.isfinite(t_s):
             self.stats.skipped["bad_odom"] += 1
+            return self._estimate
+        odom[2] = se2.wrap_angle(odom[2])
+        if t_s < self._last_odom_t:
+            self.stats.skipped["odom_time_backwards"] += 1
             return self._estimate
         if self._prior is None:
             if self._reloc is None:
@@ -549,7 +563,7 @@ class Localizer:
             # no prior: follow the odometry and fit landmarks until relocalized
             self._prior = Gaussian(np.zeros(3), np.eye(3))
             self._unknown = True
-        t = max(t_s, self._last_odom_t)  # time going backwards: keep the history sorted
+        t = t_s
         if not self._entries:
             self._append(_Entry(t, odom, self._prior))
             if not math.isfinite(self._start_t):
@@ -666,18 +680,25 @@ class Localizer:
 
     def on_tof(self, t_s: float, sensor: int, tof_us: float | None,
                pan_rad: float | None = None) -> None:
-        """One reading; processed once odometry has reached its time."""
+        """One reading; processed once odometry has reached its time.
+
+        ``tof_us`` None or NaN: no echo. Skipped and counted in ``stats.skipped``: an
+        unknown ``sensor`` (``unknown_sensor``; ``tof_before_rig`` before any mounts),
+        a non-finite time or pan angle, a zero, negative or infinite TOF (``bad_tof``).
+        """
         self.stats.tof += 1
         if sensor not in self._mounts:
             self.stats.skipped["unknown_sensor" if self._mounts else "tof_before_rig"] += 1
             return
-        if not math.isfinite(t_s):
+        bad_tof = tof_us is not None and (tof_us <= 0.0 or tof_us == math.inf)  # NaN: none
+        if bad_tof or not math.isfinite(t_s) or (pan_rad is not None
+                                                 and not math.isfinite(pan_rad)):
             self.stats.skipped["bad_tof"] += 1
             return
         pan_deg = None if pan_rad is None else math.degrees(pan_rad)
         self._pending.append(TofRecord(t_s, sensor, tof_us, pan_deg))
         if len(self._pending) > 10_000:  # no odometry arriving: keep memory bounded
-            self._pending.pop(0)
+            self._pending.popleft()
             self.stats.skipped["tof_without_odom"] += 1
         if self._entries and t_s <= self._last_odom_t:
             self._drain_pending(self._last_odom_t)
@@ -1104,7 +1125,7 @@ class Localizer:
         ready = [r for r in self._pending if r.t_s <= t_odom]
         if not ready:
             return
-        self._pending = [r for r in self._pending if r.t_s > t_odom]
+        self._pending = deque(r for r in self._pending if r.t_s > t_odom)
         for r in ready:
             self._process_tof(r)
 

@@ -110,3 +110,166 @@ def test_no_estimate_says_why_and_what_brings_one():
     plain = LocalizerNode.from_map_file(ROOM, [(0, 0.2, 0.0, 0.0)])  # without: a prior is due
     with pytest.raises(RuntimeError, match=r"no estimate yet \(no prior.*set_pose\(\) and"):
         _ = plain.covariance
+
+
+# -- what a real robot feeds it: stale, garbage and wrongly typed messages -------------
+
+
+def _drive(duration_s: float = 6.0, seed: int = 4) -> tuple[list, list]:
+    """The mounts and the records of a simulated drive with the 16-ring."""
+    rig = ring16()
+    mounts = [(s.id, s.x_m, s.y_m, s.yaw_deg) for s in rig.sensors]
+    return mounts, list(simulate_records(load_map(ROOM), rig, duration_s=duration_s,
+                                         seed=seed))
+
+
+def _run(mounts, records, extra=lambda node, rec: None, method: str = "kuc"):
+    """Feed ``records`` to a fresh node, calling ``extra(node, rec)`` after each (the
+    faults a robot adds); the estimate after every good odom record and the node."""
+    from sonarloc.localize.localizer import LocalizerConfig
+
+    node = LocalizerNode.from_map_file(ROOM, mounts, config=LocalizerConfig(method=method))
+    out = []
+    for rec in records:
+        est = node.feed(rec)
+        if isinstance(rec, OdomRecord):
+            assert est is not None
+            out.append((est.t_s, est.state.mean.tolist(), est.state.cov.tolist()))
+        extra(node, rec)
+    node.finish()
+    return out, node
+
+
+def test_stale_odometry_is_skipped_counted_and_changes_nothing():
+    """An odometry message older than the last (delivered late) is skipped: the node
+    returns its current estimate, counts it, and every later estimate is exactly that of
+    the stream without it. (Taken as the newest pose it moved the belief back and forth,
+    grew the covariance and mislocated the readings in between.)"""
+    mounts, records = _drive()
+    clean, _ = _run(mounts, records)
+    odoms = [r for r in records if isinstance(r, OdomRecord)]
+    stale = 0
+
+    def late(node, rec):
+        nonlocal stale
+        if isinstance(rec, OdomRecord) and odoms.index(rec) % 10 == 9:
+            old = odoms[odoms.index(rec) - 4]
+            before = node.estimate
+            assert node.odometry(old.t_s, old.x_m, old.y_m, math.radians(old.yaw_deg)) \
+                is before
+            stale += 1
+
+    faulty, node = _run(mounts, records, late)
+    assert stale > 5 and node.stats.skipped["odom_time_backwards"] == stale
+    assert faulty == clean
+    assert "odom_time_backwards" in node.stats.summary()
+
+
+@pytest.mark.parametrize("method", ["kuc", "conventional"])
+def test_garbage_readings_are_skipped_counted_and_change_nothing(method):
+    """Negative, zero and infinite TOFs, NaN or infinite times and pan angles, unknown
+    sensors: each skipped and counted in ``stats.skipped``, every good reading still
+    used (the estimates are exactly those of the clean stream)."""
+    mounts, records = _drive()
+    clean, ref = _run(mounts, records, method=method)
+    bad = [(0, -4000.0, None), (0, 0.0, None), (0, math.inf, None), (0, -math.inf, None),
+           (0, 9000.0, math.nan), (0, 9000.0, math.inf)]
+
+    def garbage(node, rec):
+        if isinstance(rec, TofRecord) and rec.sensor == 3:
+            for sensor, tof, pan in bad:
+                node.reading(rec.t_s, sensor, tof, pan_rad=pan)
+            node.reading(math.nan, 0, 9000.0)
+            node.reading(math.inf, 0, 9000.0)
+            node.reading(rec.t_s, 99, 9000.0)      # a sensor not in the rig
+
+    faulty, node = _run(mounts, records, garbage, method=method)
+    n = sum(isinstance(r, TofRecord) and r.sensor == 3 for r in records)
+    assert n > 10
+    assert node.stats.skipped["bad_tof"] == 8 * n
+    assert node.stats.skipped["unknown_sensor"] == n
+    assert node.stats.tof == ref.stats.tof + 9 * n      # counted as received
+    assert faulty == clean
+    assert node.stats.accepted == ref.stats.accepted > 0
+
+
+def test_no_echo_is_not_garbage():
+    """``tof_us`` None or NaN is a reading without an echo, not a fault."""
+    node = LocalizerNode.from_map_file(ROOM, [(0, 0.2, 0.0, 0.0)])
+    node.set_pose(1.0, 1.0, 0.0)
+    node.odometry(0.0, 0.0, 0.0, 0.0)
+    node.reading(0.01, 0, None)
+    node.reading(0.02, 0, math.nan)
+    node.odometry(0.05, 0.0, 0.0, 0.0)
+    assert not node.stats.skipped and node.stats.tof == 2
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda n: n.odometry(None, 0.0, 0.0, 0.0), "t_s"),
+    (lambda n: n.odometry(1.0, "0.2", 0.0, 0.0), "x_m"),
+    (lambda n: n.odometry(1.0, 0.0, np.array([0.1, 0.2]), 0.0), "y_m"),
+    (lambda n: n.odometry(1.0, 0.0, 0.0, None), "yaw_rad"),
+    (lambda n: n.reading("1.0", 0, 9000.0), "t_s"),
+    (lambda n: n.reading(1.0, True, 9000.0), "sensor"),     # would be sensor 1
+    (lambda n: n.reading(1.0, 0.0, 9000.0), "sensor"),
+    (lambda n: n.reading(1.0, "0", 9000.0), "sensor"),
+    (lambda n: n.reading(1.0, 0, "9000"), "tof_us"),
+    (lambda n: n.reading(1.0, 0, [9000.0]), "tof_us"),
+    (lambda n: n.reading(1.0, 0, 9000.0, pan_rad="0.1"), "pan_rad"),
+    (lambda n: n.set_pose(math.nan, 1.0, 0.0), "x_m"),
+    (lambda n: n.set_pose(1.0, math.inf, 0.0), "y_m"),
+    (lambda n: n.set_pose(1.0, 1.0, None), "yaw_rad"),
+    (lambda n: n.set_pose(1.0, 1.0, 0.0, t_s=math.inf), "t_s"),
+    (lambda n: n.feed({"type": "odom", "t_s": 1.0}), "feed"),
+    (lambda n: n.feed(None), "feed"),
+])
+def test_wrong_types_are_a_clear_value_error(call, name):
+    """A programming error (wrong type or shape, a non-finite prior) raises ValueError
+    naming the argument, before anything reaches the filter."""
+    node = LocalizerNode.from_map_file(ROOM, [(0, 0.2, 0.0, 0.0), (1, 0.0, 0.2, 90.0)])
+    node.set_pose(1.0, 1.0, 0.0)
+    node.odometry(0.0, 0.0, 0.0, 0.0)
+    before = node.estimate
+    with pytest.raises(ValueError, match=f"`{name}`"):
+        call(node)
+    assert node.estimate is before and node.pose == (1.0, 1.0, 0.0)
+    assert not node.stats.skipped
+    # numpy scalars are numbers
+    est = node.odometry(np.float64(0.05), np.float32(0.01), np.int64(0), 0.0)
+    assert est is not None and est.t_s == 0.05
+    node.reading(np.float64(0.04), np.int64(1), np.float64(9000.0))
+    assert node.stats.tof == 1 and not node.stats.skipped
+
+
+def test_set_pose_restarts_the_clock():
+    """After set_pose the odometry may start again from an earlier time (a restarted
+    clock or bag): the node then tracks exactly as a fresh one, nothing is skipped."""
+    mounts, records = _drive(4.0)
+    fresh, _ = _run(mounts, records)
+    _, node = _run(mounts, records)
+    again = []
+    for rec in records:               # the same drive again, its clock from 0
+        est = node.feed(rec)
+        if isinstance(rec, OdomRecord):
+            assert est is not None
+            again.append((est.t_s, est.state.mean.tolist(), est.state.cov.tolist()))
+    assert "odom_time_backwards" not in node.stats.skipped
+    assert again == fresh
+
+
+def test_readings_without_odometry_keep_memory_bounded():
+    """No odometry arriving: at most 10,000 readings wait; the oldest are dropped and
+    counted, the 10,000 newest all processed once odometry comes."""
+    from sonarloc.localize.localizer import LocalizerConfig
+
+    node = LocalizerNode.from_map_file(ROOM, [(0, 0.2, 0.0, 0.0)],
+                                       config=LocalizerConfig(method="conventional"))
+    node.set_pose(1.0, 1.0, 0.0)
+    node.odometry(0.0, 0.0, 0.0, 0.0)
+    for k in range(10_005):
+        node.reading(1.0 + 1e-4 * k, 0, 9000.0)      # a wall 1.5 m ahead
+    assert node.stats.skipped["tof_without_odom"] == 5
+    assert node.stats.observations == 0
+    node.odometry(3.0, 0.0, 0.0, 0.0)
+    assert node.stats.observations == 10_000
+    assert node.stats.skipped["tof_without_odom"] == 5
