@@ -141,6 +141,7 @@ class OfflinePipeline:
         self.last: PoseEstimate | None = None
         self._odom: list[tuple[float, OdomRecord]] = []  # received, not yet in the history
         self._last_t = -math.inf
+        self._last_rec: OdomRecord | None = None  # the last odom record taken
         self._new = 0                            # odom records since the last round
         self._rows: list[tuple[float, OdomRecord]] = []  # in the history, not yet handed out
         # readings waiting for odometry at or after them, as columns (tof NaN: no echo)
@@ -157,9 +158,21 @@ class OfflinePipeline:
     # -- records --------------------------------------------------------------------
 
     def odom(self, rec: OdomRecord) -> None:
-        """An odom record (after the prior)."""
-        t = max(rec.t_s, self._last_t)  # time going backwards: keep the track sorted
+        """An odom record (after the prior).
+
+        A record older than the last one is skipped as :meth:`Localizer.on_odom` skips
+        it (``skipped["odom_time_backwards"]``), yet keeps its row: the belief as it is,
+        the last pose held (no motion) at the last time.
+        """
+        t = rec.t_s
+        last = self._last_rec
+        if t < self._last_t and last is not None:
+            self.loc.stats.skipped["odom_time_backwards"] += 1
+            self._odom.append((self._last_t, OdomRecord(rec.t_s, last.x_m, last.y_m,
+                                                        last.yaw_deg)))
+            return  # the track and the rounds as without it
         self._last_t = t
+        self._last_rec = rec
         self._odom.append((t, rec))
         self._track_t.append(t)
         self._track.append((rec.x_m, rec.y_m, math.radians(rec.yaw_deg)))
@@ -196,10 +209,16 @@ class OfflinePipeline:
             self._tof_us += run.tof_us
             self._tof_pan += run.pan_deg
 
-    def finish(self) -> None:
-        """End of the records (or a rig/init record follows): fit and fuse everything."""
+    def finish(self, restart: bool = False) -> None:
+        """End of the records (or a rig/init record follows): fit and fuse everything.
+        ``restart``: a new prior follows (``init``), and with it the odometry may start
+        again from an earlier time, as after :meth:`Localizer.set_prior`."""
         self._round(final=True)
         self._source = None
+        if restart:
+            self._last_t = -math.inf
+            self._last_rec = None
+            self._track_t, self._track = [], []
 
     # -- internals ------------------------------------------------------------------
 
@@ -270,16 +289,23 @@ class OfflinePipeline:
             self._tof_pan = [self._tof_pan[i] for i in later]
         if not ready.size:
             return
+        sensor_all, tof_all, pan_all = cols
+        tof = np.array(tof_all)[ready]
+        bad = (tof <= 0.0) | np.isinf(tof)   # as Localizer.on_tof (the segmenter drops them)
+        if bad.any():
+            loc.stats.skipped["bad_tof"] += int(np.count_nonzero(bad))
+            ready, tof = ready[~bad], tof[~bad]
+            if not ready.size:
+                return
         first_t = loc._times[0] if loc._times else self._odom[0][0] if self._odom \
             else math.inf
         t = t_all[ready]
         old = t < first_t
         if old.any():
             loc.stats.skipped["tof_older_than_history"] += int(np.count_nonzero(old))
-            ready, t = ready[~old], t[~old]
+            ready, t, tof = ready[~old], t[~old], tof[~old]
             if not ready.size:
                 return
-        sensor_all, tof_all, pan_all = cols
         if self._source is None:
             panning = pan_all[int(ready[0])] is not None
             n = loc.segment_max_readings(panning)
@@ -287,7 +313,6 @@ class OfflinePipeline:
                 loc._c_mps, max_readings=n, min_echoes=loc.segment_min_echoes,
                 sweep_away_deg=loc.segment_sweep_away_deg(panning))
         sensors = np.array(sensor_all, dtype=np.int64)[ready]
-        tof = np.array(tof_all)[ready]
         pans = [pan_all[i] for i in ready.tolist()]
         pan = np.zeros(len(ready)) if all(p is None for p in pans) else \
             np.array([0.0 if p is None else math.radians(p) for p in pans])

@@ -174,7 +174,8 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
             elif isinstance(rec, TofRecord):
                 pipe.tof(rec)
             elif isinstance(rec, (RigRecord, InitRecord)):
-                pipe.finish()  # what came before is localized with the old rig / prior
+                # what came before is localized with the old rig / prior
+                pipe.finish(restart=isinstance(rec, InitRecord))
                 loc.handle(rec)
             continue
         est = loc.handle(rec)

@@ -265,3 +265,52 @@ def test_readings_after_the_last_odometry_are_counted_online_and_in_batch(ring_l
     for mode in ("online", "batch"):
         res, _ = _rows(text, fmap, mode=mode)
         assert res.localizer.stats.skipped["tof_after_last_odom"] == late, mode
+
+
+@pytest.mark.parametrize("mode", ["batch", "online"])
+def test_stale_odometry_and_garbage_readings_in_a_log(ring_log, fmap, mode):
+    """A log with stale odom records (older than the last: delivered late) and readings
+    with a zero or negative TOF, as the embedding API gets them: each skipped and counted
+    (``odom_time_backwards``, ``bad_tof``), a row per odom record, and the rows of the
+    good odom records exactly those of the log without the faults; a stale record's row
+    is the belief as it was. (A stale record was taken as the newest pose at the last
+    time: the belief moved back and forth.)"""
+    lines = ring_log.splitlines(keepends=True)
+    odom = [ln for ln in lines if '"type":"odom"' in ln]
+    faulty, n_stale, n_bad = [], 0, 0
+    for line in lines:
+        faulty.append(line)
+        if line in odom and odom.index(line) % 10 == 9:
+            faulty.append(odom[odom.index(line) - 3])        # a stale copy, late
+            n_stale += 1
+        if '"type":"tof"' in line and '"sensor":3,' in line:
+            faulty.append(line.replace('"tof_us":', '"tof_us":-', 1).replace(":-null", ":0"))
+            n_bad += 1
+
+    def rows_of(text):
+        rows = []
+        res = replay_log(io.StringIO(text), fmap, mode=mode,
+                         on_estimate=lambda r, e: rows.append(
+                             (r.t_s, e.state.mean.tolist(), e.state.cov.tolist())))
+        return rows, res
+
+    clean, _ = rows_of("".join(lines))
+    rows, res = rows_of("".join(faulty))
+    assert n_stale > 5 and n_bad > 10
+    assert res.localizer.stats.skipped["odom_time_backwards"] == n_stale
+    assert res.localizer.stats.skipped["bad_tof"] == n_bad
+    assert len(rows) == len(clean) + n_stale
+    good, k = [], 0
+    for row in rows:
+        if k < len(clean) and row[0] == clean[k][0]:
+            good.append(row)
+            k += 1
+        else:                                  # a stale record: the belief as it was
+            assert row[1:] == good[-1][1:]
+    if mode == "online":
+        assert good == clean
+    else:  # batch: the stale record held as a step without motion (the last bit may move)
+        assert [r[0] for r in good] == [r[0] for r in clean]
+        for name in (1, 2):
+            assert np.array([r[name] for r in good]) == pytest.approx(
+                np.array([r[name] for r in clean]), rel=1e-9, abs=1e-15)
