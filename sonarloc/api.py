@@ -32,15 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sonarloc.fit.result import Landmark
-from sonarloc.io.logfile import (
-    InitRecord,
-    OdomRecord,
-    Record,
-    RigRecord,
-    SensorMount,
-    TofRecord,
-    TruthRecord,
-)
+from sonarloc.io.logfile import InitRecord, Record, SensorMount
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import (
     FusionOutcome,
@@ -67,9 +59,6 @@ class LandmarkReport:
     in_map: Landmark | None
     fused: bool
     outcome: str
-
-
-_RECORDS = (RigRecord, InitRecord, OdomRecord, TofRecord, TruthRecord)
 
 
 def _real(name: str, v: object) -> float:
@@ -208,10 +197,10 @@ class LocalizerNode:
 
     def feed(self, rec: Record) -> PoseEstimate | None:
         """A log record or a record from a driver (:func:`sonarloc.io.drivers.open_driver`):
-        rig, init, odom and tof are used, truth is ignored; their values are treated as
-        :meth:`reading`, :meth:`odometry` and :meth:`set_pose` treat them. ValueError
-        for anything but a record."""
-        if not isinstance(rec, _RECORDS):
+        rig, init, odom and tof are used, truth is ignored; data faults in them are
+        skipped and counted as in :meth:`reading` and :meth:`odometry`, a non-finite
+        init raises as :meth:`set_pose` does. ValueError for anything but a record."""
+        if not isinstance(rec, Record):
             raise ValueError(f"`feed` takes a sonarloc.io.logfile record (rig, init, odom, "
                              f"tof, truth), got {type(rec).__name__}")
         if isinstance(rec, InitRecord):

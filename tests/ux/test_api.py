@@ -266,10 +266,10 @@ def test_readings_without_odometry_keep_memory_bounded():
                                        config=LocalizerConfig(method="conventional"))
     node.set_pose(1.0, 1.0, 0.0)
     node.odometry(0.0, 0.0, 0.0, 0.0)
-    for k in range(10_005):
-        node.reading(1.0 + 1e-4 * k, 0, 9000.0)      # a wall 1.5 m ahead
+    for k in range(10_005):   # the 5 oldest: 7 m (beyond max_range_m); then 1.5 m ahead
+        node.reading(1.0 + 1e-4 * k, 0, 40_000.0 if k < 5 else 9000.0)
     assert node.stats.skipped["tof_without_odom"] == 5
     assert node.stats.observations == 0
     node.odometry(3.0, 0.0, 0.0, 0.0)
-    assert node.stats.observations == 10_000
+    assert node.stats.observations == 10_000     # the newest 10,000, every one
     assert node.stats.skipped["tof_without_odom"] == 5
