@@ -420,6 +420,10 @@ def _too_few(seg: Any, need: int) -> Landmark:
                     sensors=tuple(sorted({int(v) for v in np.asarray(r.sensor)[echo]})))
 
 
+def _reading_time(r: TofRecord) -> float:
+    return r.t_s
+
+
 def _fitted_kappa(lm: Landmark) -> float:
     """The fitted strength of ``lm`` [us] (NaN when it has none)."""
     p = np.asarray(lm.params, dtype=float)
@@ -474,6 +478,7 @@ class Localizer:
         # dropping the oldest when no odometry arrives is O(1))
         self._pending: deque[TofRecord] = deque()
         self._last_odom_t = -math.inf
+        self._last_pushed_t = -math.inf  # the latest reading given to the segmenter
         self._consecutive_rejected = 0
         self._last_accept_t = -math.inf
         self._start_t = math.nan
@@ -496,11 +501,19 @@ class Localizer:
                         for m in sensors}
         self._c_mps = float(speed_of_sound_mps)
         self._source = None
+        self._last_pushed_t = -math.inf
 
     def set_prior(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, sd_xy_m: float,
                   sd_yaw_rad: float) -> None:
         """Prior of ``base_link`` in ``map``; (re)starts the filter at the next odom record
-        (whose time may be earlier than the last one's: a restarted clock or log)."""
+        (whose time may be earlier than the last one's: a restarted clock or log). The
+        fitter's open segments are fitted and fused first (as at the end of a stream), and
+        the fitter starts afresh: its readings must come in time order."""
+        if self._source is not None:
+            for lm in self._source.flush():
+                self.add_landmark(lm)
+            self._source = None
+            self._last_pushed_t = -math.inf
         self._prior = Gaussian.from_pose(x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
         self._unknown = False
         self._entries.clear()
@@ -1126,6 +1139,10 @@ class Localizer:
         if not ready:
             return
         self._pending = deque(r for r in self._pending if r.t_s > t_odom)
+        # in time order (stable: arrival order among equal times), so a reading that came
+        # just after a later one (two drivers, two queues) still reaches the segmenter,
+        # which drops readings older than the last
+        ready.sort(key=_reading_time)
         for r in ready:
             self._process_tof(r)
 
@@ -1176,6 +1193,11 @@ class Localizer:
                 self._source = SegmentFitSource(
                     self._c_mps, max_readings=n, min_echoes=self.segment_min_echoes,
                     sweep_away_deg=self.segment_sweep_away_deg(r.pan_deg is not None))
+        if isinstance(self._source, SegmentFitSource):
+            if r.t_s < self._last_pushed_t:  # the segmenter would drop it: say so
+                self.stats.skipped["tof_out_of_order"] += 1
+                return
+            self._last_pushed_t = r.t_s
         bx, by, bth = (float(v) for v in base)
         mx, my, mth = (float(v) for v in mount)
         c, s = math.cos(bth), math.sin(bth)

@@ -142,6 +142,7 @@ class OfflinePipeline:
         self._odom: list[tuple[float, OdomRecord]] = []  # received, not yet in the history
         self._last_t = -math.inf
         self._last_rec: OdomRecord | None = None  # the last odom record taken
+        self._last_pushed_t = -math.inf           # the segmenter's latest reading
         self._new = 0                            # odom records since the last round
         self._rows: list[tuple[float, OdomRecord]] = []  # in the history, not yet handed out
         # readings waiting for odometry at or after them, as columns (tof NaN: no echo)
@@ -215,6 +216,7 @@ class OfflinePipeline:
         again from an earlier time, as after :meth:`Localizer.set_prior`."""
         self._round(final=True)
         self._source = None
+        self._last_pushed_t = -math.inf
         if restart:
             self._last_t = -math.inf
             self._last_rec = None
@@ -306,6 +308,16 @@ class OfflinePipeline:
             ready, t, tof = ready[~old], t[~old], tof[~old]
             if not ready.size:
                 return
+        # in time order, as Localizer._drain_pending; older than the segmenter's last: out
+        order = np.argsort(t, kind="stable")
+        ready, t, tof = ready[order], t[order], tof[order]
+        late = t < self._last_pushed_t
+        if late.any():
+            loc.stats.skipped["tof_out_of_order"] += int(np.count_nonzero(late))
+            ready, t, tof = ready[~late], t[~late], tof[~late]
+            if not ready.size:
+                return
+        self._last_pushed_t = float(t[-1])
         if self._source is None:
             panning = pan_all[int(ready[0])] is not None
             n = loc.segment_max_readings(panning)

@@ -269,16 +269,29 @@ def test_readings_after_the_last_odometry_are_counted_online_and_in_batch(ring_l
 
 @pytest.mark.parametrize("mode", ["batch", "online"])
 def test_stale_odometry_and_garbage_readings_in_a_log(ring_log, fmap, mode):
-    """A log with stale odom records (older than the last: delivered late) and readings
-    with a zero or negative TOF, as the embedding API gets them: each skipped and counted
-    (``odom_time_backwards``, ``bad_tof``), a row per odom record, and the rows of the
+    """A log with stale odom records (older than the last: delivered late), readings
+    with a zero or negative TOF and pairs of readings swapped, as the embedding API gets
+    them: each fault skipped and counted (``odom_time_backwards``, ``bad_tof``; the
+    swapped readings used in time order), a row per odom record, and the rows of the
     good odom records exactly those of the log without the faults; a stale record's row
     is the belief as it was. (A stale record was taken as the newest pose at the last
     time: the belief moved back and forth.)"""
     lines = ring_log.splitlines(keepends=True)
     odom = [ln for ln in lines if '"type":"odom"' in ln]
-    faulty, n_stale, n_bad = [], 0, 0
-    for line in lines:
+    def t_of(line):
+        return float(line.split('"t_s":')[1].split(",")[0])
+
+    def swap(i):   # line i is the first of two readings at different times
+        return '"type":"tof"' in lines[i] and '"type":"tof"' in lines[i + 1] and \
+            t_of(lines[i]) < t_of(lines[i + 1])
+
+    faulty, n_stale, n_bad, n_swap = [], 0, 0, 0
+    for i, line in enumerate(lines):
+        if i % 5 == 0 and swap(i):
+            line = lines[i + 1]                              # two readings swapped
+            n_swap += 1
+        elif i % 5 == 1 and swap(i - 1):
+            line = lines[i - 1]
         faulty.append(line)
         if line in odom and odom.index(line) % 10 == 9:
             faulty.append(odom[odom.index(line) - 3])        # a stale copy, late
@@ -296,9 +309,10 @@ def test_stale_odometry_and_garbage_readings_in_a_log(ring_log, fmap, mode):
 
     clean, _ = rows_of("".join(lines))
     rows, res = rows_of("".join(faulty))
-    assert n_stale > 5 and n_bad > 10
+    assert n_stale > 5 and n_bad > 10 and n_swap > 10
     assert res.localizer.stats.skipped["odom_time_backwards"] == n_stale
     assert res.localizer.stats.skipped["bad_tof"] == n_bad
+    assert "tof_out_of_order" not in res.localizer.stats.skipped
     assert len(rows) == len(clean) + n_stale
     good, k = [], 0
     for row in rows:
