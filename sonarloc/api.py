@@ -185,9 +185,10 @@ class LocalizerNode:
         """One sonar reading: first-echo time of flight in µs (None = no echo).
 
         Readings are processed once odometry has reached their time (so the transducer
-        pose is interpolated, never extrapolated). A garbage reading is skipped and
-        counted in ``stats.skipped``: an unknown sensor (``unknown_sensor``), a NaN or
-        infinite time or pan angle, a zero, negative or infinite TOF (``bad_tof``).
+        pose is interpolated, never extrapolated), in time order. A garbage reading is
+        skipped and counted in ``stats.skipped``: an unknown sensor (``unknown_sensor``),
+        a NaN or infinite time or pan angle, a zero, negative or infinite TOF
+        (``bad_tof``), one older than a reading already used (``tof_out_of_order``).
         ValueError if an argument has the wrong type (``sensor`` not an integer, a value
         not a real number).
         """
@@ -269,7 +270,8 @@ class LocalizerNode:
 
     @property
     def stats(self) -> Any:
-        """Counters of the Localizer (odom, tof, landmarks, fused, rejections)."""
+        """Counters of the Localizer (odom, tof, landmarks, fused, rejections, and in
+        ``skipped`` the inputs dropped, by reason; ``stats.summary()`` says it in a line)."""
         return self.localizer.stats
 
     def _landmark(self, lm: Landmark, outcome: FusionOutcome) -> None:
