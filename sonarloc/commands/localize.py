@@ -73,4 +73,10 @@ def run(args: argparse.Namespace) -> int:
             print(f"  line {lineno}: {msg}", file=sys.stderr)
         for lineno, prev, now in result.log.time_backwards[:10]:
             print(f"  line {lineno}: time went backwards ({now} after {prev})", file=sys.stderr)
+    if result.log.records == 0:
+        # not one usable line (an empty file, or every line malformed): a failure, not an
+        # empty track that a script would take for a successful run
+        print(f"sonarloc localize: error: no usable record in {args.log} "
+              f"({result.log.malformed_count} malformed line(s))", file=sys.stderr)
+        return 2
     return 0

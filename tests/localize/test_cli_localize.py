@@ -85,6 +85,18 @@ def test_bad_log_is_reported_not_fatal(run_cli, room_log, tmp_path):
     assert len(read_poses_csv(out)) == n_odom
 
 
+@pytest.mark.parametrize("text", ["", '{"type":"rig","sensors":[]}\nnotjson\n'])
+def test_a_log_without_one_usable_record_fails(run_cli, tmp_path, text):
+    # every line malformed (or none at all): exit 2 with a line saying so, after the
+    # malformed lines are listed; before session 15 it exited 0 with a bare header
+    log = tmp_path / "bad.jsonl"
+    log.write_text(text)
+    proc = run_cli("localize", str(log), "--map", ROOM, "--method", "odometry")
+    assert proc.returncode == 2
+    assert "no usable record" in proc.stderr.strip().splitlines()[-1]
+    assert proc.stdout.strip().splitlines() == [",".join(COLUMNS)]
+
+
 def test_no_init_needs_init_flag(run_cli, room_log, tmp_path):
     lines = [ln for ln in room_log.read_text().splitlines()[:300] if '"init"' not in ln]
     log = tmp_path / "noinit.jsonl"
