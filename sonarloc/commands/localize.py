@@ -20,6 +20,7 @@ import argparse
 import sys
 
 from sonarloc.commands._args import accept_negative_values, parse_pose
+from sonarloc.errors import LogFormatError
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import LocalizerConfig
 from sonarloc.localize.replay import Mode, PoseCsvWriter, replay_log
@@ -76,7 +77,6 @@ def run(args: argparse.Namespace) -> int:
     if result.log.records == 0:
         # not one usable line (an empty file, or every line malformed): a failure, not an
         # empty track that a script would take for a successful run
-        print(f"sonarloc localize: error: no usable record in {args.log} "
-              f"({result.log.malformed_count} malformed line(s))", file=sys.stderr)
-        return 2
+        raise LogFormatError(f"no usable record in {args.log} "
+                             f"({result.log.malformed_count} malformed line(s))")
     return 0

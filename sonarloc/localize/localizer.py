@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import operator
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
@@ -418,10 +419,6 @@ def _too_few(seg: Any, need: int) -> Landmark:
                     (float(r.x_m[k]), float(r.y_m[k]), float(r.yaw_rad[k])),
                     FitStatus.TOO_FEW_POINTS, f"{echo.size} echoes; {need} are needed",
                     sensors=tuple(sorted({int(v) for v in np.asarray(r.sensor)[echo]})))
-
-
-def _reading_time(r: TofRecord) -> float:
-    return r.t_s
 
 
 def _fitted_kappa(lm: Landmark) -> float:
@@ -1142,7 +1139,7 @@ class Localizer:
         # in time order (stable: arrival order among equal times), so a reading that came
         # just after a later one (two drivers, two queues) still reaches the segmenter,
         # which drops readings older than the last
-        ready.sort(key=_reading_time)
+        ready.sort(key=operator.attrgetter("t_s"))
         for r in ready:
             self._process_tof(r)
 
