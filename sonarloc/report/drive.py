@@ -54,6 +54,10 @@ class DriveReport:
     status: str = ""
     compute_s: float = math.nan
     compute_per_reading_us: float = math.nan
+    # The Localizer's CPU time per call (one record fed, the calling thread's time): what
+    # a control loop that calls it must allow for. 99th percentile and worst call.
+    call_p99_ms: float = math.nan
+    call_max_ms: float = math.nan
     wall_time_s: float = math.nan
     realtime_factor: float = math.nan
     device_stats: dict[str, Any] = field(default_factory=dict)
@@ -110,6 +114,8 @@ class DriveReport:
             f"  compute         {f(self.compute_per_reading_us, '.0f')} us per reading "
             f"(fit + filter), wall {f(self.wall_time_s, '.1f')} s, "
             f"{f(self.realtime_factor, '.1f')}x real time",
+            f"  per record      {f(self.call_p99_ms, '.1f')} ms CPU at the 99th percentile, "
+            f"{f(self.call_max_ms, '.1f')} ms at worst (one Localizer call)",
         ]
         if self.status:
             lines.append(f"  status          {self.status}")

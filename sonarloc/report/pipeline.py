@@ -21,6 +21,7 @@ import os
 import sysconfig
 import threading
 import time
+from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -268,6 +269,7 @@ def run_drive(config: DriveConfig = DriveConfig(),
     odom_rows: list[tuple[float, float, float, float]] = []
     n_tof = n_echo = 0
     compute = 0.0
+    call_cpu = array("d")  # the calling thread's CPU seconds of each node call
     last_status = ""
     t_stream = time.perf_counter()
     with module:
@@ -287,9 +289,10 @@ def run_drive(config: DriveConfig = DriveConfig(),
                     continue
                 if rec is None:
                     break
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.thread_time()
                 est = node.feed(rec)
                 compute += time.perf_counter() - t0
+                call_cpu.append(time.thread_time() - c0)
                 if isinstance(rec, TofRecord):
                     n_tof += 1
                     n_echo += rec.tof_us is not None
@@ -301,9 +304,10 @@ def run_drive(config: DriveConfig = DriveConfig(),
                     est_rows.append((est.t_s, est.x_m, est.y_m, est.yaw_rad))
                     covs.append(np.asarray(est.state.cov, dtype=float))
                     last_status = f"{est.status} ({est.reason})"
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             node.finish()
             compute += time.perf_counter() - t0
+            call_cpu.append(time.thread_time() - c0)
             device_stats = drv.counters()
     if tee.error is not None:
         raise tee.error
@@ -332,6 +336,8 @@ def run_drive(config: DriveConfig = DriveConfig(),
         readings_fused=st.echoes_fused,
         status=last_status, compute_s=compute,
         compute_per_reading_us=compute / n_tof * 1e6 if n_tof else math.nan,
+        call_p99_ms=float(np.percentile(call_cpu, 99)) * 1e3 if call_cpu else math.nan,
+        call_max_ms=max(call_cpu) * 1e3 if call_cpu else math.nan,
         wall_time_s=time.perf_counter() - t_start,
         realtime_factor=float(duration) / stream_s if stream_s > 0 else math.nan,
         device_stats={k: v for k, v in device_stats.items()

@@ -42,6 +42,12 @@ def test_drive_json_over_can_beats_odometry(tmp_path: Path, run_cli):
     assert rep["steady_pose_rmse_m"] < min(rep["pose_rmse_m"], 0.02)
     assert rep["steady_yaw_rmse_deg"] < 1.0
     assert rep["compute_per_reading_us"] > 0 and rep["realtime_factor"] > 0
+    # the worst call's CPU time is at least its share of all the compute, and the 99th
+    # percentile lies below it (the CPU time of a call is never more than its wall time)
+    total_ms = rep["compute_per_reading_us"] * rep["readings"] / 1e3
+    n_calls = rep["readings"] + rep["odom_records"] + 2  # + the init record and finish()
+    assert 0 < rep["call_p99_ms"] <= rep["call_max_ms"] <= total_ms
+    assert rep["call_max_ms"] >= 0.5 * total_ms / n_calls
     assert rep["status"].startswith("tracking")
 
 
@@ -65,7 +71,7 @@ def test_drive_text_report(tmp_path: Path, run_cli):
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
     for needle in ("pose RMSE", "odometry only", "landmarks", "us per reading", "x real time",
-                   "rig pan"):
+                   "rig pan", "ms CPU at the 99th percentile"):
         assert needle in out, needle
     assert proc.stderr == ""  # no progress bar when stderr is not a terminal
 
