@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 
+from sonarloc.errors import LogFormatError
 from sonarloc.io.posescsv import read_poses_csv
 from sonarloc.maps.build import BuildConfig, build_from_log
 from sonarloc.maps.geojson import map_from_geojson
@@ -44,6 +45,13 @@ def _run_build(args: argparse.Namespace) -> int:
         raise ValueError(f"--min-observations must be at least 1, got {args.min_observations}")
     poses = read_poses_csv(args.poses) if args.poses else None
     result = build_from_log(args.log, poses, BuildConfig(min_observations=args.min_observations))
+    if result.readings == 0:
+        # nothing to build from (no rig, no tof, or no pose for any reading): a failure,
+        # not an empty map that a script would take for a successful run
+        raise LogFormatError("; ".join([
+            f"no sonar reading with a pose in {args.log} (it needs a rig record, tof records "
+            "and odometry or --poses covering them)", f"log: {result.log.summary()}",
+            *result.skipped_summary()]))
     obj = result.geojson()
     map_from_geojson(obj)  # what we write must load
     lines = [json.dumps(f, separators=(", ", ": ")) for f in obj["features"]]
