@@ -6,7 +6,10 @@ interpolated to each reading) or, without --poses, from the odometry anchored at
 log's init pose (it drifts). Wall fits on one line are merged into walls, point fits
 into poles, rods, corners, edges and points; each feature carries its uncertainty
 (sd_m, and sd_alpha_deg for walls) and how often it was seen (n_obs). The map loads
-with load_map and works in `sonarloc localize`. A summary goes to stderr.
+with load_map and works in `sonarloc localize`. A summary goes to stderr; readings
+without a pose (outside POSES.csv's time span, after the last odometry) are counted
+there, never given the nearest pose. POSES.csv must be base_link poses: a scan CSV
+(transducer poses, a tof_us column) is refused.
 """
 
 from __future__ import annotations
