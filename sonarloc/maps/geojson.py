@@ -483,8 +483,8 @@ def load_map(path: str | Path) -> Map:
     MapError
         if the file cannot be read or parsed, or a feature is bad.
     """
-    try:
-        text = Path(path).read_text(encoding="utf-8")
+    try:  # a byte-order mark (some editors write one) is not part of the JSON
+        text = Path(path).read_text(encoding="utf-8-sig")
     except OSError as err:
         raise MapError(f"cannot open map {path}: {err.strerror}") from err
     except UnicodeDecodeError as err:
@@ -493,6 +493,8 @@ def load_map(path: str | Path) -> Map:
         obj = json.loads(text)
     except json.JSONDecodeError as err:
         raise MapError(f"map {path}: not JSON (line {err.lineno}: {err.msg})") from err
+    except RecursionError:
+        raise MapError(f"map {path}: not a map (JSON nested too deeply)") from None
     try:
         return map_from_geojson(obj)
     except MapError as err:

@@ -151,6 +151,12 @@ def test_load_map_errors_name_the_file(tmp_path):
     bad.write_text(json.dumps(fc(feat("Point", [0, 0], kind="tree"))))
     with pytest.raises(MapError, match="bad.geojson: feature 0: unknown kind"):
         load_map(bad)
+    bad.write_text("[" * 100_000 + "]" * 100_000)  # deeper than json's recursion
+    with pytest.raises(MapError, match="bad.geojson: not a map \\(JSON nested too deeply"):
+        load_map(bad)
+    # a byte-order mark (some editors write one) is no part of the JSON
+    bad.write_text("\ufeff" + json.dumps(fc(feat("Point", [0, 0], kind="pole"))), encoding="utf-8")
+    assert [r.kind for r in load_map(bad).reflectors] == ["pole"]
 
 
 def test_odd_but_sound_maps_load():
