@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 from sonarloc.errors import LogFormatError
@@ -46,6 +47,9 @@ def run(args: argparse.Namespace) -> int:
 def _run_build(args: argparse.Namespace) -> int:
     if args.min_observations < 1:
         raise ValueError(f"--min-observations must be at least 1, got {args.min_observations}")
+    for name, path in (("LOG", args.log), ("--poses", args.poses)):
+        if path and os.path.exists(args.out) and os.path.samefile(path, args.out):
+            raise ValueError(f"--out {args.out} is the input {name}: it would be overwritten")
     poses = read_poses_csv(args.poses) if args.poses else None
     result = build_from_log(args.log, poses, BuildConfig(min_observations=args.min_observations))
     if result.readings == 0:

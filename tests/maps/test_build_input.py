@@ -124,6 +124,16 @@ def test_cli_refuses_a_scan_csv_as_poses(run_cli, records, tmp_path):
     assert "scan.csv: line 1: this is a scan CSV (column `tof_us`" in line
 
 
+def test_cli_will_not_overwrite_its_input(run_cli, records, tmp_path):
+    # `--out` naming the log replaced the recording with the map
+    log = tmp_path / "log.jsonl"
+    text = log_text([r for r in records if r.t_s <= 3.0])
+    log.write_text(text, encoding="utf-8")
+    proc = run_cli("map", "build", str(log), "--out", str(tmp_path / "." / "log.jsonl"))
+    assert proc.returncode == 2 and "is the input LOG" in proc.stderr
+    assert log.read_text(encoding="utf-8") == text
+
+
 @pytest.mark.parametrize("keep", ["truth", "rig", "nothing", "no rig"])
 def test_cli_fails_without_a_reading_to_build_from(run_cli, records, tmp_path, keep):
     recs = {"truth": [r for r in records if isinstance(r, TruthRecord)],
