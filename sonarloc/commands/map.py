@@ -6,15 +6,20 @@ interpolated to each reading) or, without --poses, from the odometry anchored at
 log's init pose (it drifts). Wall fits on one line are merged into walls, point fits
 into poles, rods, corners, edges and points; each feature carries its uncertainty
 (sd_m, and sd_alpha_deg for walls) and how often it was seen (n_obs). The map loads
-with load_map and works in `sonarloc localize`. A summary goes to stderr.
+with load_map and works in `sonarloc localize`. A summary goes to stderr; readings
+without a pose (outside POSES.csv's time span, after the last odometry) are counted
+there, never given the nearest pose. POSES.csv must be base_link poses: a scan CSV
+(transducer poses, a tof_us column) is refused.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
+from sonarloc.errors import LogFormatError
 from sonarloc.io.posescsv import read_poses_csv
 from sonarloc.maps.build import BuildConfig, build_from_log
 from sonarloc.maps.geojson import map_from_geojson
@@ -42,8 +47,18 @@ def run(args: argparse.Namespace) -> int:
 def _run_build(args: argparse.Namespace) -> int:
     if args.min_observations < 1:
         raise ValueError(f"--min-observations must be at least 1, got {args.min_observations}")
+    for name, path in (("LOG", args.log), ("--poses", args.poses)):
+        if path and os.path.exists(args.out) and os.path.samefile(path, args.out):
+            raise ValueError(f"--out {args.out} is the input {name}: it would be overwritten")
     poses = read_poses_csv(args.poses) if args.poses else None
     result = build_from_log(args.log, poses, BuildConfig(min_observations=args.min_observations))
+    if result.readings == 0:
+        # nothing to build from (no rig, no tof, or no pose for any reading): a failure,
+        # not an empty map that a script would take for a successful run
+        raise LogFormatError("; ".join([
+            f"no sonar reading with a pose in {args.log} (it needs a rig record, tof records "
+            "and odometry or --poses covering them)", f"log: {result.log.summary()}",
+            *result.skipped_summary()]))
     obj = result.geojson()
     map_from_geojson(obj)  # what we write must load
     lines = [json.dumps(f, separators=(", ", ": ")) for f in obj["features"]]

@@ -338,7 +338,9 @@ def iter_log_runs(
                     if not isinstance(obj, dict):
                         raise ValueError("not a JSON object")
                     rec = record_from_dict(obj)
-                except ValueError as err:  # json.JSONDecodeError is a ValueError
+                # json.JSONDecodeError is a ValueError; a line nested too deeply for
+                # json's recursion (a RecursionError) is as malformed
+                except (ValueError, RecursionError) as err:
                     msg = str(err).splitlines()[0][:200]
                     if strict:
                         raise LogFormatError(f"line {lineno}: {msg}") from err

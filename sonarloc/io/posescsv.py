@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -51,7 +52,12 @@ def read_poses_csv(source: str | Path | IO[str]) -> PoseTrack:
     """Read a pose CSV (section 5) from a path or text stream.
 
     Every value must be a finite number; the covariance columns may be missing (then
-    the covariance is NaN).
+    the covariance is NaN). Rows come as written, one per odom record: ``t_s`` may
+    repeat or go back where the log's odometry did. Refused with
+    :class:`LogFormatError` naming the line (and the file, given a path): a missing
+    ``t_s``/``x_m``/``y_m``/``yaw_deg`` column, a scan CSV (section 1, told by its
+    ``tof_us`` column: its poses are the transducers', not ``base_link``'s), a bad
+    value, a header without rows. A byte-order mark is allowed.
     """
     if isinstance(source, (str, Path)):
         try:
@@ -59,11 +65,34 @@ def read_poses_csv(source: str | Path | IO[str]) -> PoseTrack:
                 return read_poses_csv(handle)
         except OSError as err:
             raise LogFormatError(f"cannot open pose CSV {source}: {err.strerror}") from err
+        except UnicodeDecodeError:
+            raise LogFormatError(f"pose CSV {source} is not UTF-8 text") from None
+        except LogFormatError as err:
+            raise LogFormatError(f"pose CSV {source}: {err}") from None
     reader = csv.reader(source)
+    try:
+        rows = _parse_rows(reader)
+    except csv.Error as err:  # a NUL byte, a field over csv's size limit: a line, not a crash
+        raise LogFormatError(f"line {reader.line_num}: {err}") from None
+    a = np.array(rows, dtype=float).reshape(-1, len(COLUMNS))
+    cxx, cxy, cxt, cyy, cyt, ctt = (a[:, i] for i in range(4, 10))
+    cov = np.stack([np.stack([cxx, cxy, cxt], -1), np.stack([cxy, cyy, cyt], -1),
+                    np.stack([cxt, cyt, ctt], -1)], -2)
+    return PoseTrack(a[:, 0], a[:, 1], a[:, 2], np.radians(a[:, 3]), cov)
+
+
+def _parse_rows(reader: Iterator[list[str]]) -> list[list[float]]:
+    """The rows of a pose CSV as :data:`COLUMNS` values (NaN for a missing column)."""
     header = next(reader, None)
     if header is None:
-        raise LogFormatError("line 1: pose CSV is empty (expected a header row)")
+        raise LogFormatError("line 1: empty file (expected a header row)")
+    if header:  # a byte-order mark (spreadsheets write one) is not part of the first name
+        header[0] = header[0].removeprefix("\ufeff")
     names = [h.strip() for h in header]
+    if "tof_us" in names:
+        raise LogFormatError("line 1: this is a scan CSV (column `tof_us`: transducer poses, "
+                             "FORMATS.md section 1), not a pose CSV of base_link (section 5, "
+                             "as `sonarloc localize --out` writes)")
     for need in COLUMNS[:4]:
         if need not in names:
             raise LogFormatError(f"line 1: missing column `{need}` (have {', '.join(names)})")
@@ -87,11 +116,9 @@ def read_poses_csv(source: str | Path | IO[str]) -> PoseTrack:
                 raise LogFormatError(f"line {lineno}: column `{name}` must be finite, got {cell!r}")
             values.append(v)
         rows.append(values)
-    a = np.array(rows, dtype=float).reshape(-1, len(COLUMNS))
-    cxx, cxy, cxt, cyy, cyt, ctt = (a[:, i] for i in range(4, 10))
-    cov = np.stack([np.stack([cxx, cxy, cxt], -1), np.stack([cxy, cyy, cyt], -1),
-                    np.stack([cxt, cyt, ctt], -1)], -2)
-    return PoseTrack(a[:, 0], a[:, 1], a[:, 2], np.radians(a[:, 3]), cov)
+    if not rows:
+        raise LogFormatError("line 2: no pose rows after the header")
+    return rows
 
 
 def write_poses_csv(target: str | Path | IO[str], track: PoseTrack) -> None:

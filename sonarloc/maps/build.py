@@ -742,12 +742,18 @@ def _join_walls(walls: list[BuiltFeature], join_m: float) -> list[BuiltFeature]:
 
 
 class _Track:
-    """base_link pose (and covariance) in ``map`` at any time, by interpolation."""
+    """base_link pose (and covariance) in ``map`` at any time within the track, by
+    interpolation (outside it there is no pose: :meth:`covers`)."""
 
     def __init__(self, t: Array, poses: Array, cov: Array | None) -> None:
+        if len(t) == 0:
+            raise ValueError("`poses` has no pose")
         self.t = t
         self.poses = poses
         self.cov = cov
+
+    def covers(self, t_s: float) -> bool:
+        return bool(self.t[0] <= t_s <= self.t[-1])
 
     def at(self, t_s: float) -> tuple[Array, Array | None]:
         i = int(np.searchsorted(self.t, t_s, "right"))
@@ -771,6 +777,7 @@ class BuildResult:
     landmarks: int = 0
     readings: int = 0
     skipped: Counter[str] = field(default_factory=Counter)
+    notes: list[str] = field(default_factory=list)
 
     def geojson(self) -> dict[str, Any]:
         return self.builder.geojson()
@@ -781,26 +788,44 @@ class BuildResult:
         parts = [f"log: {self.log.summary()}", f"{self.readings} readings",
                  f"{self.landmarks} landmarks fitted",
                  "map: " + (", ".join(f"{v} {k}" for k, v in sorted(kinds.items())) or "empty")]
+        return "; ".join(parts + self.skipped_summary() + self.notes)
+
+    def skipped_summary(self) -> list[str]:
+        """``["skipped: NAME COUNT, ..."]`` (readings, records, landmarks), or ``[]``."""
         st = {k: v for k, v in self.builder.stats.items() if k.startswith("skipped")}
         st.update(self.skipped)
-        if st:
-            parts.append("skipped: " + ", ".join(f"{k} {v}" for k, v in sorted(st.items())))
-        return "; ".join(parts)
+        return ["skipped: " + ", ".join(f"{k} {v}" for k, v in sorted(st.items()))] if st else []
 
 
-def _readings(source: str | Path | IO[str], stats: LogStats, poses: PoseTrack | None,
-              skipped: Counter[str]) -> Iterator[tuple[float, int, float, Array, Array | None,
-                                                      Array, float]]:
-    """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c)."""
+def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult
+              ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float]]:
+    """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c).
+
+    A reading without a pose is counted in ``result.skipped``, never given a made-up
+    one: outside the pose track (``tof_outside_poses``; pose rows whose time went
+    backwards are dropped, ``poses_time_backwards``), before the first odometry or
+    after the last (``tof_before_odom``, ``tof_after_last_odom``). Odometry is anchored
+    at the first ``init`` record, or at the origin without one (``result.notes`` says
+    so); an ``init`` after readings were placed is skipped (``init_after_readings``):
+    one map frame for all of them.
+    """
+    skipped = result.skipped
+    anchored = False  # readings placed by odometry: the map frame is fixed
     mounts: dict[int, Array] = {}
     c_mps = 343.0
     init: Array | None = None
     odom_first: Array | None = None
     track = None
     if poses is not None:
-        track = _Track(np.asarray(poses.t_s, float),
-                       np.stack([poses.x_m, poses.y_m, poses.yaw_rad], axis=-1),
-                       None if np.any(np.isnan(poses.cov)) else np.asarray(poses.cov))
+        # a row older than one before it is localize's row for an odom record whose time
+        # went backwards (the estimate of the later time): no pose of its time
+        t = np.asarray(poses.t_s, float)
+        keep = t >= np.fmax.accumulate(t)
+        if not keep.all():
+            skipped["poses_time_backwards"] += int(np.count_nonzero(~keep))
+        cov = np.asarray(poses.cov)[keep]
+        track = _Track(t[keep], np.stack([poses.x_m, poses.y_m, poses.yaw_rad], axis=-1)[keep],
+                       None if np.any(np.isnan(cov)) else cov)
     odo_t: list[float] = []
     odo_p: list[Array] = []
     pending: list[TofRecord] = []
@@ -816,6 +841,7 @@ def _readings(source: str | Path | IO[str], stats: LogStats, poses: PoseTrack | 
                                (t - odo_t[i - 1]) / span)
 
     def emit(r: TofRecord) -> tuple[float, int, float, Array, Array | None, Array, float]:
+        nonlocal anchored
         mount = mounts[r.sensor]
         if r.pan_deg is not None:
             mount = mount + np.array([0.0, 0.0, math.radians(r.pan_deg)])
@@ -823,19 +849,22 @@ def _readings(source: str | Path | IO[str], stats: LogStats, poses: PoseTrack | 
         if track is not None:
             base, cov = track.at(r.t_s)
         else:
+            anchored = True
             first = odom_first if odom_first is not None else odo_p[0]
             rel = se2.between(first, odom_at(r.t_s))
             base = se2.compose(init, rel) if init is not None else rel
         tof = math.nan if r.tof_us is None else float(r.tof_us)
         return r.t_s, r.sensor, tof, se2.compose(base, mount), cov, base, c_mps
 
-    for rec in iter_log(source, stats):
+    for rec in iter_log(source, result.log):
         if isinstance(rec, RigRecord):
             mounts = {m.id: np.array([m.x_m, m.y_m, math.radians(m.yaw_deg)])
                       for m in rec.sensors}
             c_mps = rec.speed_of_sound_mps
         elif isinstance(rec, InitRecord):
-            if init is None:
+            if init is None and anchored:
+                skipped["init_after_readings"] += 1
+            elif init is None:
                 init = np.array([rec.x_m, rec.y_m, math.radians(rec.yaw_deg)])
         elif isinstance(rec, OdomRecord):
             p = np.array([rec.x_m, rec.y_m, math.radians(rec.yaw_deg)])
@@ -858,14 +887,21 @@ def _readings(source: str | Path | IO[str], stats: LogStats, poses: PoseTrack | 
                 skipped["tof_unknown_sensor" if mounts else "tof_before_rig"] += 1
                 continue
             if track is not None:
-                yield emit(rec)
+                if track.covers(rec.t_s):
+                    yield emit(rec)
+                else:  # extrapolating the track would build from made-up poses
+                    skipped["tof_outside_poses"] += 1
             elif odom_first is None:
                 skipped["tof_before_odom"] += 1
             else:
                 pending.append(rec)
-    if odom_first is not None:
-        for r in pending:
+    for r in pending:  # those at the last odometry's time came after it in the log
+        if r.t_s <= odo_t[-1]:
             yield emit(r)
+        else:
+            skipped["tof_after_last_odom"] += 1
+    if anchored and init is None:
+        result.notes.append("no init record: the map frame is the first odometry pose")
 
 
 def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
@@ -885,12 +921,11 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     from sonarloc.physics.tof import ModuleParams
 
     cfg = config or BuildConfig()
-    stats = LogStats()
-    result = BuildResult(MapBuilder(cfg), stats)
+    result = BuildResult(MapBuilder(cfg), LogStats())
     seg: Segmenter | None = None
     fit_cfg: FitConfig | None = None
     ref_cov: dict[float, tuple[Array, Array | None]] = {}
-    for t, sensor, tof, pose, cov, base, c_mps in _readings(source, stats, poses, result.skipped):
+    for t, sensor, tof, pose, cov, base, c_mps in _readings(source, poses, result):
         if seg is None or fit_cfg is None:
             fit_cfg = FitConfig(module=ModuleParams(c_mps=cfg.speed_of_sound_mps or c_mps))
             seg = Segmenter(SegmenterConfig(max_readings=cfg.segment_max_readings),

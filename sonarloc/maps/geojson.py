@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -59,6 +60,15 @@ MIN_RADIUS_M = 1e-6
 
 SNAP_M = 0.01
 """An explicit corner/edge Point this close to a wall vertex replaces the derived one."""
+
+MAX_COORD_M = 1e8
+"""Largest coordinate or radius accepted [m]: far beyond any map in metres (projected
+coordinates such as UTM stay below 1e7 m); larger values overflow the geometry."""
+
+LONLAT_CRS = re.compile(r"(CRS(84|83|27)|EPSG(:+|/0/)(4326|4269|4258|4979))$", re.IGNORECASE)
+"""Names of longitude/latitude coordinate systems in an (old-style GeoJSON) ``crs``
+member, e.g. ``urn:ogc:def:crs:OGC:1.3:CRS84``, ``EPSG:4326``: a map in degrees is
+refused (map coordinates are metres)."""
 
 
 def default_kappa_us(kind: str, radius_m: float = 0.0) -> float:
@@ -234,18 +244,21 @@ def _finite_number(value: Any) -> bool:
             and math.isfinite(value))
 
 
-def _check_positions(index: int, coords: Any, depth: int) -> None:
-    """Check nested GeoJSON positions: depth 0 = one position."""
+def _positions_xy(index: int, coords: Any, depth: int) -> Any:
+    """Nested GeoJSON positions checked and cut to [x, y] (a z is dropped; positions
+    with and without one may mix): depth 0 = one position."""
     if depth == 0:
         if not isinstance(coords, list) or len(coords) not in (2, 3):
             raise _fail(index, f"a position must be [x, y], got {coords!r:.60}")
         if not all(_finite_number(v) for v in coords):
             raise _fail(index, f"coordinates must be finite numbers, got {coords!r:.60}")
-        return
+        if abs(coords[0]) > MAX_COORD_M or abs(coords[1]) > MAX_COORD_M:
+            raise _fail(index, f"coordinates must be metres within ±{MAX_COORD_M:g}, "
+                               f"got {coords!r:.60}")
+        return coords[:2]
     if not isinstance(coords, list):
         raise _fail(index, f"`coordinates` must be a list, got {coords!r:.60}")
-    for c in coords:
-        _check_positions(index, c, depth - 1)
+    return [_positions_xy(index, c, depth - 1) for c in coords]
 
 
 def _parse_feature(index: int, obj: Any) -> MapFeature:
@@ -265,17 +278,21 @@ def _parse_feature(index: int, obj: Any) -> MapFeature:
     if depth is None:
         raise _fail(index, f"geometry type {gtype!r} is not supported "
                            "(Point, LineString or Polygon)")
-    _check_positions(index, geom.get("coordinates"), depth)
+    coords = _positions_xy(index, geom.get("coordinates"), depth)
+    if gtype == "LineString" and len(coords) < 2:
+        raise _fail(index, f"bad LineString: needs at least 2 positions, got {len(coords)}")
     if gtype == "Polygon":
-        for k, ring in enumerate(geom["coordinates"]):
+        for k, ring in enumerate(coords):
             if len(ring) < 3:
                 raise _fail(index, f"Polygon ring {k} needs at least 3 positions, got {len(ring)}")
+        for k, ring in enumerate(coords):
+            if ring[0] != ring[-1]:  # closing it silently could add a wall never drawn
+                raise _fail(index, f"Polygon ring {k} is not closed (ends at {ring[-1]}, not "
+                                   f"at its start {ring[0]}; an open wall is a LineString)")
     try:
-        geometry = shape({"type": gtype, "coordinates": geom["coordinates"]})
+        geometry = shape({"type": gtype, "coordinates": coords})
     except Exception as err:  # shapely raises several types on bad coordinates
         raise _fail(index, f"bad {gtype} coordinates: {err}") from err
-    if geometry.has_z:
-        geometry = shapely.force_2d(geometry)
     return MapFeature(geometry, dict(props))
 
 
@@ -302,6 +319,8 @@ def _validate(index: int, feat: MapFeature) -> None:
             r = 0.0
         if not _finite_number(r) or r < 0:
             raise _fail(index, f"`radius_m` must be a non-negative number, got {r!r}")
+        if r > MAX_COORD_M:
+            raise _fail(index, f"`radius_m` must be at most {MAX_COORD_M:g} m, got {r!r}")
         if 0 < r < MIN_RADIUS_M:
             raise _fail(index, f"`radius_m` must be 0 or at least {MIN_RADIUS_M:g} m, got {r!r}")
         if kind in VERTEX_KINDS and r != 0:
@@ -311,11 +330,7 @@ def _validate(index: int, feat: MapFeature) -> None:
         raise _fail(index, f"`vertices` must be one of {', '.join(VERTEX_MODES)}, "
                            f"got {props['vertices']!r}")
     if gtype == "LineString":
-        coords = np.asarray(feat.geometry.coords)
-        seg = np.hypot(*np.diff(coords, axis=0).T)
-        if coords.shape[0] < 2 or np.any(seg < 1e-9):
-            j = int(np.argmax(seg < 1e-9)) if coords.shape[0] >= 2 else 0
-            raise _fail(index, f"zero-length segment at vertex {j} of the LineString")
+        _check_segments(index, feat.geometry, "the LineString")
         if not feat.geometry.is_simple:
             raise _fail(index, f"{kind} LineString intersects itself")
         return
@@ -323,6 +338,17 @@ def _validate(index: int, feat: MapFeature) -> None:
     if poly.is_empty or not poly.is_valid:
         reason = shapely.is_valid_reason(poly) if not poly.is_empty else "empty"
         raise _fail(index, f"invalid Polygon ({reason})")
+    for k, ring in enumerate([poly.exterior, *poly.interiors]):
+        _check_segments(index, ring, f"Polygon ring {k}")
+
+
+def _check_segments(index: int, chain: BaseGeometry, what: str) -> None:
+    """Refuse a zero-length segment (a repeated position): a wall of no direction."""
+    coords = np.asarray(chain.coords)
+    seg = np.hypot(*np.diff(coords, axis=0).T)
+    if coords.shape[0] < 2 or np.any(seg < 1e-9):
+        j = int(np.argmax(seg < 1e-9)) if coords.shape[0] >= 2 else 0
+        raise _fail(index, f"zero-length segment at vertex {j} of {what}")
 
 
 def _ring_coords(geom: BaseGeometry) -> list[NDArray[np.float64]]:
@@ -437,6 +463,12 @@ def map_from_geojson(obj: Any) -> Map:
     if not isinstance(obj, dict) or obj.get("type") != "FeatureCollection":
         got = obj.get("type") if isinstance(obj, dict) else type(obj).__name__
         raise MapError(f"a map must be a GeoJSON FeatureCollection, got {got!r}")
+    crs = obj.get("crs")
+    name = crs.get("properties") if isinstance(crs, dict) else None
+    name = name.get("name") if isinstance(name, dict) else None
+    if isinstance(name, str) and LONLAT_CRS.search(name.strip()):
+        raise MapError(f"the map's `crs` {name!r:.80} is longitude/latitude: map "
+                       "coordinates are metres in a local frame (FORMATS.md section 3)")
     feats = obj.get("features")
     if not isinstance(feats, list):
         raise MapError("FeatureCollection needs a `features` list")
@@ -451,8 +483,8 @@ def load_map(path: str | Path) -> Map:
     MapError
         if the file cannot be read or parsed, or a feature is bad.
     """
-    try:
-        text = Path(path).read_text(encoding="utf-8")
+    try:  # a byte-order mark (some editors write one) is not part of the JSON
+        text = Path(path).read_text(encoding="utf-8-sig")
     except OSError as err:
         raise MapError(f"cannot open map {path}: {err.strerror}") from err
     except UnicodeDecodeError as err:
@@ -461,6 +493,8 @@ def load_map(path: str | Path) -> Map:
         obj = json.loads(text)
     except json.JSONDecodeError as err:
         raise MapError(f"map {path}: not JSON (line {err.lineno}: {err.msg})") from err
+    except RecursionError:
+        raise MapError(f"map {path}: not a map (JSON nested too deeply)") from None
     try:
         return map_from_geojson(obj)
     except MapError as err:

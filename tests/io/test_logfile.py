@@ -53,11 +53,13 @@ def test_bad_lines_are_named_counted_and_skipped():
         '{"type":"tof","t_s":1.9,"sensor":0,"tof_us":NaN}',
         '{"type":"tof","t_s":1.8,"sensor":0,"tof_us":1200}',
         "[1, 2]",
+        "[" * 100_000 + "]" * 100_000,  # deeper than json's recursion: it stopped the run
+        '{"type":"odom","t_s":3,"x_m":0,"y_m":0,"yaw_deg":0}',
     ])
     stats = LogStats()
     recs = list(iter_log(io.StringIO(text), stats))
-    assert [r.t_s for r in recs] == [0.0, 2.0, 1.8]
-    assert [ln for ln, _ in stats.malformed] == [2, 3, 6, 8]
+    assert [r.t_s for r in recs] == [0.0, 2.0, 1.8, 3.0]
+    assert [ln for ln, _ in stats.malformed] == [2, 3, 6, 8, 9]
     assert "x_m" in stats.malformed[1][1]
     assert stats.unknown == {"imu": 1}
     assert stats.time_backwards == [(7, 2.0, 1.8)]

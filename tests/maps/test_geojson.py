@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from sonarloc.errors import MapError
 from sonarloc.maps import build_map, load_map, map_from_geojson, map_to_geojson, save_map
+from sonarloc.world.scene import Scene
 from tests.conftest import MAPS
 
 
@@ -110,6 +111,29 @@ def test_vertices_property_and_explicit_corner_override():
          "feature 0: `vertices`"),
         (fc(feat("Point", [0, 0], kind="pole", id="a"), feat("Point", [1, 0], kind="rod", id="a")),
          "feature 1: duplicate id 'a'"),
+        # closing an open ring silently would add a wall never drawn
+        (fc(feat("Polygon", [[[0, 0], [4, 0], [4, 4], [0, 4]]], kind="wall")),
+         r"feature 0: Polygon ring 0 is not closed \(ends at \[0, 4\]"),
+        # a repeated position is a wall of no direction (a LineString's was refused)
+        (fc(feat("Polygon", [[[0, 0], [4, 0], [4, 0], [4, 4], [0, 0]]], kind="wall")),
+         "feature 0: zero-length segment at vertex 1 of Polygon ring 0"),
+        (fc(feat("Polygon", [[[0, 0], [4, 0], [4, 4], [0, 4], [0, 0]],
+                             [[1, 1], [2, 1], [2, 2], [2, 2], [1, 1]]], kind="wall")),
+         "feature 0: zero-length segment at vertex 2 of Polygon ring 1"),
+        (fc(feat("LineString", [], kind="wall")), "feature 0: bad LineString: needs at least 2"),
+        # coordinates and radii that overflow the geometry (the kappa of a 1e300 m pole
+        # was NaN)
+        (fc(feat("Point", [1e300, 0], kind="pole")), "feature 0: coordinates must be metres"),
+        (fc(feat("LineString", [[-1.5e308, 0], [1.5e308, 0]], kind="wall")),
+         "feature 0: coordinates must be metres within"),
+        (fc(feat("Point", [0, 0], kind="pole", radius_m=1e300)),
+         "feature 0: `radius_m` must be at most"),
+        # a map in degrees
+        ({**fc(feat("Point", [13.4, 52.5], kind="pole")),
+          "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:OGC:1.3:CRS84"}}},
+         "`crs` 'urn:ogc:def:crs:OGC:1.3:CRS84' is longitude/latitude"),
+        ({**fc(), "crs": {"type": "name", "properties": {"name": "EPSG:4326"}}},
+         "longitude/latitude"),
     ],
 )
 def test_bad_maps_name_the_feature(obj, match):
@@ -127,6 +151,35 @@ def test_load_map_errors_name_the_file(tmp_path):
     bad.write_text(json.dumps(fc(feat("Point", [0, 0], kind="tree"))))
     with pytest.raises(MapError, match="bad.geojson: feature 0: unknown kind"):
         load_map(bad)
+    bad.write_text("[" * 100_000 + "]" * 100_000)  # deeper than json's recursion
+    with pytest.raises(MapError, match="bad.geojson: not a map \\(JSON nested too deeply"):
+        load_map(bad)
+    # a byte-order mark (some editors write one) is no part of the JSON
+    bad.write_text("\ufeff" + json.dumps(fc(feat("Point", [0, 0], kind="pole"))), encoding="utf-8")
+    assert [r.kind for r in load_map(bad).reflectors] == ["pole"]
+
+
+def test_odd_but_sound_maps_load():
+    # a z is dropped, also where positions with and without one mix (shapely refused
+    # the mix); a projected CRS is metres
+    m = map_from_geojson({**fc(feat("LineString", [[0, 0, 1.5], [2, 0], [2, 2, 0.0]],
+                                    kind="wall", vertices="none")),
+                          "crs": {"type": "name",
+                                  "properties": {"name": "urn:ogc:def:crs:EPSG::32633"}}})
+    assert [list(r.geometry.coords) for r in m.reflectors] == [[(0, 0), (2, 0)], [(2, 0), (2, 2)]]
+    assert not m.features[0].geometry.has_z
+    # a room with a box as the polygon's hole: every ring is walls; seen from the room,
+    # a box corner is an edge, a room corner a corner
+    m = map_from_geojson(fc(feat("Polygon", [[[0, 0], [6, 0], [6, 4], [0, 4], [0, 0]],
+                                             [[2, 1], [3, 1], [3, 2], [2, 2], [2, 1]]],
+                                 kind="wall")))
+    assert sum(r.kind == "wall" for r in m.reflectors) == 8
+    scene = Scene(m)
+    for (x, y, yaw_deg), kind in [((1.7, 0.7, 45.0), "edge"), ((5.0, 3.0, 45.0), "corner")]:
+        cand = scene.candidates(x, y, math.radians(yaw_deg))
+        kinds = {m.reflectors[i].kind for i, th in zip(cand.reflector, cand.theta_rad,
+                                                        strict=True) if abs(th) < 0.01}
+        assert kinds == {kind}, (x, y, kinds)
 
 
 coord = st.floats(-50, 50, allow_nan=False).map(lambda v: round(v, 3))
