@@ -91,8 +91,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "per sonar reading (wall time). *call p99 / max*: the Localizer's CPU time for one "
         "record (the calling thread's time, so the simulator's share of the cores does not "
         "count), 99th percentile and worst call of each run, medians over the seeds: what "
-        "a control loop calling it must allow for. *real time*: simulated seconds per wall second of the whole "
-        "stream, simulator included (it shares the cores).",
+        "a control loop calling it must allow for. *real time*: simulated seconds per wall "
+        "second of the whole stream, simulator included (it shares the cores).",
         "",
         "| rig | method | wire | pose RMSE (cm) | yaw RMSE (deg) | after warm-up (mm) | "
         "yaw after warm-up (deg) | max error (cm) | x odometry | segments | "

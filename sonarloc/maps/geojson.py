@@ -282,13 +282,12 @@ def _parse_feature(index: int, obj: Any) -> MapFeature:
     if gtype == "LineString" and len(coords) < 2:
         raise _fail(index, f"bad LineString: needs at least 2 positions, got {len(coords)}")
     if gtype == "Polygon":
+        # (a ring that does not repeat its start is closed, as a Polygon's rings are by
+        # definition: FORMATS section 3 "its rings are walls", and earlier releases read
+        # such files; RFC 7946 asks for the repeat, which writers usually give)
         for k, ring in enumerate(coords):
             if len(ring) < 3:
                 raise _fail(index, f"Polygon ring {k} needs at least 3 positions, got {len(ring)}")
-        for k, ring in enumerate(coords):
-            if ring[0] != ring[-1]:  # closing it silently could add a wall never drawn
-                raise _fail(index, f"Polygon ring {k} is not closed (ends at {ring[-1]}, not "
-                                   f"at its start {ring[0]}; an open wall is a LineString)")
     try:
         geometry = shape({"type": gtype, "coordinates": coords})
     except Exception as err:  # shapely raises several types on bad coordinates

@@ -58,6 +58,21 @@ def test_polygon_vertices_are_corners_inside_edges_outside():
     assert c.kappa_us == pytest.approx(0.15) and at[(0.0, 0.0, "edge")].kappa_us > 1.0
 
 
+def test_polygon_ring_without_its_closing_position_is_the_closed_ring():
+    # a Polygon's rings are closed walls (FORMATS section 3): a ring that does not repeat
+    # its start (RFC 7946 asks for it; hand-written maps forget it) is read as closed
+    square = [[0, 0], [4, 0], [4, 4], [0, 4]]
+
+    def walls(ring):
+        m = map_from_geojson(fc(feat("Polygon", [ring], kind="wall")))
+        return sorted((r.kind, tuple(map(tuple, np.round(r.geometry.coords, 9))))
+                      for r in m.reflectors)
+
+    closed = walls(square + [square[0]])
+    assert walls(square) == closed
+    assert sum(kind == "wall" for kind, _ in closed) == 4
+
+
 def test_vertices_property_and_explicit_corner_override():
     wall = feat("LineString", [[0, 0], [2, 0], [2, 2]], kind="wall", vertices="corner")
     m = map_from_geojson(fc(wall))
@@ -111,9 +126,6 @@ def test_vertices_property_and_explicit_corner_override():
          "feature 0: `vertices`"),
         (fc(feat("Point", [0, 0], kind="pole", id="a"), feat("Point", [1, 0], kind="rod", id="a")),
          "feature 1: duplicate id 'a'"),
-        # closing an open ring silently would add a wall never drawn
-        (fc(feat("Polygon", [[[0, 0], [4, 0], [4, 4], [0, 4]]], kind="wall")),
-         r"feature 0: Polygon ring 0 is not closed \(ends at \[0, 4\]"),
         # a repeated position is a wall of no direction (a LineString's was refused)
         (fc(feat("Polygon", [[[0, 0], [4, 0], [4, 0], [4, 4], [0, 0]]], kind="wall")),
          "feature 0: zero-length segment at vertex 1 of Polygon ring 0"),
