@@ -586,10 +586,12 @@ class Localizer:
         """An odometry pose of ``base_link`` in ``odom``; returns the new estimate
         (None before any prior).
 
-        A pose with a non-finite value (``skipped["bad_odom"]``) or older than the last
-        one (``skipped["odom_time_backwards"]``: a stale message, delivered late) is
-        skipped and the current estimate returned: an old pose taken as the newest would
-        move the belief back and forth and mislocate the readings in between.
+        A pose with a non-finite value, or so far from the last one that the predicted
+        belief would not be finite (``skipped["bad_odom"]``: a corrupted message), or
+        older than the last one (``skipped["odom_time_backwards"]``: a stale message,
+        delivered late) is skipped and the current estimate returned: an old pose taken
+        as the newest would move the belief back and forth and mislocate the readings in
+        between.
         """
         self.stats.odom += 1
         odom = np.array([x_m, y_m, yaw_rad], dtype=float)
@@ -616,7 +618,13 @@ class Localizer:
                 self._start_t = t
         else:
             last = self._entries[-1]
-            state = ekf.predict(last.state, se2.between(last.odom, odom), self.config.odom_noise)
+            with np.errstate(over="ignore", invalid="ignore"):
+                state = ekf.predict(last.state, se2.between(last.odom, odom),
+                                    self.config.odom_noise)
+            if not (np.all(np.isfinite(state.mean)) and np.all(np.isfinite(state.cov))):
+                # a corrupted pose (1e200 m): the belief would never be finite again
+                self.stats.skipped["bad_odom"] += 1
+                return self._estimate
             self._append(_Entry(t, odom, state))
         self._last_odom_t = t
         self._trim()
@@ -1292,6 +1300,8 @@ class Localizer:
     def _status(self, t: float, state: Gaussian) -> tuple[Status, str]:
         c = self.config
         cov = state.cov                 # (3, 3): items 0 and 4 are the x and y variances
+        if not (np.isfinite(cov).all() and np.isfinite(state.mean).all()):
+            return "lost", "the estimate is not finite"   # never reported as good
         sd = math.sqrt(max(cov.item(0), cov.item(4), 0.0))
         if sd > c.lost_sd_m:
             return "lost", f"position SD {sd:.2f} m exceeds {c.lost_sd_m:g} m"
