@@ -621,7 +621,8 @@ class Localizer:
             with np.errstate(over="ignore", invalid="ignore"):
                 state = ekf.predict(last.state, se2.between(last.odom, odom),
                                     self.config.odom_noise)
-            if not (np.all(np.isfinite(state.mean)) and np.all(np.isfinite(state.cov))):
+            if not (np.isfinite(state.cov).all() and np.isfinite(state.mean).all()) and \
+                    np.isfinite(last.state.cov).all():
                 # a corrupted pose (1e200 m): the belief would never be finite again
                 self.stats.skipped["bad_odom"] += 1
                 return self._estimate

@@ -212,6 +212,25 @@ def test_a_non_finite_belief_is_reported_lost():
         == "lost"
 
 
+def test_a_prior_of_1e150_m_keeps_every_estimate_finite():
+    """A prior SD of 1e150 m (finite, accepted) with readings fused: updates whose
+    covariance would overflow are reported singular and leave the belief as it was, so
+    every estimate is finite (and lost); four were inf/NaN. 1e200 m, whose variance
+    overflows, is refused naming the argument (was OverflowError)."""
+    node = LocalizerNode.from_map_file(ROOM, [(k, 0.2 * math.cos(k), 0.2 * math.sin(k),
+                                                math.degrees(k)) for k in range(4)])
+    with pytest.raises(ValueError, match="`sd_xy_m`"):
+        node.set_pose(1.0, 1.0, 0.0, sd_xy_m=1e200)
+    node.set_pose(1.0, 1.0, 0.0, sd_xy_m=1e150)
+    for i in range(40):
+        est = node.odometry(0.05 * i, 0.01 * i, 0.0, 0.0)
+        assert np.isfinite(est.state.cov).all() and np.isfinite(est.state.mean).all(), i
+        assert est.status == "lost"
+        for k in range(4):
+            node.reading(0.05 * i + 0.01, k, 5000.0 + 100 * k)
+    assert node.stats.accepted > 0
+
+
 @pytest.mark.parametrize("method", ["kuc", "conventional"])
 def test_garbage_readings_are_skipped_counted_and_change_nothing(method):
     """Negative, zero and infinite TOFs, NaN or infinite times and pan angles, unknown
