@@ -160,7 +160,7 @@ class LocalizerConfig:
         odometry moved (:func:`odom_moved`) are skipped and counted
         (``skipped["tof_in_odom_gap"]``): a pose interpolated over seconds of driving is
         a guess (a turn inside a 5 s gap put the conventional EKF 0.44 m off while it
-        reported centimetres). The odometry increment across the gap is still used,
+        reported millimetres). The odometry increment across the gap is still used,
         with its noise (:class:`OdomNoise`: per metre and radian the odometry measured).
         ``math.inf``: no gaps.
     relocalize : (method ``kuc``) when ``lost`` (or started without a prior), try a global
@@ -610,8 +610,7 @@ class Localizer:
             self._prior = Gaussian(np.zeros(3), np.eye(3))
             self._unknown = True
         t = t_s
-        if t - self._last_odom_t > self.config.odom_gap_s and self._entries:
-            self.stats.odom_gaps += 1
+        gap = t - self._last_odom_t > self.config.odom_gap_s and bool(self._entries)
         if not self._entries:
             self._append(_Entry(t, odom, self._prior))
             if not math.isfinite(self._start_t):
@@ -627,6 +626,7 @@ class Localizer:
                 self.stats.skipped["bad_odom"] += 1
                 return self._estimate
             self._append(_Entry(t, odom, state))
+        self.stats.odom_gaps += gap
         self._last_odom_t = t
         self._trim()
         if self._reloc is not None:
