@@ -113,8 +113,12 @@ def _candidates_d2(state: Gaussian, obs: Observation, feats: Feature
     nu = ekf.innovation(obs.z, z_pred, obs.angle_index)
     s = h @ state.cov @ np.swapaxes(h, -1, -2) + obs.cov
     s = 0.5 * (s + np.swapaxes(s, -1, -2))
-    det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
-    good = (det > 0) & (s[..., 0, 0] > 0) & np.all(np.isfinite(nu), axis=-1)
+    # positive definite, finite and not numerically singular (correlation of its two
+    # components below 1 - 5e-13): a belief of 1e150 m made solve raise "Singular matrix"
+    with np.errstate(over="ignore", invalid="ignore"):
+        det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
+        good = (det > 1e-12 * s[..., 0, 0] * s[..., 1, 1]) & (s[..., 0, 0] > 0) \
+            & np.isfinite(det) & np.all(np.isfinite(nu), axis=-1)
     s_safe = np.where(good[..., None, None], s, np.eye(2))
     sol = np.linalg.solve(s_safe, nu[..., None])[..., 0]
     d2 = np.where(good, np.einsum("...i,...i->...", nu, sol), np.inf)

@@ -111,10 +111,9 @@ class Gaussian:
     def from_pose(cls, x_m: ArrayLike, y_m: ArrayLike, yaw_rad: ArrayLike,
                   sd_xy_m: float, sd_yaw_rad: float) -> Gaussian:
         """A prior with independent position (``sd_xy_m`` each axis) and yaw uncertainty."""
-        if not (math.isfinite(sd_xy_m) and sd_xy_m > 0):
-            raise ValueError(f"`sd_xy_m` must be positive, got {sd_xy_m!r}")
-        if not (math.isfinite(sd_yaw_rad) and sd_yaw_rad > 0):
-            raise ValueError(f"`sd_yaw_rad` must be positive, got {sd_yaw_rad!r}")
+        for name, sd in (("sd_xy_m", sd_xy_m), ("sd_yaw_rad", sd_yaw_rad)):
+            if not (math.isfinite(sd * sd) and sd > 0):   # its square too: 1e200 overflows
+                raise ValueError(f"`{name}` must be positive and finite, got {sd!r}")
         x, y, th = np.broadcast_arrays(np.asarray(x_m, float), np.asarray(y_m, float),
                                        np.asarray(yaw_rad, float))
         mean = np.stack([x, y, se2.wrap_angle(th)], axis=-1)
@@ -666,7 +665,14 @@ def _joseph(mean: Array, p: Array, nu: Array, h: Array, r: Array, gate: float
     k = _t(kt)
     new_mean = mean + np.einsum("...ij,...j->...i", k, nu)
     ikh = np.eye(n) - k @ h
-    cov = symmetrize(ikh @ p @ _t(ikh) + k @ r @ kt)
+    with np.errstate(over="ignore", invalid="ignore"):
+        cov = symmetrize(ikh @ p @ _t(ikh) + k @ r @ kt)
+    # a belief so wide that the update overflows (a prior of 1e150 m): singular, unchanged
+    if not (np.isfinite(cov).all() and np.isfinite(new_mean).all()):
+        overflow = ~(np.all(np.isfinite(cov), axis=(-1, -2))
+                     & np.all(np.isfinite(new_mean), axis=-1))
+        singular = np.asarray(singular | overflow)
+        accepted = np.asarray(accepted & ~overflow)
     if not np.all(accepted):
         new_mean = np.where(accepted[..., None], new_mean, mean)
         cov = np.where(accepted[..., None, None], cov, p)

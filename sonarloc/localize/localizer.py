@@ -76,6 +76,20 @@ KucFusion = Literal["echoes", "fit"]
 Status = Literal["initializing", "tracking", "dead_reckoning", "lost"]
 
 
+#: Odometry that moved less than this across a gap still places the readings inside it
+#: (a robot standing still: some drivers publish only on change; the pose is known).
+GAP_STILL_M = 1e-3
+GAP_STILL_RAD = math.radians(0.1)
+
+
+def odom_moved(a: ArrayLike, b: ArrayLike) -> NDArray[np.bool_]:
+    """Whether odometry poses ``b`` differ from ``a`` ((..., 3) m, m, rad each) by more
+    than :data:`GAP_STILL_M` in position or :data:`GAP_STILL_RAD` in yaw."""
+    d = np.asarray(b, dtype=float) - np.asarray(a, dtype=float)
+    return np.asarray((np.hypot(d[..., 0], d[..., 1]) > GAP_STILL_M)
+                      | (np.abs(se2.wrap_angle(d[..., 2])) > GAP_STILL_RAD))
+
+
 class LandmarkSource(Protocol):
     """What the Localizer needs from the fitting stage: readings in, landmarks out.
 
@@ -141,6 +155,14 @@ class LocalizerConfig:
         outside the gate, ambiguous) make the status ``lost``.
     lost_sd_m : a position SD above this makes the status ``lost``.
     dead_reckoning_after_s : no accepted observation for this long: ``dead_reckoning``.
+    odom_gap_s : consecutive odometry messages further apart than this are a gap
+        (counted in ``stats.odom_gaps``). Readings taken inside a gap during which the
+        odometry moved (:func:`odom_moved`) are skipped and counted
+        (``skipped["tof_in_odom_gap"]``): a pose interpolated over seconds of driving is
+        a guess (a turn inside a 5 s gap put the conventional EKF 0.44 m off while it
+        reported millimetres). The odometry increment across the gap is still used,
+        with its noise (:class:`OdomNoise`: per metre and radian the odometry measured).
+        ``math.inf``: no gaps.
     relocalize : (method ``kuc``) when ``lost`` (or started without a prior), try a global
         relocalization (:mod:`~sonarloc.localize.relocalize`) every
         ``relocalization.every_s`` from the fits since the trouble began, and restart
@@ -171,6 +193,7 @@ class LocalizerConfig:
     lost_after_rejections: int = 15
     lost_sd_m: float = 0.5
     dead_reckoning_after_s: float = 5.0
+    odom_gap_s: float = 0.5
     relocalize: bool = False
     relocalization: RelocalizeConfig = field(default_factory=RelocalizeConfig)
 
@@ -189,6 +212,8 @@ class LocalizerConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
+        if not self.odom_gap_s > 0:  # math.inf allowed: no gaps
+            raise ValueError(f"`odom_gap_s` must be positive, got {self.odom_gap_s!r}")
         for name in ("fit_sd_floor_m", "fit_sd_floor_deg"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -257,6 +282,8 @@ class LocalizerStats:
     skipped: Counter[str] = field(default_factory=Counter)
     replayed_steps: int = 0
     relocalization: Counter[str] = field(default_factory=Counter)
+    #: consecutive odometry messages more than ``LocalizerConfig.odom_gap_s`` apart
+    odom_gaps: int = 0
 
     def summary(self) -> str:
         parts = [f"{self.odom} odom", f"{self.tof} tof", f"{self.observations} observations",
@@ -272,6 +299,8 @@ class LocalizerStats:
         rej = {k: v for k, v in self.outcomes.items() if k not in ("matched", "echo_matched")}
         if rej:
             parts.append("rejected: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())))
+        if self.odom_gaps:
+            parts.append(f"{self.odom_gaps} odometry gaps")
         if self.skipped:
             parts.append("skipped: " + ", ".join(f"{k} {v}" for k, v in
                                                  sorted(self.skipped.items())))
@@ -505,7 +534,12 @@ class Localizer:
         """Prior of ``base_link`` in ``map``; (re)starts the filter at the next odom record
         (whose time may be earlier than the last one's: a restarted clock or log). The
         fitter's open segments are fitted and fused first (as at the end of a stream), and
-        the fitter starts afresh: its readings must come in time order."""
+        the fitter starts afresh: its readings must come in time order. Readings still
+        waiting for odometry are dropped and counted (``skipped["tof_after_last_odom"]``,
+        as at the end of a stream): the next odometry may run on a restarted clock, which
+        would place them at the wrong pose."""
+        if self._pending:
+            self.stats.skipped["tof_after_last_odom"] += len(self._pending)
         if self._source is not None:
             for lm in self._source.flush():
                 self.add_landmark(lm)
@@ -552,10 +586,12 @@ class Localizer:
         """An odometry pose of ``base_link`` in ``odom``; returns the new estimate
         (None before any prior).
 
-        A pose with a non-finite value (``skipped["bad_odom"]``) or older than the last
-        one (``skipped["odom_time_backwards"]``: a stale message, delivered late) is
-        skipped and the current estimate returned: an old pose taken as the newest would
-        move the belief back and forth and mislocate the readings in between.
+        A pose with a non-finite value, or so far from the last one that the predicted
+        belief would not be finite (``skipped["bad_odom"]``: a corrupted message), or
+        older than the last one (``skipped["odom_time_backwards"]``: a stale message,
+        delivered late) is skipped and the current estimate returned: an old pose taken
+        as the newest would move the belief back and forth and mislocate the readings in
+        between.
         """
         self.stats.odom += 1
         odom = np.array([x_m, y_m, yaw_rad], dtype=float)
@@ -574,14 +610,23 @@ class Localizer:
             self._prior = Gaussian(np.zeros(3), np.eye(3))
             self._unknown = True
         t = t_s
+        gap = t - self._last_odom_t > self.config.odom_gap_s and bool(self._entries)
         if not self._entries:
             self._append(_Entry(t, odom, self._prior))
             if not math.isfinite(self._start_t):
                 self._start_t = t
         else:
             last = self._entries[-1]
-            state = ekf.predict(last.state, se2.between(last.odom, odom), self.config.odom_noise)
+            with np.errstate(over="ignore", invalid="ignore"):
+                state = ekf.predict(last.state, se2.between(last.odom, odom),
+                                    self.config.odom_noise)
+            if not (np.isfinite(state.cov).all() and np.isfinite(state.mean).all()) and \
+                    np.isfinite(last.state.cov).all():
+                # a corrupted pose (1e200 m): the belief would never be finite again
+                self.stats.skipped["bad_odom"] += 1
+                return self._estimate
             self._append(_Entry(t, odom, state))
+        self.stats.odom_gaps += gap
         self._last_odom_t = t
         self._trim()
         if self._reloc is not None:
@@ -1143,11 +1188,19 @@ class Localizer:
         for r in ready:
             self._process_tof(r)
 
-    def _transducer_pose(self, t: float, sensor: int, pan_deg: float | None
+    def _in_odom_gap(self, t: float, i: int) -> bool:
+        """Whether ``t`` (entries[i-1].t <= t < entries[i].t, or i = len) lies strictly
+        inside an odometry gap the robot moved across (``LocalizerConfig.odom_gap_s``)."""
+        if i >= len(self._entries):
+            return False
+        a, b = self._entries[i - 1], self._entries[i]
+        return b.t - a.t > self.config.odom_gap_s and t > a.t and \
+            bool(odom_moved(a.odom, b.odom))
+
+    def _transducer_pose(self, t: float, i: int, sensor: int, pan_deg: float | None
                          ) -> tuple[Array, Array]:
-        """(base_link pose in odom at t, transducer pose in base_link)."""
-        i = bisect.bisect_right(self._times, t)
-        i = max(i, 1)
+        """(base_link pose in odom at t, transducer pose in base_link); ``i`` as in
+        :meth:`_odom_at`."""
         base = self._odom_at(t, i)
         mount = self._mounts[sensor]
         if pan_deg is not None:
@@ -1160,7 +1213,11 @@ class Localizer:
         if r.t_s < self._times[0]:
             self.stats.skipped["tof_older_than_history"] += 1
             return
-        base, mount = self._transducer_pose(r.t_s, r.sensor, r.pan_deg)
+        i = max(bisect.bisect_right(self._times, r.t_s), 1)
+        if self._in_odom_gap(r.t_s, i):
+            self.stats.skipped["tof_in_odom_gap"] += 1
+            return
+        base, mount = self._transducer_pose(r.t_s, i, r.sensor, r.pan_deg)
         if self.config.method in ("conventional", "specular"):
             if r.tof_us is None or not (r.tof_us > 0):
                 return
@@ -1244,6 +1301,8 @@ class Localizer:
     def _status(self, t: float, state: Gaussian) -> tuple[Status, str]:
         c = self.config
         cov = state.cov                 # (3, 3): items 0 and 4 are the x and y variances
+        if not (np.isfinite(cov).all() and np.isfinite(state.mean).all()):
+            return "lost", "the estimate is not finite"   # never reported as good
         sd = math.sqrt(max(cov.item(0), cov.item(4), 0.0))
         if sd > c.lost_sd_m:
             return "lost", f"position SD {sd:.2f} m exceeds {c.lost_sd_m:g} m"

@@ -33,6 +33,7 @@ from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from sonarloc import se2
 from sonarloc.fit.result import Landmark
@@ -57,8 +58,10 @@ from sonarloc.localize.localizer import (
     PoseEstimate,
     SegmentFitSource,
     _Entry,
+    odom_moved,
 )
 
+Array = NDArray[np.float64]
 EstimateCallback = Callable[[OdomRecord, PoseEstimate], None]
 #: How :meth:`OfflinePipeline._fuse_prepared` fused a segment.
 FuseHow = Literal["reduced", "segment", "stale"]
@@ -172,6 +175,8 @@ class OfflinePipeline:
             self._odom.append((self._last_t, OdomRecord(rec.t_s, last.x_m, last.y_m,
                                                         last.yaw_deg)))
             return  # the track and the rounds as without it
+        if t - self._last_t > self.loc.config.odom_gap_s and last is not None:
+            self.loc.stats.odom_gaps += 1          # as Localizer.on_odom
         self._last_t = t
         self._last_rec = rec
         self._odom.append((t, rec))
@@ -317,6 +322,14 @@ class OfflinePipeline:
             ready, t, tof = ready[~late], t[~late], tof[~late]
             if not ready.size:
                 return
+        track_t = np.array(self._track_t)
+        track = np.array(self._track)
+        gap = self._in_odom_gap(track_t, track, t)
+        if gap is not None:
+            loc.stats.skipped["tof_in_odom_gap"] += int(np.count_nonzero(gap))
+            ready, t, tof = ready[~gap], t[~gap], tof[~gap]
+            if not ready.size:
+                return
         self._last_pushed_t = float(t[-1])
         if self._source is None:
             panning = pan_all[int(ready[0])] is not None
@@ -329,7 +342,7 @@ class OfflinePipeline:
         pan = np.zeros(len(ready)) if all(p is None for p in pans) else \
             np.array([0.0 if p is None else math.radians(p) for p in pans])
         # odometry pose at each reading: linear between records, yaw the short way round
-        base = interpolate_track(np.array(self._track_t), np.array(self._track), t)
+        base = interpolate_track(track_t, track, t)
         bx, by, bth = base[:, 0], base[:, 1], base[:, 2]
         mounts = loc._mounts
         ids, inv = np.unique(sensors, return_inverse=True)
@@ -340,6 +353,19 @@ class OfflinePipeline:
         pth = bth + m[:, 2] + pan
         closed = self._source.segmenter.push_many(t, px, py, pth, tof, sensors)
         self._waiting += [s for _, s in closed]
+
+    def _in_odom_gap(self, track_t: Array, track: Array, t: Array
+                     ) -> NDArray[np.bool_] | None:
+        """Which readings (times ``t``, sorted) lie strictly inside an odometry gap the
+        robot moved across, as :meth:`Localizer._in_odom_gap` says; None: none."""
+        gap_s = self.loc.config.odom_gap_s
+        if len(track_t) < 2 or not np.any(np.diff(track_t) > gap_s):
+            return None
+        b = np.clip(np.searchsorted(track_t, t, side="right"), 1, len(track_t) - 1)
+        a = b - 1
+        inside = (track_t[b] - track_t[a] > gap_s) & (t > track_t[a]) & (t < track_t[b])
+        gap = inside & odom_moved(track[a], track[b])
+        return gap if gap.any() else None
 
     def _fuse(self, horizon: float) -> None:
         """Fuse the landmarks referring to times before ``horizon`` at their reference

@@ -122,3 +122,15 @@ def test_ray_hits_walls(fmap):
     assert short.walls_hit_by_ray([0.0, 0.0], math.radians(5))[0]
     assert not short.walls_hit_by_ray([0.0, 0.0], math.radians(20))[0]
     assert not short.walls_hit_by_ray([0.0, 0.0], math.pi)[0]
+
+
+@pytest.mark.parametrize("var", [1e100, 1e150, 1e200])
+def test_a_numerically_singular_belief_is_not_matched_and_does_not_raise(fmap, var):
+    """x and y perfectly correlated with variances of 1e150 m²: the innovation
+    covariance is singular to rounding (np.linalg.solve raised "Singular matrix"; at
+    1e100 a garbage distance matched). Nothing is matched, nothing raised."""
+    g = Gaussian(np.array([1.0, 1.0, 0.3]),
+                 np.array([[var, var, 0.0], [var, var, 0.0], [0.0, 0.0, 1e-3]]))
+    for kind in ("point", "line"):
+        a = associate(g, Observation(kind, [1.0, 0.1], np.diag([1e-6, 1e-6])), fmap)
+        assert not a.matched, kind

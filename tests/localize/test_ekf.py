@@ -265,3 +265,11 @@ def test_gaussian_of_lists_equals_the_checked_constructor():
     assert g.mean.dtype == g.cov.dtype == np.float64 and g.cov.shape == (3, 3)
     assert np.array_equal(ekf.predict(g, np.array([0.1, 0.0, 0.01])).cov,
                           ekf.predict(h, np.array([0.1, 0.0, 0.01])).cov)
+
+
+def test_a_prior_sd_whose_square_overflows_is_a_value_error():
+    """sd 1e200: its variance is inf (Python's ``**`` raised OverflowError)."""
+    for name, kw in (("sd_xy_m", {"sd_xy_m": 1e200, "sd_yaw_rad": 0.1}),
+                     ("sd_yaw_rad", {"sd_xy_m": 0.1, "sd_yaw_rad": 1e160})):
+        with pytest.raises(ValueError, match=f"`{name}`"):
+            Gaussian.from_pose(0.0, 0.0, 0.0, **kw)

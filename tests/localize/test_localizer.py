@@ -121,6 +121,10 @@ def test_config_validation():
         LocalizerConfig(method="magic")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="history_s"):
         LocalizerConfig(history_s=0.0)
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="odom_gap_s"):
+            LocalizerConfig(odom_gap_s=bad)
+    assert LocalizerConfig(odom_gap_s=math.inf).odom_gap_s == math.inf   # no gaps
 
 
 def test_segment_length_chosen_for_the_rig():

@@ -166,6 +166,72 @@ def test_stale_odometry_is_skipped_counted_and_changes_nothing():
 
 
 @pytest.mark.parametrize("method", ["kuc", "conventional"])
+def test_a_corrupted_odometry_pose_is_skipped_and_never_reported_good(method):
+    """An odometry message with an absurd pose (1e200 m: a corrupted frame) between two
+    good ones is skipped and counted (``bad_odom``): every later estimate is exactly that
+    of the stream without it. (It was taken: the covariance stayed NaN/inf for the rest
+    of the drive, the pose at times -1e184 m, and the status said ``tracking``.)"""
+    mounts, records = _drive(3.0)
+    clean, _ = _run(mounts, records, method=method)
+    odoms = [r for r in records if isinstance(r, OdomRecord)]
+    bad = 0
+
+    def corrupt(node, rec):
+        nonlocal bad
+        k = odoms.index(rec) if isinstance(rec, OdomRecord) else -1
+        if 0 <= k < len(odoms) - 1 and k % 20 == 10:
+            t = 0.5 * (rec.t_s + odoms[k + 1].t_s)
+            for pose in ((rec.x_m, 1e200, 0.3), (1e200, -1e200, 0.0)):
+                est = node.odometry(t, *pose)
+                assert est is node.estimate and est.status != "lost"
+                assert np.all(np.isfinite(est.state.cov))
+                bad += 1
+
+    faulty, node = _run(mounts, records, corrupt, method=method)
+    assert bad >= 4 and node.stats.skipped["bad_odom"] == bad
+    assert faulty == clean
+
+
+def test_a_non_finite_belief_is_reported_lost():
+    """Whatever makes the belief non-finite, the status says ``lost`` (it said
+    ``tracking`` when the x variance was NaN: ``max(nan, ...)`` is NaN, and NaN > the
+    limit is False)."""
+    from sonarloc.localize.ekf import Gaussian
+
+    node = LocalizerNode.from_map_file(ROOM, [(0, 0.2, 0.0, 0.0)])
+    node.set_pose(1.0, 1.0, 0.0)
+    loc = node.localizer
+    est = node.odometry(0.0, 0.0, 0.0, 0.0)
+    assert est is not None and est.status == "tracking"
+    for bad in ((0, 0), (1, 1), (2, 2), (0, 2)):
+        cov = est.state.cov.copy()
+        cov[bad] = math.nan
+        assert loc._status(0.0, Gaussian(est.state.mean, cov)) == \
+            ("lost", "the estimate is not finite"), bad
+    assert loc._status(0.0, Gaussian(np.array([math.inf, 1.0, 0.0]), est.state.cov))[0] \
+        == "lost"
+
+
+def test_a_prior_of_1e150_m_keeps_every_estimate_finite():
+    """A prior SD of 1e150 m (finite, accepted) with readings fused: updates whose
+    covariance would overflow are reported singular and leave the belief as it was, so
+    every estimate is finite (and lost); four were inf/NaN. 1e200 m, whose variance
+    overflows, is refused naming the argument (was OverflowError)."""
+    node = LocalizerNode.from_map_file(ROOM, [(k, 0.2 * math.cos(k), 0.2 * math.sin(k),
+                                                math.degrees(k)) for k in range(4)])
+    with pytest.raises(ValueError, match="`sd_xy_m`"):
+        node.set_pose(1.0, 1.0, 0.0, sd_xy_m=1e200)
+    node.set_pose(1.0, 1.0, 0.0, sd_xy_m=1e150)
+    for i in range(40):
+        est = node.odometry(0.05 * i, 0.01 * i, 0.0, 0.0)
+        assert np.isfinite(est.state.cov).all() and np.isfinite(est.state.mean).all(), i
+        assert est.status == "lost"
+        for k in range(4):
+            node.reading(0.05 * i + 0.01, k, 5000.0 + 100 * k)
+    assert node.stats.accepted > 0
+
+
+@pytest.mark.parametrize("method", ["kuc", "conventional"])
 def test_garbage_readings_are_skipped_counted_and_change_nothing(method):
     """Negative, zero and infinite TOFs, NaN or infinite times and pan angles, unknown
     sensors: each skipped and counted in ``stats.skipped``, every good reading still
