@@ -51,13 +51,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "recently (an unambiguous match to the map, else keep trying); "
                              "without an init record or --init, start that way (pose rows "
                              "begin at the first fix); runs record by record")
+    parser.add_argument("--odom-gap", type=float, metavar="S", default=None,
+                        help="odometry records further apart than this are a gap: the "
+                             "readings inside it, while the robot moved, are skipped and "
+                             "counted (default 1 s; raise it for odometry slower than 3 Hz; "
+                             "inf: no gaps)")
     parser.add_argument("--quiet", action="store_true", help="no summary on stderr")
 
 
 def run(args: argparse.Namespace) -> int:
     init = parse_pose(args.init, "--init") if args.init is not None else None
     fmap = FeatureMap.from_map(load_map(args.map))
-    config = LocalizerConfig(method=args.method, relocalize=args.relocalize)
+    gap = {} if args.odom_gap is None else {"odom_gap_s": args.odom_gap}
+    try:
+        config = LocalizerConfig(method=args.method, relocalize=args.relocalize, **gap)
+    except ValueError as exc:  # the config's own check, named by the option
+        raise ValueError(f"--odom-gap: {exc}") from None
     mode: Mode = "online" if args.online else "auto"
     if args.out:
         with open(args.out, "w", encoding="utf-8", newline="") as handle:

@@ -162,7 +162,9 @@ class LocalizerConfig:
         a guess (a turn inside a 5 s gap put the conventional EKF 0.44 m off while it
         reported millimetres). The odometry increment across the gap is still used,
         with its noise (:class:`OdomNoise`: per metre and radian the odometry measured).
-        ``math.inf``: no gaps.
+        ``math.inf``: no gaps. The default, 1 s, is ten periods of a 10 Hz odometry (a
+        Pioneer's SIPs; ROS bases publish at 10-50 Hz): set it to a few periods of a
+        slower one, whose every reading would otherwise fall in a gap.
     relocalize : (method ``kuc``) when ``lost`` (or started without a prior), try a global
         relocalization (:mod:`~sonarloc.localize.relocalize`) every
         ``relocalization.every_s`` from the fits since the trouble began, and restart
@@ -193,7 +195,7 @@ class LocalizerConfig:
     lost_after_rejections: int = 15
     lost_sd_m: float = 0.5
     dead_reckoning_after_s: float = 5.0
-    odom_gap_s: float = 0.5
+    odom_gap_s: float = 1.0
     relocalize: bool = False
     relocalization: RelocalizeConfig = field(default_factory=RelocalizeConfig)
 

@@ -195,3 +195,27 @@ def test_localize_online_flag_gives_the_same_rows_count(run_cli, room_log, tmp_p
     # warm-up (the prior is off by ~5 cm) the estimates agree closely
     steady = ta.t_s > 5.0
     assert np.max(np.hypot(ta.x_m - tb.x_m, ta.y_m - tb.y_m)[steady]) < 0.02
+
+
+def test_odom_gap_flag(run_cli, room_log, tmp_path):
+    """Odometry thinned to 2 Hz (a slow base, or a throttled bag): at the default gap
+    (1 s) its readings are all placed; `--odom-gap 0.3` calls every interval a gap and
+    skips the readings taken while moving, counted; a bad value names the flag."""
+    lines = room_log.read_text().splitlines(keepends=True)
+    kept, n_odom = [], 0
+    for line in lines:
+        if '"type":"odom"' in line.replace(" ", ""):
+            n_odom += 1
+            if n_odom % 10 != 1:  # 20 Hz -> 2 Hz
+                continue
+        kept.append(line)
+    slow = tmp_path / "slow.jsonl"
+    slow.write_text("".join(kept))
+    proc = run_cli("localize", str(slow), "--map", ROOM, "--method", "conventional",
+                   check=True)
+    assert "odometry gaps" not in proc.stderr and "tof_in_odom_gap" not in proc.stderr
+    proc = run_cli("localize", str(slow), "--map", ROOM, "--method", "conventional",
+                   "--odom-gap", "0.3", check=True)
+    assert "odometry gaps" in proc.stderr and "tof_in_odom_gap" in proc.stderr
+    proc = run_cli("localize", str(slow), "--map", ROOM, "--odom-gap", "0")
+    assert proc.returncode == 2 and "--odom-gap" in proc.stderr
