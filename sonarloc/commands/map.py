@@ -36,6 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     b.add_argument("--out", required=True, metavar="MAP.geojson", help="map GeoJSON to write")
     b.add_argument("--min-observations", type=int, default=BuildConfig.min_observations,
                    metavar="N", help="drop features seen fewer times (default %(default)s)")
+    b.add_argument("--odom-gap", type=float, default=BuildConfig.odom_gap_s, metavar="S",
+                   help="poses (odometry or POSES.csv) further apart than this are a gap: "
+                        "the readings inside it, while the robot moved, are skipped and "
+                        "counted (default %(default)s s, as `localize`; inf: no gaps)")
     b.add_argument("--quiet", action="store_true", help="no summary on stderr")
     b.set_defaults(_map_run=_run_build)
 
@@ -51,7 +55,10 @@ def _run_build(args: argparse.Namespace) -> int:
         if path and os.path.exists(args.out) and os.path.samefile(path, args.out):
             raise ValueError(f"--out {args.out} is the input {name}: it would be overwritten")
     poses = read_poses_csv(args.poses) if args.poses else None
-    result = build_from_log(args.log, poses, BuildConfig(min_observations=args.min_observations))
+    if not args.odom_gap > 0:
+        raise ValueError(f"--odom-gap must be positive, got {args.odom_gap}")
+    result = build_from_log(args.log, poses, BuildConfig(min_observations=args.min_observations,
+                                                         odom_gap_s=args.odom_gap))
     if result.readings == 0:
         # nothing to build from (no rig, no tof, or no pose for any reading): a failure,
         # not an empty map that a script would take for a successful run

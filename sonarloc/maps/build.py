@@ -48,7 +48,7 @@ from __future__ import annotations
 import bisect
 import math
 from collections import Counter, deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -60,6 +60,7 @@ from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, TofRecord, iter_log
 from sonarloc.io.posescsv import PoseTrack
+from sonarloc.localize.localizer import odom_moved
 from sonarloc.maps.geojson import Map, map_from_geojson
 from sonarloc.physics import constants
 
@@ -96,6 +97,7 @@ class BuildConfig:
     short_wall_m: float = 0.5
     min_visits: int = 1
     speed_of_sound_mps: float | None = None
+    odom_gap_s: float = 1.0  # readings inside a longer gap of a moving robot's poses: skipped
 
     def __post_init__(self) -> None:
         for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "pole_radius_m", "shadow_m",
@@ -105,6 +107,8 @@ class BuildConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
+        if not self.odom_gap_s > 0:  # math.inf allowed: no gaps
+            raise ValueError(f"`odom_gap_s` must be positive, got {self.odom_gap_s!r}")
         if not (isinstance(self.min_observations, int) and self.min_observations >= 1):
             raise ValueError(f"`min_observations` must be a positive integer, got "
                              f"{self.min_observations!r}")
@@ -797,14 +801,28 @@ class BuildResult:
         return ["skipped: " + ", ".join(f"{k} {v}" for k, v in sorted(st.items()))] if st else []
 
 
-def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult
+def _in_gap(times: Sequence[float] | Array, poses: Sequence[Array] | Array, t_s: float,
+            gap_s: float) -> bool:
+    """Whether ``t_s`` lies strictly inside an interval of the pose track longer than
+    ``gap_s`` across which the pose moved (the Localizer's rule for odometry gaps,
+    :func:`~sonarloc.localize.localizer.odom_moved`)."""
+    i = bisect.bisect_right(times, t_s)
+    if i <= 0 or i >= len(times) or not times[i] - times[i - 1] > gap_s:
+        return False
+    return t_s > times[i - 1] and bool(odom_moved(poses[i - 1], poses[i]))
+
+
+def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult,
+              gap_s: float = math.inf
               ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float]]:
     """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c).
 
     A reading without a pose is counted in ``result.skipped``, never given a made-up
     one: outside the pose track (``tof_outside_poses``; pose rows whose time went
     backwards are dropped, ``poses_time_backwards``), before the first odometry or
-    after the last (``tof_before_odom``, ``tof_after_last_odom``). Odometry is anchored
+    after the last (``tof_before_odom``, ``tof_after_last_odom``), inside a gap longer
+    than ``gap_s`` of the poses (or odometry) while the robot moved
+    (``tof_in_odom_gap``). Odometry is anchored
     at the first ``init`` record, or at the origin without one (``result.notes`` says
     so); an ``init`` after readings were placed is skipped (``init_after_readings``):
     one map frame for all of them.
@@ -840,8 +858,15 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
         return se2.interpolate(odo_p[i - 1], odo_p[i], 0.0 if span <= 0 else
                                (t - odo_t[i - 1]) / span)
 
-    def emit(r: TofRecord) -> tuple[float, int, float, Array, Array | None, Array, float]:
+    def emit(r: TofRecord) -> Iterator[tuple[float, int, float, Array, Array | None, Array,
+                                              float]]:
+        """The reading placed, or nothing where it lies inside a gap of the poses that
+        the robot moved across (counted: a pose interpolated over it is a guess)."""
         nonlocal anchored
+        times, track_poses = (track.t, track.poses) if track is not None else (odo_t, odo_p)
+        if _in_gap(times, track_poses, r.t_s, gap_s):
+            skipped["tof_in_odom_gap"] += 1
+            return
         mount = mounts[r.sensor]
         if r.pan_deg is not None:
             mount = mount + np.array([0.0, 0.0, math.radians(r.pan_deg)])
@@ -854,7 +879,7 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
             rel = se2.between(first, odom_at(r.t_s))
             base = se2.compose(init, rel) if init is not None else rel
         tof = math.nan if r.tof_us is None else float(r.tof_us)
-        return r.t_s, r.sensor, tof, se2.compose(base, mount), cov, base, c_mps
+        yield r.t_s, r.sensor, tof, se2.compose(base, mount), cov, base, c_mps
 
     for rec in iter_log(source, result.log):
         if isinstance(rec, RigRecord):
@@ -881,14 +906,14 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
             ready = [r for r in pending if r.t_s <= rec.t_s]
             pending = [r for r in pending if r.t_s > rec.t_s]
             for r in ready:
-                yield emit(r)
+                yield from emit(r)
         elif isinstance(rec, TofRecord):
             if rec.sensor not in mounts:
                 skipped["tof_unknown_sensor" if mounts else "tof_before_rig"] += 1
                 continue
             if track is not None:
                 if track.covers(rec.t_s):
-                    yield emit(rec)
+                    yield from emit(rec)
                 else:  # extrapolating the track would build from made-up poses
                     skipped["tof_outside_poses"] += 1
             elif odom_first is None:
@@ -897,7 +922,7 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
                 pending.append(rec)
     for r in pending:  # those at the last odometry's time came after it in the log
         if r.t_s <= odo_t[-1]:
-            yield emit(r)
+            yield from emit(r)
         else:
             skipped["tof_after_last_odom"] += 1
     if anchored and init is None:
@@ -925,7 +950,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     seg: Segmenter | None = None
     fit_cfg: FitConfig | None = None
     ref_cov: dict[float, tuple[Array, Array | None]] = {}
-    for t, sensor, tof, pose, cov, base, c_mps in _readings(source, poses, result):
+    for t, sensor, tof, pose, cov, base, c_mps in _readings(source, poses, result, cfg.odom_gap_s):
         if seg is None or fit_cfg is None:
             fit_cfg = FitConfig(module=ModuleParams(c_mps=cfg.speed_of_sound_mps or c_mps))
             seg = Segmenter(SegmenterConfig(max_readings=cfg.segment_max_readings),

@@ -201,3 +201,43 @@ def test_whatever_the_builder_merges_loads_as_a_map(items, min_obs):
     obj = b.geojson()
     m = map_from_geojson(json.loads(json.dumps(obj)))  # what `map build` writes
     assert len(m.features) == len(obj["features"])
+
+
+def test_readings_inside_a_gap_of_the_poses_are_counted_not_interpolated(records):
+    """Odometry (or pose rows) missing for 5 s while the robot drives: the readings in
+    between would be placed on a pose interpolated across seconds of unknown motion;
+    they are skipped and counted (`tof_in_odom_gap`), as the Localizer does, and the
+    rest still builds the map. `odom_gap_s=inf` places them as before."""
+    t0, t1 = 8.0, 13.0
+    cut = [r for r in records if not (isinstance(r, OdomRecord) and t0 < r.t_s < t1)]
+    inside = sum(isinstance(r, TofRecord) and t0 < r.t_s < t1 for r in records)
+    assert inside > 500
+    for poses in (None, truth_track([r for r in records
+                                     if not (isinstance(r, TruthRecord) and t0 < r.t_s < t1)])):
+        result = build(cut, poses, min_observations=2)
+        assert result.skipped["tof_in_odom_gap"] == inside
+        assert result.readings == sum(isinstance(r, TofRecord) for r in records) - inside
+        assert result.geojson()["features"]
+        again = build(cut, poses, min_observations=2, odom_gap_s=float("inf"))
+        assert "tof_in_odom_gap" not in again.skipped
+    with pytest.raises(ValueError, match="odom_gap_s"):
+        BuildConfig(odom_gap_s=0.0)
+
+
+def test_a_gap_of_a_robot_standing_still_keeps_its_readings():
+    recs = list(simulate_records(load_map(ROOM), ring16(), duration_s=6.0,
+                                 at=(2.0, 2.0, 30.0), seed=5))
+    cut = [r for r in recs if not (isinstance(r, OdomRecord) and 1.0 < r.t_s < 4.0)]
+    result = build(cut, min_observations=1)
+    assert "tof_in_odom_gap" not in result.skipped
+    assert result.readings == sum(isinstance(r, TofRecord) for r in recs)
+
+
+def test_cli_odom_gap_flag(records, tmp_path, run_cli):
+    cut = [r for r in records if not (isinstance(r, OdomRecord) and 8.0 < r.t_s < 13.0)]
+    proc, _ = _run_build(run_cli, tmp_path, cut, "--min-observations", "2")
+    assert proc.returncode == 0 and "tof_in_odom_gap" in proc.stderr
+    proc, _ = _run_build(run_cli, tmp_path, cut, "--odom-gap", "inf")
+    assert proc.returncode == 0 and "tof_in_odom_gap" not in proc.stderr
+    proc, _ = _run_build(run_cli, tmp_path, cut, "--odom-gap", "0")
+    assert proc.returncode == 2 and "--odom-gap" in proc.stderr
