@@ -90,6 +90,15 @@ def odom_moved(a: ArrayLike, b: ArrayLike) -> NDArray[np.bool_]:
                       | (np.abs(se2.wrap_angle(d[..., 2])) > GAP_STILL_RAD))
 
 
+def in_odom_gap(t_s: float, t_a: float, pose_a: ArrayLike, t_b: float, pose_b: ArrayLike,
+                gap_s: float) -> bool:
+    """Whether a reading at ``t_s``, between odometry poses ``pose_a`` at ``t_a`` and
+    ``pose_b`` at ``t_b``, lies strictly inside a gap: the two further apart than
+    ``gap_s`` and the robot moved across it (:func:`odom_moved`), so that a pose
+    interpolated there is a guess (``LocalizerConfig.odom_gap_s``)."""
+    return t_b - t_a > gap_s and t_a < t_s < t_b and bool(odom_moved(pose_a, pose_b))
+
+
 class LandmarkSource(Protocol):
     """What the Localizer needs from the fitting stage: readings in, landmarks out.
 
@@ -1196,8 +1205,7 @@ class Localizer:
         if i >= len(self._entries):
             return False
         a, b = self._entries[i - 1], self._entries[i]
-        return b.t - a.t > self.config.odom_gap_s and t > a.t and \
-            bool(odom_moved(a.odom, b.odom))
+        return in_odom_gap(t, a.t, a.odom, b.t, b.odom, self.config.odom_gap_s)
 
     def _transducer_pose(self, t: float, i: int, sensor: int, pan_deg: float | None
                          ) -> tuple[Array, Array]:

@@ -60,7 +60,7 @@ from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, TofRecord, iter_log
 from sonarloc.io.posescsv import PoseTrack
-from sonarloc.localize.localizer import odom_moved
+from sonarloc.localize.localizer import in_odom_gap
 from sonarloc.maps.geojson import Map, map_from_geojson
 from sonarloc.physics import constants
 
@@ -803,13 +803,11 @@ class BuildResult:
 
 def _in_gap(times: Sequence[float] | Array, poses: Sequence[Array] | Array, t_s: float,
             gap_s: float) -> bool:
-    """Whether ``t_s`` lies strictly inside an interval of the pose track longer than
-    ``gap_s`` across which the pose moved (the Localizer's rule for odometry gaps,
-    :func:`~sonarloc.localize.localizer.odom_moved`)."""
+    """Whether ``t_s`` lies inside a gap of the pose track (the Localizer's rule,
+    :func:`~sonarloc.localize.localizer.in_odom_gap`)."""
     i = bisect.bisect_right(times, t_s)
-    if i <= 0 or i >= len(times) or not times[i] - times[i - 1] > gap_s:
-        return False
-    return t_s > times[i - 1] and bool(odom_moved(poses[i - 1], poses[i]))
+    return 0 < i < len(times) and in_odom_gap(t_s, times[i - 1], poses[i - 1], times[i],
+                                              poses[i], gap_s)
 
 
 def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult,

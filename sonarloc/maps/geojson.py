@@ -342,12 +342,11 @@ def _validate(index: int, feat: MapFeature) -> None:
 
 
 def _check_segments(index: int, chain: BaseGeometry, what: str) -> None:
-    """Refuse a zero-length segment (a repeated position): a wall of no direction."""
-    coords = np.asarray(chain.coords)
-    seg = np.hypot(*np.diff(coords, axis=0).T)
-    if coords.shape[0] < 2 or np.any(seg < 1e-9):
-        j = int(np.argmax(seg < 1e-9)) if coords.shape[0] >= 2 else 0
-        raise _fail(index, f"zero-length segment at vertex {j} of {what}")
+    """Refuse a zero-length segment (a repeated position): a wall of no direction. (A
+    LineString has at least 2 positions here, a ring at least 4.)"""
+    short = np.hypot(*np.diff(np.asarray(chain.coords), axis=0).T) < 1e-9
+    if short.any():
+        raise _fail(index, f"zero-length segment at vertex {int(np.argmax(short))} of {what}")
 
 
 def _ring_coords(geom: BaseGeometry) -> list[NDArray[np.float64]]:
