@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -522,9 +524,27 @@ def _geometry_json(geom: BaseGeometry) -> dict[str, Any]:
 
 
 def save_map(world_map: Map, path: str | Path) -> None:
-    """Write a map as GeoJSON (one feature per line, readable diffs)."""
-    obj = map_to_geojson(world_map)
+    """Write a map as GeoJSON (:func:`write_geojson`)."""
+    write_geojson(map_to_geojson(world_map), path)
+
+
+def write_geojson(obj: dict[str, Any], path: str | Path) -> None:
+    """Write a FeatureCollection ``obj`` to ``path``, one feature per line (readable
+    diffs), atomically: into a temporary file beside it, renamed over it once complete,
+    so a crash or a full disk leaves the previous map whole instead of a truncated one."""
     lines = [json.dumps(f, separators=(", ", ": ")) for f in obj["features"]]
     body = ",\n".join("  " + line for line in lines)
     text = '{"type": "FeatureCollection", "features": [\n' + body + "\n]}\n"
-    Path(path).write_text(text, encoding="utf-8")
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp",
+                               dir=target.parent if str(target.parent) else ".")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+        # the permissions of the file replaced, or a new file's usual ones (mkstemp's
+        # are the owner's only)
+        os.chmod(tmp, target.stat().st_mode & 0o7777 if target.exists() else 0o644)
+        os.replace(tmp, target)
+    except BaseException:
+        os.unlink(tmp)
+        raise
