@@ -67,6 +67,11 @@ MAX_COORD_M = 1e8
 """Largest coordinate or radius accepted [m]: far beyond any map in metres (projected
 coordinates such as UTM stay below 1e7 m); larger values overflow the geometry."""
 
+MAX_KAPPA_US = 1e6
+"""Largest reflecting strength accepted [us]: a reflector whose on-axis delay is this
+many times the module's detection limit (12 us) never echoes; larger values (1e308)
+overflowed the simulator's delays."""
+
 LONLAT_CRS = re.compile(r"(CRS(84|83|27)|EPSG(:+|/0/)(4326|4269|4258|4979))$", re.IGNORECASE)
 """Names of longitude/latitude coordinate systems in an (old-style GeoJSON) ``crs``
 member, e.g. ``urn:ogc:def:crs:OGC:1.3:CRS84``, ``EPSG:4326``: a map in degrees is
@@ -311,6 +316,8 @@ def _validate(index: int, feat: MapFeature) -> None:
         k = props["kappa_us"]
         if not _finite_number(k) or k <= 0:
             raise _fail(index, f"`kappa_us` must be a positive number, got {k!r}")
+        if k > MAX_KAPPA_US:
+            raise _fail(index, f"`kappa_us` must be at most {MAX_KAPPA_US:g} us, got {k!r}")
     if "id" in props and props["id"] is not None \
             and (isinstance(props["id"], bool) or not isinstance(props["id"], (str, int))):
         raise _fail(index, f"`id` must be a string or integer, got {props['id']!r}")
@@ -372,14 +379,22 @@ def build_map(features: Sequence[MapFeature]) -> Map:
     MapError
         naming the feature index and the problem.
     """
-    ids: dict[Any, int] = {}
+    # ids as the labels they become (FeatureMap, fit association): 1 and "1" are one
+    # label, and a feature without id is labelled f<index>
+    ids: dict[str, tuple[int, Any]] = {}
     for i, feat in enumerate(features):
         _validate(i, feat)
         fid = feat.properties.get("id")
         if fid is not None:
-            if fid in ids:
-                raise _fail(i, f"duplicate id {fid!r} (also feature {ids[fid]})")
-            ids[fid] = i
+            if str(fid) in ids:
+                j, other = ids[str(fid)]
+                same = "" if other == fid else f" as {other!r}: the same label"
+                raise _fail(i, f"duplicate id {fid!r} (also feature {j}{same})")
+            ids[str(fid)] = (i, fid)
+    for i, feat in enumerate(features):
+        if feat.properties.get("id") is None and f"f{i}" in ids:
+            j, fid = ids[f"f{i}"]
+            raise _fail(j, f"id {fid!r} is the label of feature {i}, which has no id")
 
     reflectors: list[Reflector] = []
     tree_geoms: list[BaseGeometry] = []

@@ -129,6 +129,16 @@ def test_vertices_property_and_explicit_corner_override():
          "feature 0: `vertices`"),
         (fc(feat("Point", [0, 0], kind="pole", id="a"), feat("Point", [1, 0], kind="rod", id="a")),
          "feature 1: duplicate id 'a'"),
+        # ids become labels (FeatureMap, fit association): 1 and "1" shared one, and an
+        # id "f1" the label of feature 1 without id
+        (fc(feat("Point", [0, 0], kind="pole", id=1), feat("Point", [1, 0], kind="rod", id="1")),
+         "feature 1: duplicate id '1' \\(also feature 0 as 1: the same label\\)"),
+        (fc(feat("Point", [0, 0], kind="pole", id="f1"), feat("Point", [1, 0], kind="rod")),
+         "feature 0: id 'f1' is the label of feature 1, which has no id"),
+        # a reflector too weak to echo by orders of magnitude (1e308 overflowed the
+        # simulator's delays)
+        (fc(feat("Point", [0, 0], kind="pole", kappa_us=1e308)),
+         "feature 0: `kappa_us` must be at most 1e\\+06 us"),
         # a repeated position is a wall of no direction (a LineString's was refused)
         (fc(feat("Polygon", [[[0, 0], [4, 0], [4, 0], [4, 4], [0, 0]]], kind="wall")),
          "feature 0: zero-length segment at vertex 1 of Polygon ring 0"),
