@@ -198,7 +198,8 @@ class LocalizerConfig:
         position variance of a conventional reading or fitted landmark). The larger of
         this and the feature's own ``sd_m`` (a map property ``map build`` writes;
         :attr:`FeatureMap.point_sd_m`) is used. Default 0: the map taken as exact,
-        unless it says otherwise.
+        unless it says otherwise (the simulated maps are: 3 mm costs the moving drives
+        of ``benchmarks/bench_localize.py`` 10-18 % of their steady accuracy).
     update_min_d, update_min_a : a map feature is fused again only once the transducer
         it is seen from has moved at least ``update_min_d`` [m] or turned at least
         ``update_min_a`` [rad] (odometry, ``odom`` frame) from each pose that feature was
@@ -216,7 +217,7 @@ class LocalizerConfig:
         behaviour before these settings). Defaults 2 cm and 1 deg: the moving drives of
         ``benchmarks/bench_localize.py`` fuse as before (a ring's transducers move
         further between two segments; a pan turns 1.5 deg a ping), while 5 cm / 5 deg
-        cost the panning drives 10-20 % of their steady accuracy.
+        cost the panning drives 15-20 % of their steady accuracy.
     relocalize : (method ``kuc``) when ``lost`` (or started without a prior), try a global
         relocalization (:mod:`~sonarloc.localize.relocalize`) every
         ``relocalization.every_s`` from the fits since the trouble began, and restart
@@ -366,6 +367,33 @@ class LocalizerStats:
             parts.append("relocalization attempts: " + ", ".join(
                 f"{k} {v}" for k, v in sorted(self.relocalization.items())))
         return "; ".join(parts)
+
+
+class _FusedPoses:
+    """The last :data:`FUSED_POSES_KEPT` transducer poses (x, y, yaw in ``odom``) a map
+    feature was fused from, in a ring buffer (one vectorised test for all of them)."""
+
+    __slots__ = ("_poses", "_n", "_next")
+
+    def __init__(self) -> None:
+        self._poses = np.zeros((FUSED_POSES_KEPT, 3))
+        self._n = 0
+        self._next = 0
+
+    def add(self, pose: Sequence[float]) -> None:
+        self._poses[self._next] = pose
+        self._next = (self._next + 1) % FUSED_POSES_KEPT
+        self._n = min(self._n + 1, FUSED_POSES_KEPT)
+
+    def near(self, pose: Sequence[float], min_d_m: float, min_a_rad: float) -> bool:
+        """Whether ``pose`` has not :func:`moved_enough` from one of the poses kept."""
+        p = self._poses[:self._n]
+        x, y, yaw = pose
+        close = np.hypot(p[:, 0] - x, p[:, 1] - y) < min_d_m
+        if not close.any():
+            return False
+        turn = np.abs((p[close, 2] - yaw + math.pi) % (2.0 * math.pi) - math.pi)
+        return bool(np.any(turn < min_a_rad))
 
 
 @dataclass
@@ -573,7 +601,7 @@ class Localizer:
         self._reject_start_t = math.nan
         # transducer poses (x, y, yaw in odom) of the latest fusions of each map feature
         # ("point"/"wall", index): LocalizerConfig.update_min_d / update_min_a
-        self._fused_at: dict[tuple[str, int], deque[tuple[float, float, float]]] = {}
+        self._fused_at: dict[tuple[str, int], _FusedPoses] = {}
         c = self.config
         self._conv_cov = np.diag([c.conventional_range_sd_m**2,
                                   math.radians(c.conventional_bearing_sd_deg) ** 2])
@@ -937,7 +965,7 @@ class Localizer:
             self.stats.outcomes["echo_gated"] += 1
             self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, "readings outside the gate")
-        sensor_odom = se2.compose(odom_ref, chain[2][-1])   # the latest reading's
+        sensor_odom = se2.compose_floats(odom_ref.tolist(), chain[2][-1].tolist())  # latest
         if not self.may_fuse_again(assoc.kind, assoc.index, sensor_odom, t_ref):
             return FusionOutcome(t_ref, assoc, False, NO_MOTION_REASON)
         self.stats.echoes_fused += len(eo)
@@ -1128,7 +1156,7 @@ class Localizer:
             self.stats.outcomes["singular"] += 1
             self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, "singular")
-        sensor_odom = se2.compose(odom_ref, obs.sensor)
+        sensor_odom = se2.compose_floats(odom_ref.tolist(), obs.sensor.tolist())
         if not self.may_fuse_again(assoc.kind, assoc.index, sensor_odom, t_ref):
             return FusionOutcome(t_ref, assoc, False, NO_MOTION_REASON)
         return self._insert_fused(i, base, t_ref, odom_ref, new_state, obs, assoc.feature,
@@ -1136,7 +1164,7 @@ class Localizer:
 
     def _insert_fused(self, i: int, base: _Entry, t_ref: float, odom_ref: Array,
                       new_state: Gaussian, obs: Observation | EchoObservation,
-                      feature: Feature, assoc: Association, sensor_odom: Array
+                      feature: Feature, assoc: Association, sensor_odom: Sequence[float]
                       ) -> FusionOutcome:
         """Insert a fused belief into the history at ``i`` and replay what follows
         (``sensor_odom``: the transducer pose in ``odom`` it was seen from)."""
@@ -1184,8 +1212,8 @@ class Localizer:
 
     # -- internals ------------------------------------------------------------------
 
-    def may_fuse_again(self, kind: str | None, index: int, sensor_odom: Array, t_ref: float
-                       ) -> bool:
+    def may_fuse_again(self, kind: str | None, index: int, sensor_odom: Sequence[float],
+                       t_ref: float) -> bool:
         """Whether an observation of map feature (``kind``, ``index``) that would be fused
         (associated, inside the gate), seen from transducer pose ``sensor_odom`` (x, y,
         yaw in ``odom`` at its reference time ``t_ref``), may be: it differs enough from
@@ -1195,9 +1223,7 @@ class Localizer:
         taken as a confirmation of the pose for the status, as a fused one would be."""
         c = self.config
         seen = self._fused_at.get((str(kind), index))
-        pose = sensor_odom.tolist()
-        if seen is None or all(moved_enough(p, pose, c.update_min_d, c.update_min_a)
-                               for p in seen):
+        if seen is None or not seen.near(sensor_odom, c.update_min_d, c.update_min_a):
             return True
         self.stats.skipped["no_motion_since_fused"] += 1
         self._consecutive_rejected = 0
@@ -1215,15 +1241,14 @@ class Localizer:
         sd = np.concatenate([self.fmap.point_sd_m, self.fmap.wall_sd_m])
         return np.maximum(np.where(np.isfinite(sd), sd, 0.0), self.config.map_sd_m) ** 2
 
-    def note_fused(self, kind: str | None, index: int, sensor_odom: Array) -> None:
+    def note_fused(self, kind: str | None, index: int, sensor_odom: Sequence[float]) -> None:
         """Remember that map feature (``kind``, ``index``) was fused from transducer pose
         ``sensor_odom`` (in ``odom``; :meth:`may_fuse_again`)."""
-        x, y, yaw = sensor_odom.tolist()
         key = (str(kind), index)
         seen = self._fused_at.get(key)
         if seen is None:
-            seen = self._fused_at[key] = deque(maxlen=FUSED_POSES_KEPT)
-        seen.append((x, y, yaw))
+            seen = self._fused_at[key] = _FusedPoses()
+        seen.add(sensor_odom)
 
     def _rejected(self, t_ref: float) -> None:
         if self._consecutive_rejected == 0:

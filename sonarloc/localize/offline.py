@@ -589,7 +589,7 @@ class OfflinePipeline:
         return "segment"
 
     def _append_fused(self, p: Prepared, state: ekf.Gaussian, obs: EchoObservation,
-                      n: int, kind: str | None, index: int, sensor_odom: Array) -> None:
+                      n: int, kind: str | None, index: int, sensor_odom: list[float]) -> None:
         loc = self.loc
         last = loc._entries[-1]
         loc.note_fused(kind, index, sensor_odom)
@@ -601,10 +601,10 @@ class OfflinePipeline:
         loc._last_accept_t = max(loc._last_accept_t, p.t_ref)
 
 
-def _sensor_odom(p: Prepared) -> Array:
+def _sensor_odom(p: Prepared) -> list[float]:
     """The transducer pose (in ``odom``) of a prepared segment's latest reading (as
     :meth:`Localizer._add_echoes` takes it for ``update_min_d`` / ``update_min_a``)."""
-    chain = p.chain
-    if chain is None or len(chain[2]) == 0:
-        return np.asarray(p.odom_ref, dtype=float)
-    return se2.compose(p.odom_ref, chain[2][-1])
+    if p.batch is None:
+        return [float(v) for v in p.odom_ref]
+    rel = p.batch[2]
+    return se2.compose_floats(p.odom_ref.tolist(), rel[p.row, -1].tolist())

@@ -196,3 +196,21 @@ def test_map_error_is_shared_by_the_readings():
     assert np.allclose(rb - ra, 0.004**2, rtol=1e-9, atol=0)
     assert len(b.subset(np.arange(n) < 3).measure(pose)[2]) == 3
     assert b.subset(np.arange(n) < 3).map_var_m2 == b.map_var_m2
+
+
+def test_the_kept_poses_apply_moved_enough_to_each():
+    """The vectorised test of the poses a feature was fused from is
+    :func:`moved_enough` applied to each (ring buffer: the last ones kept)."""
+    from sonarloc.localize.localizer import FUSED_POSES_KEPT, _FusedPoses
+
+    rng = np.random.default_rng(5)
+    kept = _FusedPoses()
+    poses = []
+    for _ in range(FUSED_POSES_KEPT + 40):
+        p = [float(v) for v in rng.uniform([-0.1, -0.1, -math.pi], [0.1, 0.1, math.pi])]
+        kept.add(p)
+        poses.append(p)
+        q = [float(v) for v in rng.uniform([-0.1, -0.1, -math.pi], [0.1, 0.1, math.pi])]
+        for d, a in ((0.05, 0.5), (0.02, math.radians(1.0)), (0.0, 0.0), (1.0, 7.0)):
+            want = not all(moved_enough(p0, q, d, a) for p0 in poses[-FUSED_POSES_KEPT:])
+            assert kept.near(q, d, a) == want
