@@ -231,7 +231,7 @@ def run_drive(config: DriveConfig = DriveConfig(),
     from sonarloc.io.drivers import open_driver
     from sonarloc.io.drivers.sim import SimModule
     from sonarloc.localize.features import FeatureMap
-    from sonarloc.localize.localizer import LocalizerConfig
+    from sonarloc.localize.localizer import NO_MOTION_REASON, LocalizerConfig
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import rig_by_name
     from sonarloc.world.robot import Route
@@ -322,7 +322,9 @@ def run_drive(config: DriveConfig = DriveConfig(),
     e_steady = track_error(est_track, truth, t_from_s=t0 + WARMUP_S)
 
     reports = node.landmarks()
-    in_map = [(r.in_map, r.fused) for r in reports if r.in_map is not None]
+    # matched but not fused again from the same place: drawn as matched
+    in_map = [(r.in_map, r.fused or r.outcome == NO_MOTION_REASON) for r in reports
+              if r.in_map is not None]
     st = node.stats
     skipped = st.skipped["no_motion_since_fused"]
     report = DriveReport(

@@ -214,3 +214,20 @@ def test_the_kept_poses_apply_moved_enough_to_each():
         for d, a in ((0.05, 0.5), (0.02, math.radians(1.0)), (0.0, 0.0), (1.0, 7.0)):
             want = not all(moved_enough(p0, q, d, a) for p0 in poses[-FUSED_POSES_KEPT:])
             assert kept.near(q, d, a) == want
+
+
+def test_the_node_reports_skipped_landmarks_as_matched_not_fused():
+    """`LocalizerNode.landmarks()` says why a still robot's segment was not fused (the
+    drive figure draws those as matched to the map, not as unmatched)."""
+    from sonarloc.api import LocalizerNode
+    from sonarloc.localize.localizer import NO_MOTION_REASON
+
+    node = LocalizerNode(FeatureMap.from_map(load_map(ROOM)))
+    for rec in iter_log(io.StringIO(_still_log(2.0))):
+        node.feed(rec)
+    node.finish()
+    reports = node.landmarks()
+    skipped = [r for r in reports if r.outcome == NO_MOTION_REASON]
+    assert skipped and not any(r.fused for r in skipped)
+    assert len(skipped) == node.stats.skipped["no_motion_since_fused"]
+    assert any(r.fused for r in reports)
