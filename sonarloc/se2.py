@@ -65,6 +65,16 @@ def between_floats(a: Sequence[float], b: Sequence[float]) -> list[float]:
     return [c * dx + s * dy, -s * dx + c * dy, (bth - ath + math.pi) % (2.0 * math.pi) - math.pi]
 
 
+def compose_floats(a: Sequence[float], b: Sequence[float]) -> list[float]:
+    """:func:`compose` of one pair of poses given as Python floats (as
+    :func:`between_floats`)."""
+    ax, ay, ath = a
+    bx, by, bth = b
+    c, s = math.cos(ath), math.sin(ath)
+    return [ax + c * bx - s * by, ay + s * bx + c * by,
+            (ath + bth + math.pi) % (2.0 * math.pi) - math.pi]
+
+
 def compose_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[Array, Array]:
     """Jacobians of ``a ⊕ b`` with respect to ``a`` and to ``b``: two ``(..., 3, 3)`` arrays."""
     ax, ay, ath = _split(a)

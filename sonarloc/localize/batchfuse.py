@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from sonarloc import se2
 from sonarloc.localize import echoes, ekf
@@ -347,12 +347,14 @@ class BatchFuser:
         and ``echo_gate_probability``.
     max_range_m, wall_margin_m, min_match_probability : association settings.
     min_fraction : a winner must keep this share of a segment's readings (at least one).
+    map_var_m2 : (P + W,) variance [m²] of each feature's position (points, then walls),
+        shared by a segment's readings (``EchoObservation.map_var_m2``); None: 0.
     """
 
     def __init__(self, fmap: FeatureMap, noise: OdomNoise, c_mps: float,
                  screen_probability: float, gate_probability: float, max_range_m: float,
                  wall_margin_m: float, min_match_probability: float,
-                 min_fraction: float) -> None:
+                 min_fraction: float, map_var_m2: ArrayLike | None = None) -> None:
         self.fmap = fmap
         self.noise = noise
         self.c_mps = float(c_mps)
@@ -373,6 +375,8 @@ class BatchFuser:
         ok = np.isfinite(kap) & (kap > 0)
         self._kappa = np.where(ok, kap, 1.0)  # Localizer._kappa_fallback without a fit
         kinds = tuple(fmap.point_kind) + tuple(fmap.wall_kind)
+        self._map_var = np.zeros(len(kinds)) if map_var_m2 is None else \
+            np.asarray(map_var_m2, dtype=float).reshape(len(kinds))
         # feature groups: the same point (within 1 mm) or the same line (1 mm, 1 mrad) is
         # not a rival of itself (Localizer._rivals)
         n_f = len(kinds)
@@ -496,6 +500,7 @@ class BatchFuser:
         r = 0.5 * (r + np.swapaxes(r, -1, -2))
         idx = np.arange(N)
         r[:, idx, idx] += sd_m**2
+        r += self._map_var[fs][:, None, None]     # the feature's map error, shared
         with np.errstate(invalid="ignore"):
             ok = vp & np.isfinite(mean) & np.isfinite(slope) & np.isfinite(r[:, idx, idx])
         lin.pairs = (ps, fs, gap_med[near], gap_one[near], theta,

@@ -414,6 +414,9 @@ class EchoObservation:
     lin_theta, lin_mean, lin_slope, lin_sd : (n,) the delay model linearised at the
         first evaluation (off-axis angle [rad], mean [us], slope [us/rad], SD [us]);
         re-used when the update is replayed on a slightly different belief.
+    map_var_m2 : variance [m²] of the map feature's position, an error all the readings
+        share: added to every element of R (a common range offset; exact for a wall's
+        distance, for a point seen over the short arc of one segment nearly so).
     """
 
     z_m: Array
@@ -430,6 +433,7 @@ class EchoObservation:
     lin_slope: Array | None = None
     lin_sd: Array | None = None
     compressed: Compressed | None = None
+    map_var_m2: float = 0.0
     #: the pose of the last :meth:`measure` and its result (pose, h, H, R)
     _measured: tuple[Array, Array, Array, Array] | None = field(
         default=None, repr=False, compare=False)
@@ -445,7 +449,8 @@ class EchoObservation:
         out = EchoObservation(self.z_m[keep], self.rel[keep], self.p_fac[keep],
                               self.v_fac[keep], self.kappa_us, self.feature, self.t_s,
                               self.c_mps, self.kind, sel(self.lin_theta),
-                              sel(self.lin_mean), sel(self.lin_slope), sel(self.lin_sd))
+                              sel(self.lin_mean), sel(self.lin_slope), sel(self.lin_sd),
+                              map_var_m2=self.map_var_m2)
         if self._measured is not None:
             x, h, hx, r = self._measured
             idx = np.flatnonzero(keep)
@@ -507,6 +512,8 @@ class EchoObservation:
         m = gp @ gv.T                       # m[i, j] = g_i P_i V_j g_j (valid for i <= j)
         upper = np.triu(m)
         r = upper + np.triu(m, 1).T + np.diag(sd_m**2)
+        if self.map_var_m2 > 0:
+            r = r + self.map_var_m2
         r = ekf.symmetrize(r)
         self._measured = (x.copy(), h, hx, r)
         return h, hx, r

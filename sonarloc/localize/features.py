@@ -8,7 +8,7 @@ All coordinates are metres/radians in ``map``. Queries are vectorised over featu
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -43,6 +43,10 @@ class FeatureMap:
     wall_ends : (W, 2, 2) segment end points [m]; wall_line : (W, 2) (rho, alpha) of the
         infinite line (rho >= 0 from the map origin); wall_kappa_us : (W,); wall_kind,
         wall_id : W labels.
+    point_sd_m, wall_sd_m : (P,), (W,) SD of each feature's position [m] as the map file
+        gives it (the ``sd_m`` property that ``map build`` writes; NaN: not given): the
+        map error :class:`~sonarloc.localize.localizer.Localizer` adds to the readings
+        of one update (``LocalizerConfig.map_sd_m``).
     """
 
     point_xy: Array
@@ -56,16 +60,26 @@ class FeatureMap:
     wall_kappa_us: Array
     wall_kind: tuple[str, ...]
     wall_id: tuple[str, ...]
+    point_sd_m: Array = field(default_factory=lambda: np.zeros(0))
+    wall_sd_m: Array = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        # not given (or not one per feature): unknown
+        for name, n in (("point_sd_m", len(self.point_xy)), ("wall_sd_m", len(self.wall_ends))):
+            if np.shape(getattr(self, name)) != (n,):
+                object.__setattr__(self, name, np.full(n, np.nan))
 
     @classmethod
     def build(cls, points: ArrayLike = (), walls: ArrayLike = (),
               *, point_radius_m: ArrayLike | None = None, point_kappa_us: ArrayLike | None = None,
               point_kind: tuple[str, ...] | None = None, point_cone_rad: ArrayLike | None = None,
               point_id: tuple[str, ...] | None = None, wall_kappa_us: ArrayLike | None = None,
-              wall_kind: tuple[str, ...] | None = None, wall_id: tuple[str, ...] | None = None
+              wall_kind: tuple[str, ...] | None = None, wall_id: tuple[str, ...] | None = None,
+              point_sd_m: ArrayLike | None = None, wall_sd_m: ArrayLike | None = None
               ) -> FeatureMap:
         """A map from point centres (P, 2) and wall segments (W, 2, 2); defaults: kind
-        ``point`` / ``wall``, radius 0, kappa from the kind's default, ids ``p<i>`` / ``w<i>``.
+        ``point`` / ``wall``, radius 0, kappa from the kind's default, ids ``p<i>`` / ``w<i>``,
+        position SDs unknown (NaN).
         """
         pts = np.asarray(points, dtype=float).reshape(-1, 2)
         ends = np.asarray(walls, dtype=float).reshape(-1, 2, 2)
@@ -101,16 +115,21 @@ class FeatureMap:
                    "wall_kappa_us")
         cone = np.full((n_p, 2), np.nan) if point_cone_rad is None else \
             np.asarray(point_cone_rad, dtype=float).reshape(n_p, 2)
+        psd = arr(point_sd_m, np.full(n_p, np.nan), n_p, "point_sd_m")
+        wsd = arr(wall_sd_m, np.full(n_w, np.nan), n_w, "wall_sd_m")
+        if np.any(psd < 0) or np.any(wsd < 0):
+            raise ValueError("`point_sd_m` and `wall_sd_m` must be non-negative (NaN: unknown)")
         return cls(pts, radius, pkap, tuple(pk), cone,
                    tuple(point_id or (f"p{i}" for i in range(n_p))), ends, _lines(ends), wkap,
-                   tuple(wk), tuple(wall_id or (f"w{i}" for i in range(n_w))))
+                   tuple(wk), tuple(wall_id or (f"w{i}" for i in range(n_w))), psd, wsd)
 
     @classmethod
     def from_map(cls, world_map: Map) -> FeatureMap:
         """Features from a loaded GeoJSON map's reflectors (segments and points)."""
-        pts, radius, pkap, pkind, cones, pid = [], [], [], [], [], []
-        ends, wkap, wkind, wid = [], [], [], []
+        pts, radius, pkap, pkind, cones, pid, psd = [], [], [], [], [], [], []
+        ends, wkap, wkind, wid, wsd = [], [], [], [], []
         for i, ref in enumerate(world_map.reflectors):
+            sd = _sd_m(world_map, ref.feature)
             label = str(ref.id if ref.id is not None else f"f{ref.feature}")
             if ref.kind in WALL_KINDS or ref.kind in ("corner", "edge"):
                 label += f":{ref.part}"  # segment / vertex index within the feature
@@ -120,11 +139,13 @@ class FeatureMap:
                 wkap.append(ref.kappa_us)
                 wkind.append(ref.kind)
                 wid.append(label)
+                wsd.append(sd)
             elif ref.kind in POINT_KINDS:
                 pts.append((ref.geometry.x, ref.geometry.y))
                 radius.append(ref.radius_m)
                 pkap.append(ref.kappa_us)
                 pkind.append(ref.kind)
+                psd.append(sd)
                 cones.append(ref.cone_rad if ref.cone_rad is not None else (math.nan, math.nan))
                 pid.append(label)
             else:  # pragma: no cover - the map validates kinds
@@ -133,7 +154,13 @@ class FeatureMap:
                          point_radius_m=np.array(radius), point_kappa_us=np.array(pkap),
                          point_kind=tuple(pkind), point_cone_rad=np.array(cones).reshape(-1, 2),
                          point_id=tuple(pid), wall_kappa_us=np.array(wkap),
-                         wall_kind=tuple(wkind), wall_id=tuple(wid))
+                         wall_kind=tuple(wkind), wall_id=tuple(wid), point_sd_m=np.array(psd),
+                         wall_sd_m=np.array(wsd))
+
+    def sd_m(self, kind: str | None, index: int) -> float:
+        """Position SD [m] of feature ``index`` of ``kind`` (``point`` / ``wall``) as the
+        map gives it (NaN: not given)."""
+        return float(self.point_sd_m[index] if kind == "point" else self.wall_sd_m[index])
 
     @property
     def n_points(self) -> int:
@@ -225,3 +252,15 @@ def _lines(ends: Array) -> Array:
     rho = ends[:, 0, 0] * np.cos(alpha) + ends[:, 0, 1] * np.sin(alpha)
     alpha = np.where(rho < 0, alpha + math.pi, alpha)
     return np.stack([np.abs(rho), se2.wrap_angle(alpha)], axis=-1)
+
+
+def _sd_m(world_map: Map, feature: int) -> float:
+    """The ``sd_m`` property of source feature ``feature`` (NaN when absent or not a
+    non-negative finite number)."""
+    if not 0 <= feature < len(world_map.features):
+        return math.nan
+    v = world_map.features[feature].properties.get("sd_m")
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return math.nan
+    v = float(v)
+    return v if math.isfinite(v) and v >= 0 else math.nan

@@ -73,6 +73,13 @@ ECHO_ONLY_STATUSES = ("ok", "flat", "too_few_points", "unresolved", "partial")
 ECHO_MIN_READINGS = 1
 ECHO_MIN_FRACTION = 0.75
 KucFusion = Literal["echoes", "fit"]
+#: :class:`FusionOutcome` reason of an observation skipped by ``update_min_d`` /
+#: ``update_min_a`` (:meth:`Localizer.may_fuse_again`).
+NO_MOTION_REASON = "no motion since this map feature was fused"
+#: Transducer poses remembered per map feature for :meth:`Localizer.may_fuse_again` (a
+#: panning transducer standing still sees a feature from a few dozen angles, 1.5 deg
+#: apart, each sweep).
+FUSED_POSES_KEPT = 64
 Status = Literal["initializing", "tracking", "dead_reckoning", "lost"]
 
 
@@ -97,6 +104,18 @@ def in_odom_gap(t_s: float, t_a: float, pose_a: ArrayLike, t_b: float, pose_b: A
     ``gap_s`` and the robot moved across it (:func:`odom_moved`), so that a pose
     interpolated there is a guess (``LocalizerConfig.odom_gap_s``)."""
     return t_b - t_a > gap_s and t_a < t_s < t_b and bool(odom_moved(pose_a, pose_b))
+
+
+def moved_enough(a: Sequence[float], b: Sequence[float], min_d_m: float, min_a_rad: float
+                 ) -> bool:
+    """Whether odometry pose ``b`` is at least ``min_d_m`` [m] from ``a`` or turned at
+    least ``min_a_rad`` [rad] from it (poses (x_m, y_m, yaw_rad) in ``odom``): the robot
+    moved enough for a map feature fused at ``a`` to be fused again at ``b``
+    (``LocalizerConfig.update_min_d`` / ``update_min_a``). Both 0: always."""
+    ax, ay, ath = a
+    bx, by, bth = b
+    dyaw = abs((bth - ath + math.pi) % (2.0 * math.pi) - math.pi)
+    return math.hypot(bx - ax, by - ay) >= min_d_m or dyaw >= min_a_rad
 
 
 class LandmarkSource(Protocol):
@@ -174,6 +193,31 @@ class LocalizerConfig:
         ``math.inf``: no gaps. The default, 1 s, is ten periods of a 10 Hz odometry (a
         Pioneer's SIPs; ROS bases publish at 10-50 Hz): set it to a few periods of a
         slower one, whose every reading would otherwise fall in a gap.
+    map_sd_m : SD [m] of a map feature's position: an error shared by the readings of
+        one update (added to every element of their covariance; to the range, rho or
+        position variance of a conventional reading or fitted landmark). The larger of
+        this and the feature's own ``sd_m`` (a map property ``map build`` writes;
+        :attr:`FeatureMap.point_sd_m`) is used. Default 0: the map taken as exact,
+        unless it says otherwise (the simulated maps are: 3 mm costs the moving drives
+        of ``benchmarks/bench_localize.py`` 10-18 % of their steady accuracy).
+    update_min_d, update_min_a : a map feature is fused again only once the transducer
+        it is seen from has moved at least ``update_min_d`` [m] or turned at least
+        ``update_min_a`` [rad] (odometry, ``odom`` frame) from each pose that feature was
+        fused from lately (:data:`FUSED_POSES_KEPT`), as AMCL's parameters of these
+        names. Readings of a feature from the same place share its map error and the
+        model's error there; fused again and again by a robot standing still, they
+        would average down an error that does not average down (odometry adds no noise
+        while still): the covariance collapses to micrometres and a map a few
+        millimetres off is then rejected. An observation that would be fused
+        (associated, inside the gate) but comes too soon is skipped and counted
+        (``skipped["no_motion_since_fused"]``); it still confirms the pose for the
+        status (not ``dead_reckoning``). Transducer poses, not base poses: a panning
+        transducer sees a feature from new angles within one pass. Applies to every
+        method and to the batch replay alike. 0 and 0: every observation fused (the
+        behaviour before these settings). Defaults 2 cm and 1 deg: the moving drives of
+        ``benchmarks/bench_localize.py`` fuse as before (a ring's transducers move
+        further between two segments; a pan turns 1.5 deg a ping), while 5 cm / 5 deg
+        cost the panning drives 15-20 % of their steady accuracy.
     relocalize : (method ``kuc``) when ``lost`` (or started without a prior), try a global
         relocalization (:mod:`~sonarloc.localize.relocalize`) every
         ``relocalization.every_s`` from the fits since the trouble began, and restart
@@ -205,6 +249,9 @@ class LocalizerConfig:
     lost_sd_m: float = 0.5
     dead_reckoning_after_s: float = 5.0
     odom_gap_s: float = 1.0
+    map_sd_m: float = 0.0
+    update_min_d: float = 0.02
+    update_min_a: float = math.radians(1.0)
     relocalize: bool = False
     relocalization: RelocalizeConfig = field(default_factory=RelocalizeConfig)
 
@@ -225,7 +272,8 @@ class LocalizerConfig:
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
         if not self.odom_gap_s > 0:  # math.inf allowed: no gaps
             raise ValueError(f"`odom_gap_s` must be positive, got {self.odom_gap_s!r}")
-        for name in ("fit_sd_floor_m", "fit_sd_floor_deg"):
+        for name in ("fit_sd_floor_m", "fit_sd_floor_deg", "update_min_d", "update_min_a",
+                     "map_sd_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"`{name}` must be non-negative, got {v!r}")
@@ -319,6 +367,33 @@ class LocalizerStats:
             parts.append("relocalization attempts: " + ", ".join(
                 f"{k} {v}" for k, v in sorted(self.relocalization.items())))
         return "; ".join(parts)
+
+
+class _FusedPoses:
+    """The last :data:`FUSED_POSES_KEPT` transducer poses (x, y, yaw in ``odom``) a map
+    feature was fused from, in a ring buffer (one vectorised test for all of them)."""
+
+    __slots__ = ("_poses", "_n", "_next")
+
+    def __init__(self) -> None:
+        self._poses = np.zeros((FUSED_POSES_KEPT, 3))
+        self._n = 0
+        self._next = 0
+
+    def add(self, pose: Sequence[float]) -> None:
+        self._poses[self._next] = pose
+        self._next = (self._next + 1) % FUSED_POSES_KEPT
+        self._n = min(self._n + 1, FUSED_POSES_KEPT)
+
+    def near(self, pose: Sequence[float], min_d_m: float, min_a_rad: float) -> bool:
+        """Whether ``pose`` has not :func:`moved_enough` from one of the poses kept."""
+        p = self._poses[:self._n]
+        x, y, yaw = pose
+        close = np.hypot(p[:, 0] - x, p[:, 1] - y) < min_d_m
+        if not close.any():
+            return False
+        turn = np.abs((p[close, 2] - yaw + math.pi) % (2.0 * math.pi) - math.pi)
+        return bool(np.any(turn < min_a_rad))
 
 
 @dataclass
@@ -524,6 +599,9 @@ class Localizer:
             if self.config.relocalize else None
         self._unknown = False  # started without a prior: no pose until relocalized
         self._reject_start_t = math.nan
+        # transducer poses (x, y, yaw in odom) of the latest fusions of each map feature
+        # ("point"/"wall", index): LocalizerConfig.update_min_d / update_min_a
+        self._fused_at: dict[tuple[str, int], _FusedPoses] = {}
         c = self.config
         self._conv_cov = np.diag([c.conventional_range_sd_m**2,
                                   math.radians(c.conventional_bearing_sd_deg) ** 2])
@@ -560,6 +638,7 @@ class Localizer:
         self._unknown = False
         self._entries.clear()
         self._times.clear()
+        self._fused_at.clear()
         self._pending.clear()
         self._last_odom_t = -math.inf
         self._consecutive_rejected = 0
@@ -886,8 +965,12 @@ class Localizer:
             self.stats.outcomes["echo_gated"] += 1
             self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, "readings outside the gate")
+        sensor_odom = se2.compose_floats(odom_ref.tolist(), chain[2][-1].tolist())  # latest
+        if not self.may_fuse_again(assoc.kind, assoc.index, sensor_odom, t_ref):
+            return FusionOutcome(t_ref, assoc, False, NO_MOTION_REASON)
         self.stats.echoes_fused += len(eo)
-        return self._insert_fused(i, base, t_ref, odom_ref, new_state, eo, eo.feature, assoc)
+        return self._insert_fused(i, base, t_ref, odom_ref, new_state, eo, eo.feature, assoc,
+                                  sensor_odom)
 
     def _echo_chain(self, arrays: tuple[Array, ...], t_ref: float, odom_ref: Array
                     ) -> tuple[Array, Array, Array, Array, Array] | None:
@@ -941,7 +1024,7 @@ class Localizer:
         kind_name = self.fmap.point_kind[index] if kind == "point" else \
             self.fmap.wall_kind[index]
         return EchoObservation(z, rel, p_fac, v_fac, kap, feat, float(t[-1]), self._c_mps,
-                               kind_name)
+                               kind_name, map_var_m2=self.map_var_m2(kind, index))
 
     def _rivals(self, chain: tuple[Array, Array, Array, Array, Array], kind: str | None,
                 index: int, fitted_kappa_us: float, state: Gaussian
@@ -1060,19 +1143,33 @@ class Localizer:
         if not assoc.matched or assoc.feature is None:
             self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, assoc.status)
+        var = self.map_var_m2(assoc.kind, assoc.index)
+        if var > 0:
+            cov = obs.cov.copy()
+            if obs.kind == "point":
+                cov[:2, :2] += var * np.eye(2)
+            else:                         # range (conventional, specular) or rho (line)
+                cov[0, 0] += var
+            obs = replace(obs, cov=cov)
         new_state, innov = ekf.update(state_ref, obs, assoc.feature, gate_probability=None)
         if not bool(np.all(innov.accepted)):
             self.stats.outcomes["singular"] += 1
             self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, "singular")
+        sensor_odom = se2.compose_floats(odom_ref.tolist(), obs.sensor.tolist())
+        if not self.may_fuse_again(assoc.kind, assoc.index, sensor_odom, t_ref):
+            return FusionOutcome(t_ref, assoc, False, NO_MOTION_REASON)
         return self._insert_fused(i, base, t_ref, odom_ref, new_state, obs, assoc.feature,
-                                  assoc)
+                                  assoc, sensor_odom)
 
     def _insert_fused(self, i: int, base: _Entry, t_ref: float, odom_ref: Array,
                       new_state: Gaussian, obs: Observation | EchoObservation,
-                      feature: Feature, assoc: Association) -> FusionOutcome:
-        """Insert a fused belief into the history at ``i`` and replay what follows."""
+                      feature: Feature, assoc: Association, sensor_odom: Sequence[float]
+                      ) -> FusionOutcome:
+        """Insert a fused belief into the history at ``i`` and replay what follows
+        (``sensor_odom``: the transducer pose in ``odom`` it was seen from)."""
         entry = _Entry(max(t_ref, base.t), odom_ref, new_state, obs, feature)
+        self.note_fused(assoc.kind, assoc.index, sensor_odom)
         self._entries.insert(i, entry)
         self._times.insert(i, entry.t)
         self._replay(i + 1)
@@ -1115,6 +1212,44 @@ class Localizer:
 
     # -- internals ------------------------------------------------------------------
 
+    def may_fuse_again(self, kind: str | None, index: int, sensor_odom: Sequence[float],
+                       t_ref: float) -> bool:
+        """Whether an observation of map feature (``kind``, ``index``) that would be fused
+        (associated, inside the gate), seen from transducer pose ``sensor_odom`` (x, y,
+        yaw in ``odom`` at its reference time ``t_ref``), may be: it differs enough from
+        every pose that feature was fused from lately (:data:`FUSED_POSES_KEPT` of them;
+        :func:`moved_enough`, ``LocalizerConfig.update_min_d`` / ``update_min_a``).
+        If not, the observation is counted (``skipped["no_motion_since_fused"]``) and
+        taken as a confirmation of the pose for the status, as a fused one would be."""
+        c = self.config
+        seen = self._fused_at.get((str(kind), index))
+        if seen is None or not seen.near(sensor_odom, c.update_min_d, c.update_min_a):
+            return True
+        self.stats.skipped["no_motion_since_fused"] += 1
+        self._consecutive_rejected = 0
+        self._last_accept_t = max(self._last_accept_t, t_ref)
+        return False
+
+    def map_var_m2(self, kind: str | None, index: int) -> float:
+        """Variance [m²] of map feature (``kind``, ``index``)'s position: the larger of its
+        ``sd_m`` (if the map gives one) and ``LocalizerConfig.map_sd_m``, squared."""
+        sd = self.fmap.sd_m(kind, index)
+        return max(sd if math.isfinite(sd) else 0.0, self.config.map_sd_m) ** 2
+
+    def map_var_all(self) -> Array:
+        """(P + W,) :meth:`map_var_m2` of every point, then every wall."""
+        sd = np.concatenate([self.fmap.point_sd_m, self.fmap.wall_sd_m])
+        return np.maximum(np.where(np.isfinite(sd), sd, 0.0), self.config.map_sd_m) ** 2
+
+    def note_fused(self, kind: str | None, index: int, sensor_odom: Sequence[float]) -> None:
+        """Remember that map feature (``kind``, ``index``) was fused from transducer pose
+        ``sensor_odom`` (in ``odom``; :meth:`may_fuse_again`)."""
+        key = (str(kind), index)
+        seen = self._fused_at.get(key)
+        if seen is None:
+            seen = self._fused_at[key] = _FusedPoses()
+        seen.add(sensor_odom)
+
     def _rejected(self, t_ref: float) -> None:
         if self._consecutive_rejected == 0:
             self._reject_start_t = t_ref
@@ -1140,6 +1275,7 @@ class Localizer:
         cov = ekf.symmetrize(cov + np.diag([0.01**2, 0.01**2, math.radians(0.5) ** 2]))
         self._entries[:] = [_Entry(t, odom, Gaussian(pose, cov))]
         self._times[:] = [t]
+        self._fused_at.clear()
         self._unknown = False
         self._consecutive_rejected = 0
         self._reject_start_t = math.nan

@@ -449,7 +449,7 @@ class OfflinePipeline:
             self._fuser = BatchFuser(loc.fmap, c.odom_noise, loc._c_mps,
                                      c.echo_screen_probability, c.echo_gate_probability,
                                      a.max_range_m, a.wall_margin_m, a.min_match_probability,
-                                     ECHO_MIN_FRACTION)
+                                     ECHO_MIN_FRACTION, loc.map_var_all())
         noise = loc.config.odom_noise
         lin: Linearized | None = None
         base = 0                              # index in ``now`` of lin's first segment
@@ -558,10 +558,13 @@ class OfflinePipeline:
                     st.outcomes["echo_gated"] += 1
                     loc._rejected(p.t_ref)
                     return "reduced"
+                where = _sensor_odom(p)
+                if not loc.may_fuse_again(p.kind, p.index, where, p.t_ref):
+                    return "reduced"
                 obs = EchoObservation(*_NO_READINGS, math.nan, p.feature, p.t_ref,
                                       loc._c_mps, p.kind, compressed=p.reduced)
                 self._append_fused(p, ekf.Gaussian.of_lists(new_mean, new_cov),
-                                   obs, p.n_kept)
+                                   obs, p.n_kept, p.kind, p.index, where)
                 return "reduced"
         state_ref = ekf.Gaussian.of_lists(mean_ref, cov_ref)
         # the per-segment path: associate and update (iterated) at the true belief
@@ -571,7 +574,7 @@ class OfflinePipeline:
             loc._rejected(p.t_ref)
             st.outcomes["echo_unmatched"] += 1
             return "segment"
-        eo, _ = found
+        eo, assoc = found
         st.outcomes["echo_matched"] += 1
         gate = ekf.chi2_gate(len(eo), loc.config.echo_gate_probability)
         new, innov = echoes.update(state_ref, eo, gate)
@@ -579,16 +582,29 @@ class OfflinePipeline:
             st.outcomes["echo_gated"] += 1
             loc._rejected(p.t_ref)
             return "segment"
-        self._append_fused(p, new, eo, len(eo))
+        where = _sensor_odom(p)
+        if not loc.may_fuse_again(assoc.kind, assoc.index, where, p.t_ref):
+            return "segment"
+        self._append_fused(p, new, eo, len(eo), assoc.kind, assoc.index, where)
         return "segment"
 
     def _append_fused(self, p: Prepared, state: ekf.Gaussian, obs: EchoObservation,
-                      n: int) -> None:
+                      n: int, kind: str | None, index: int, sensor_odom: list[float]) -> None:
         loc = self.loc
         last = loc._entries[-1]
+        loc.note_fused(kind, index, sensor_odom)
         loc._append(_Entry(max(p.t_ref, last.t), p.odom_ref, state, obs, obs.feature))
         st = loc.stats
         st.echoes_fused += n
         st.accepted += 1
         loc._consecutive_rejected = 0
         loc._last_accept_t = max(loc._last_accept_t, p.t_ref)
+
+
+def _sensor_odom(p: Prepared) -> list[float]:
+    """The transducer pose (in ``odom``) of a prepared segment's latest reading (as
+    :meth:`Localizer._add_echoes` takes it for ``update_min_d`` / ``update_min_a``)."""
+    if p.batch is None:
+        return [float(v) for v in p.odom_ref]
+    rel = p.batch[2]
+    return se2.compose_floats(p.odom_ref.tolist(), rel[p.row, -1].tolist())

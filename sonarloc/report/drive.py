@@ -50,6 +50,9 @@ class DriveReport:
     landmarks_ok: int = 0
     landmarks_matched: int = 0
     landmarks_rejected: int = 0
+    # associated and inside the gate, not fused: their map feature was fused from about
+    # the same transducer pose already (LocalizerConfig.update_min_d / update_min_a)
+    landmarks_skipped: int = 0
     readings_fused: int = 0
     status: str = ""
     compute_s: float = math.nan
@@ -110,6 +113,8 @@ class DriveReport:
             f"  landmarks       {self.landmarks_fitted} segments ({self.landmarks_ok} fitted ok), "
             f"{self.landmarks_matched} matched to the map and fused, "
             f"{self.landmarks_rejected} rejected"
+            + (f", {self.landmarks_skipped} skipped (their feature just fused from there)"
+               if self.landmarks_skipped else "")
             + (f"; {self.readings_fused} readings fused" if self.readings_fused else ""),
             f"  compute         {f(self.compute_per_reading_us, '.0f')} us per reading "
             f"(fit + filter), wall {f(self.wall_time_s, '.1f')} s, "

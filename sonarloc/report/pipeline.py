@@ -231,7 +231,7 @@ def run_drive(config: DriveConfig = DriveConfig(),
     from sonarloc.io.drivers import open_driver
     from sonarloc.io.drivers.sim import SimModule
     from sonarloc.localize.features import FeatureMap
-    from sonarloc.localize.localizer import LocalizerConfig
+    from sonarloc.localize.localizer import NO_MOTION_REASON, LocalizerConfig
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import rig_by_name
     from sonarloc.world.robot import Route
@@ -322,8 +322,11 @@ def run_drive(config: DriveConfig = DriveConfig(),
     e_steady = track_error(est_track, truth, t_from_s=t0 + WARMUP_S)
 
     reports = node.landmarks()
-    in_map = [(r.in_map, r.fused) for r in reports if r.in_map is not None]
+    # matched but not fused again from the same place: drawn as matched
+    in_map = [(r.in_map, r.fused or r.outcome == NO_MOTION_REASON) for r in reports
+              if r.in_map is not None]
     st = node.stats
+    skipped = st.skipped["no_motion_since_fused"]
     report = DriveReport(
         map=map_path.stem, rig=config.rig, device=config.device, seed=config.seed,
         duration_s=float(duration), readings=n_tof, echoes=n_echo, odom_records=len(odom_rows),
@@ -332,7 +335,9 @@ def run_drive(config: DriveConfig = DriveConfig(),
         steady_yaw_rmse_deg=e_steady.yaw_rmse_deg, odom_pose_rmse_m=e_odo.rmse_m,
         odom_yaw_rmse_deg=e_odo.yaw_rmse_deg, landmarks_fitted=st.landmarks,
         landmarks_ok=sum(1 for r in reports if r.landmark.ok),
-        landmarks_matched=st.accepted, landmarks_rejected=st.observations - st.accepted,
+        landmarks_matched=st.accepted,
+        landmarks_rejected=st.observations - st.accepted - skipped,
+        landmarks_skipped=skipped,
         readings_fused=st.echoes_fused,
         status=last_status, compute_s=compute,
         compute_per_reading_us=compute / n_tof * 1e6 if n_tof else math.nan,

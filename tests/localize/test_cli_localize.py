@@ -219,3 +219,16 @@ def test_odom_gap_flag(run_cli, room_log, tmp_path):
     assert "odometry gaps" in proc.stderr and "tof_in_odom_gap" in proc.stderr
     proc = run_cli("localize", str(slow), "--map", ROOM, "--odom-gap", "0")
     assert proc.returncode == 2 and "--odom-gap" in proc.stderr
+
+
+def test_a_still_robot_s_skipped_readings_are_counted_in_the_summary(run_cli, tmp_path):
+    """`sonarloc localize` on a robot standing still: the observations not fused
+    because their map feature was fused from there already are named in the summary
+    (the library tests cover every method, online and in batch)."""
+    path = tmp_path / "still.jsonl"
+    with LogWriter(path) as w:
+        w.write_all(simulate_records(load_map(ROOM), ring16(), duration_s=2.0,
+                                     at=(3.0, 1.5, 20.0), seed=3))
+    proc = run_cli("localize", str(path), "--map", ROOM, "--status", check=True)
+    assert "no_motion_since_fused" in proc.stderr
+    assert proc.stdout.splitlines()[-1].endswith(",tracking")

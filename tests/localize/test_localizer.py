@@ -28,14 +28,21 @@ def errors(ests, drive):
     return d
 
 
-def test_delayed_landmarks_equal_on_time_fusion():
-    """Rewind-and-replay gives exactly what on-time fusion gives."""
+@pytest.mark.parametrize("every_landmark", [True, False])
+def test_delayed_landmarks_equal_on_time_fusion(every_landmark):
+    """Rewind-and-replay gives exactly what on-time fusion gives: with every landmark
+    fused (no update_min_d / update_min_a), and with the default limits (a landmark
+    every 1.5 cm of driving: a feature fused again only 2 cm on, the rest skipped alike)."""
     drive = make_drive(delay_steps=6, every=1)
-    la, lb = loc(), loc()
+    cfg = {"update_min_d": 0.0, "update_min_a": 0.0} if every_landmark else {}
+    la, lb = loc(**cfg), loc(**cfg)
     feed(la, drive)
     feed(lb, drive, deliver=lambda idx, lm: idx - 6)
-    assert la.stats.accepted == lb.stats.accepted > 0.95 * len(drive.landmarks)
+    fused = 0.95 if every_landmark else 0.25
+    assert la.stats.accepted == lb.stats.accepted > fused * len(drive.landmarks)
     assert la.stats.outcomes == lb.stats.outcomes
+    assert la.stats.skipped == lb.stats.skipped
+    assert (la.stats.skipped["no_motion_since_fused"] > 0) != every_landmark
     assert la.stats.replayed_steps > lb.stats.replayed_steps
     a, b = la.estimate.state, lb.estimate.state
     assert np.allclose(a.mean, b.mean, atol=1e-12, rtol=0)

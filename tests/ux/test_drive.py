@@ -34,6 +34,7 @@ def test_drive_json_over_can_beats_odometry(tmp_path: Path, run_cli):
     assert rep["readings"] > 1000 and rep["odom_records"] == 301
     assert rep["device_stats"]["crc_errors"] == 0 and rep["device_stats"]["dropped"] == 0
     assert rep["landmarks_fitted"] >= 10 and rep["landmarks_matched"] >= 3
+    assert isinstance(rep["landmarks_skipped"], int) and rep["landmarks_skipped"] >= 0
     # the point of it all: fitted landmarks beat dead reckoning from the same prior
     assert rep["pose_rmse_m"] < 0.7 * rep["odom_pose_rmse_m"]
     assert rep["pose_rmse_m"] < 0.08

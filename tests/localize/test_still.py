@@ -1,0 +1,233 @@
+"""A robot standing still: each map feature fused once until the robot moves
+(``LocalizerConfig.update_min_d`` / ``update_min_a``), the map's error shared by the
+readings of one update (``map_sd_m``, the map's ``sd_m``). Fused again and again from
+the same pose, readings that share the map's error average it down: the covariance
+collapses to micrometres and a map a few millimetres off is then rejected."""
+
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+
+from sonarloc.io.logfile import LogWriter, TruthRecord, iter_log
+from sonarloc.localize import ekf
+from sonarloc.localize.echoes import EchoObservation, relative_sensor_chain
+from sonarloc.localize.ekf import Feature, OdomNoise
+from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.localizer import LocalizerConfig, moved_enough
+from sonarloc.localize.replay import replay_log
+from sonarloc.maps.geojson import load_map, map_from_geojson
+from sonarloc.world.rig import ring16
+from sonarloc.world.simulate import simulate_records
+
+ROOM = "maps/room.geojson"
+NEES_999 = 16.27  # chi-square(3) 0.999 quantile
+#: each feature of the room moved by 5 mm, in different directions (a built map's error)
+SHIFTS = {"room": (0.005, 0.0), "partition": (0.0, -0.005), "pole-a": (0.0035, 0.0035),
+          "pole-b": (-0.005, 0.0), "pole-c": (0.0, 0.005), "rod-a": (-0.0035, 0.0035),
+          "rod-b": (0.0, -0.005)}
+
+
+def _still_log(duration_s):
+    buf = io.StringIO()
+    with LogWriter(buf) as w:
+        w.write_all(simulate_records(load_map(ROOM), ring16(), duration_s=duration_s,
+                                     at=(3.0, 1.5, 20.0), seed=3))
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def still_log():
+    return _still_log(10.0)
+
+
+def _shifted_map(sd_m=None):
+    with open(ROOM, encoding="utf-8") as f:
+        d = json.load(f)
+
+    def move(c, s):
+        return [c[0] + s[0], c[1] + s[1]] if isinstance(c[0], (int, float)) else \
+            [move(x, s) for x in c]
+
+    for feat in d["features"]:
+        s = SHIFTS.get(feat["properties"].get("id"))
+        if s is not None:
+            feat["geometry"]["coordinates"] = move(feat["geometry"]["coordinates"], s)
+            if sd_m is not None:
+                feat["properties"]["sd_m"] = sd_m
+    return FeatureMap.from_map(map_from_geojson(d))
+
+
+def _replay(text, fmap, mode, **cfg):
+    truth = {r.t_s: np.array([r.x_m, r.y_m, math.radians(r.yaw_deg)])
+             for r in iter_log(io.StringIO(text)) if isinstance(r, TruthRecord)}
+    rows = []
+    res = replay_log(io.StringIO(text), fmap, config=LocalizerConfig(**cfg), mode=mode,
+                     on_estimate=lambda r, e: rows.append((r.t_s, e)))
+    t, est = rows[-1]
+    return res.localizer.stats, est, float(ekf.nees(est.state, truth[t]))
+
+
+def _sd_m(est):
+    return math.sqrt(max(est.state.cov[0, 0], est.state.cov[1, 1]))
+
+
+def test_a_still_robot_fuses_each_feature_once(still_log):
+    """10 s standing still in the room (ring16, 1300 readings): a dozen updates, the
+    rest skipped and counted; the position SD stays at the readings' worth (0.22 mm, not
+    the 0.05 mm of 160 updates of the same features), consistent with the truth, and
+    the status says tracking although nothing was fused for 9 s (the skipped readings
+    agree with the map)."""
+    stats, est, nees = _replay(still_log, FeatureMap.from_map(load_map(ROOM)), "batch")
+    assert stats.accepted <= 20
+    assert stats.skipped["no_motion_since_fused"] > 100
+    assert stats.observations == stats.accepted + stats.skipped["no_motion_since_fused"] \
+        + stats.outcomes["echo_unmatched"]
+    assert _sd_m(est) > 1e-4
+    assert nees < NEES_999
+    assert est.status == "tracking"
+
+
+def test_a_still_robot_on_a_map_5_mm_off(still_log):
+    """The room's features moved by 5 mm each, their ``sd_m`` saying so: the filter
+    stays consistent (NEES 3.7; 9600 fusing every segment) and keeps associating the
+    readings (2 of 163 segments unmatched; 48 when fused every time, the belief sure to
+    0.06 mm)."""
+    stats, est, nees = _replay(still_log, _shifted_map(0.005), "batch")
+    assert nees < NEES_999
+    assert stats.outcomes["echo_unmatched"] <= 0.05 * stats.observations
+    assert _sd_m(est) > 1e-3
+    assert est.status == "tracking"
+
+
+def test_map_sd_m_is_the_floor_of_the_map_s_own():
+    """``map_sd_m`` stands in for a map without ``sd_m`` and is a floor under one."""
+    from sonarloc.localize.localizer import Localizer
+
+    plain, with_sd = FeatureMap.from_map(load_map(ROOM)), _shifted_map(0.004)
+    assert np.all(np.isnan(plain.wall_sd_m)) and np.all(np.isnan(plain.point_sd_m))
+    assert np.all(with_sd.wall_sd_m == 0.004) and np.all(with_sd.point_sd_m == 0.004)
+    assert Localizer(plain).map_var_m2("wall", 0) == 0.0
+    assert Localizer(plain, LocalizerConfig(map_sd_m=0.003)).map_var_m2("point", 1) == \
+        pytest.approx(0.003**2)
+    assert Localizer(with_sd, LocalizerConfig(map_sd_m=0.003)).map_var_m2("wall", 2) == \
+        pytest.approx(0.004**2)
+    assert Localizer(with_sd, LocalizerConfig(map_sd_m=0.006)).map_var_all() == \
+        pytest.approx(np.full(with_sd.n_points + with_sd.n_walls, 0.006**2))
+
+
+def test_online_and_batch_agree_standing_still():
+    """The live Localizer and the batch replay skip alike and end at the same belief."""
+    text = _still_log(3.0)
+    fmap = _shifted_map(0.005)
+    a, ea, _ = _replay(text, fmap, "batch")
+    b, eb, _ = _replay(text, fmap, "online")
+    assert a.accepted == b.accepted
+    assert a.skipped["no_motion_since_fused"] == b.skipped["no_motion_since_fused"] > 20
+    assert np.allclose(ea.state.mean[:2], eb.state.mean[:2], atol=2e-4)
+    assert _sd_m(ea) == pytest.approx(_sd_m(eb), rel=0.05)
+
+
+@pytest.mark.parametrize("method", ["conventional", "specular"])
+def test_the_conventional_filter_standing_still(method):
+    """Every reading a range update, 700 of them in 5 s from one pose: fused once per
+    wall, pole or rod, the belief stays honest (NEES 80 and 27 at 10 s when each is
+    fused)."""
+    stats, est, nees = _replay(_still_log(5.0), FeatureMap.from_map(load_map(ROOM)),
+                               "online", method=method)
+    assert stats.skipped["no_motion_since_fused"] > 300
+    assert nees < NEES_999
+    assert _sd_m(est) > 1e-3
+    assert est.status == "tracking"
+
+
+def test_limits_off_fuse_every_segment(still_log):
+    """``update_min_d = update_min_a = 0``: every segment fused (the old behaviour)."""
+    stats, est, _ = _replay(still_log, FeatureMap.from_map(load_map(ROOM)), "batch",
+                            update_min_d=0.0, update_min_a=0.0)
+    assert "no_motion_since_fused" not in stats.skipped
+    assert stats.accepted > 150
+    assert _sd_m(est) < 1e-4
+
+
+def test_moved_enough():
+    d, a = 0.05, math.radians(5.0)
+    assert not moved_enough((1.0, 2.0, 0.3), (1.03, 2.03, 0.3), d, a)
+    assert moved_enough((1.0, 2.0, 0.3), (1.04, 2.031, 0.3), d, a)
+    assert moved_enough((1.0, 2.0, 0.3), (1.0, 2.0, 0.3 + math.radians(5.01)), d, a)
+    # the short way round at ±180 deg
+    assert not moved_enough((0.0, 0.0, math.pi - 0.01), (0.0, 0.0, -math.pi + 0.01), d, a)
+    assert moved_enough((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0)
+
+
+@pytest.mark.parametrize("name", ["update_min_d", "update_min_a", "map_sd_m"])
+@pytest.mark.parametrize("value", [-0.01, math.nan, math.inf])
+def test_config_checks(name, value):
+    with pytest.raises(ValueError, match=f"`{name}` must be non-negative"):
+        LocalizerConfig(**{name: value})
+    LocalizerConfig(**{name: 0.0})
+
+
+def test_feature_map_checks_sd_m():
+    with pytest.raises(ValueError, match="sd_m"):
+        FeatureMap.build([[1.0, 1.0]], wall_sd_m=[], point_sd_m=[-0.001])
+    fm = FeatureMap.build([[1.0, 1.0]], [[[0, 0], [1, 0]]], point_sd_m=[0.002])
+    assert fm.sd_m("point", 0) == 0.002 and math.isnan(fm.sd_m("wall", 0))
+
+
+def test_map_error_is_shared_by_the_readings():
+    """``map_var_m2`` adds the same variance to every element of R (a common offset)."""
+    rng = np.random.default_rng(0)
+    n = 6
+    base = np.zeros(3)
+    sens = np.column_stack([np.full(n, 0.2), np.zeros(n), np.linspace(-0.05, 0.05, n)])
+    rel, p_fac, v_fac = relative_sensor_chain(base, np.zeros((n, 3)), sens,
+                                              OdomNoise())
+    wall = Feature("wall", np.array([2.0, 0.0]))
+    z = 1.8 + rng.normal(0, 1e-3, n)
+    pose = np.array([0.0, 0.0, 0.0])
+    a = EchoObservation(z, rel, p_fac, v_fac, 0.15, wall, 0.0)
+    b = EchoObservation(z, rel, p_fac, v_fac, 0.15, wall, 0.0, map_var_m2=0.004**2)
+    ha, hxa, ra = a.measure(pose)
+    hb, hxb, rb = b.measure(pose)
+    assert np.array_equal(ha, hb) and np.array_equal(hxa, hxb)
+    assert np.allclose(rb - ra, 0.004**2, rtol=1e-9, atol=0)
+    assert len(b.subset(np.arange(n) < 3).measure(pose)[2]) == 3
+    assert b.subset(np.arange(n) < 3).map_var_m2 == b.map_var_m2
+
+
+def test_the_kept_poses_apply_moved_enough_to_each():
+    """The vectorised test of the poses a feature was fused from is
+    :func:`moved_enough` applied to each (ring buffer: the last ones kept)."""
+    from sonarloc.localize.localizer import FUSED_POSES_KEPT, _FusedPoses
+
+    rng = np.random.default_rng(5)
+    kept = _FusedPoses()
+    poses = []
+    for _ in range(FUSED_POSES_KEPT + 40):
+        p = [float(v) for v in rng.uniform([-0.1, -0.1, -math.pi], [0.1, 0.1, math.pi])]
+        kept.add(p)
+        poses.append(p)
+        q = [float(v) for v in rng.uniform([-0.1, -0.1, -math.pi], [0.1, 0.1, math.pi])]
+        for d, a in ((0.05, 0.5), (0.02, math.radians(1.0)), (0.0, 0.0), (1.0, 7.0)):
+            want = not all(moved_enough(p0, q, d, a) for p0 in poses[-FUSED_POSES_KEPT:])
+            assert kept.near(q, d, a) == want
+
+
+def test_the_node_reports_skipped_landmarks_as_matched_not_fused():
+    """`LocalizerNode.landmarks()` says why a still robot's segment was not fused (the
+    drive figure draws those as matched to the map, not as unmatched)."""
+    from sonarloc.api import LocalizerNode
+    from sonarloc.localize.localizer import NO_MOTION_REASON
+
+    node = LocalizerNode(FeatureMap.from_map(load_map(ROOM)))
+    for rec in iter_log(io.StringIO(_still_log(2.0))):
+        node.feed(rec)
+    node.finish()
+    reports = node.landmarks()
+    skipped = [r for r in reports if r.outcome == NO_MOTION_REASON]
+    assert skipped and not any(r.fused for r in skipped)
+    assert len(skipped) == node.stats.skipped["no_motion_since_fused"]
+    assert any(r.fused for r in reports)
