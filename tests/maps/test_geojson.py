@@ -137,6 +137,10 @@ def test_vertices_property_and_explicit_corner_override():
          "feature 0: id 'f1' is the label of feature 1, which has no id"),
         # a reflector too weak to echo by orders of magnitude (1e308 overflowed the
         # simulator's delays)
+        # a feature's position SD, which the Localizer uses (it was ignored when bad)
+        (fc(feat("Point", [0, 0], kind="pole", sd_m=-0.001)), "feature 0: `sd_m` must be"),
+        (fc(feat("LineString", [[0, 0], [1, 0]], kind="wall", sd_m="2 mm")),
+         "feature 0: `sd_m` must be a non-negative number of metres, got '2 mm'"),
         (fc(feat("Point", [0, 0], kind="pole", kappa_us=1e308)),
          "feature 0: `kappa_us` must be at most 1e\\+06 us"),
         # a repeated position is a wall of no direction (a LineString's was refused)
