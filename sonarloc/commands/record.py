@@ -102,46 +102,57 @@ def run(args: argparse.Namespace) -> int:
     held: list[Record] = []
     have_rig = False
     note = ""
+
+    def take(rec: Record) -> None:
+        nonlocal have_rig, held
+        if isinstance(rec, RigRecord):
+            if have_rig:
+                return  # a changed rig mid-log is not representable; keep the first
+            have_rig = True
+            writer.write(rec)
+            counts["rig"] += 1
+            for r in held:
+                writer.write(r)
+                counts[r.type] += 1
+            held = []
+            return
+        if not have_rig and len(held) < HOLD_MAX:
+            held.append(rec)
+            return
+        writer.write(rec)
+        counts[rec.type] += 1
+
     t_end = None if args.duration is None else time.monotonic() + args.duration
     try:
         with driver, LogWriter(args.out) as writer:
             last_data = time.monotonic()
-            while not stop:
-                now = time.monotonic()
-                if t_end is not None and now >= t_end:
-                    break
-                try:  # short reads, so SIGTERM and --duration are noticed quickly
-                    rec = driver.read(timeout=0.2)
-                except DeviceTimeoutError:
-                    if time.monotonic() - last_data < args.timeout:
-                        continue
-                    if sum(counts.values()) + len(held) == 0:
-                        raise DeviceTimeoutError(
-                            f"{driver.source}: no data within {args.timeout:g} s "
-                            f"({driver.summary()})") from None
-                    note = f"; stopped after {args.timeout:g} s without data"
-                    break
-                except KeyboardInterrupt:
-                    break
-                last_data = time.monotonic()
-                if rec is None:
-                    break
-                if isinstance(rec, RigRecord):
-                    if have_rig:
-                        continue  # a changed rig mid-log is not representable; keep the first
-                    have_rig = True
-                    writer.write(rec)
-                    counts["rig"] += 1
-                    for r in held:
-                        writer.write(r)
-                        counts[r.type] += 1
-                    held = []
-                    continue
-                if not have_rig and len(held) < HOLD_MAX:
-                    held.append(rec)
-                    continue
-                writer.write(rec)
-                counts[rec.type] += 1
+            try:
+                while not stop:
+                    now = time.monotonic()
+                    if t_end is not None and now >= t_end:
+                        break
+                    try:  # short reads, so SIGTERM and --duration are noticed quickly
+                        rec = driver.read(timeout=0.2)
+                    except DeviceTimeoutError:
+                        if time.monotonic() - last_data < args.timeout:
+                            continue
+                        if sum(counts.values()) + len(held) == 0:
+                            raise DeviceTimeoutError(
+                                f"{driver.source}: no data within {args.timeout:g} s "
+                                f"({driver.summary()})") from None
+                        note = f"; stopped after {args.timeout:g} s without data"
+                        break
+                    last_data = time.monotonic()
+                    if rec is None:
+                        break
+                    take(rec)
+            except KeyboardInterrupt:
+                pass
+            # what the device delivered is kept: the records still queued, and those the
+            # decoder recovers when the driver closes (good packets behind a false header)
+            driver.close()
+            while (rec := driver.read(timeout=0)) is not None:
+                take(rec)
             for r in held:  # no rig ever came
                 writer.write(r)
                 counts[r.type] += 1

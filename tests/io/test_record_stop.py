@@ -1,0 +1,69 @@
+"""`sonarloc record` stopped by the user (Ctrl-C, SIGTERM, --duration), by silence
+(--timeout) or by trouble (a full disk): the log holds every record the device delivered
+up to then, and stays valid."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import time
+import tty
+
+import pytest
+from io_streams import ring_stream
+
+from sonarloc.io.logfile import LogStats, TofRecord, iter_log
+from sonarloc.io.protocol.framing import SerialEncoder
+from sonarloc.io.protocol.records import messages_from_record
+
+
+def _summary_counts(stderr: str) -> tuple[int, int]:
+    """(records written, records the driver delivered) from record's last lines."""
+    written = re.search(r"recorded (\d+) records", stderr)
+    delivered = re.search(r"; (\d+) records", stderr)
+    assert written and delivered, stderr
+    return int(written.group(1)), int(delivered.group(1))
+
+
+@pytest.mark.parametrize("how", ["timeout", "duration", "sigint", "sigterm"])
+def test_readings_behind_a_false_header_are_recorded_when_recording_stops(
+        cli_command, tmp_path, how) -> None:
+    # A module that falls quiet right after a false header (line noise "FA FB FF") leaves
+    # its last good packets waiting for 255 bytes that never come; the driver recovers
+    # them when it closes (PROTOCOL.md: flush), but `record` had stopped reading by then
+    # and dropped them (and any reading still queued when Ctrl-C came).
+    enc = SerialEncoder()
+    stream = [r for r in ring_stream(duration_s=0.2) if r.type in ("rig", "odom", "tof")]
+    last = [TofRecord(0.3, 1, 1000.0), TofRecord(0.305, 2, None), TofRecord(0.31, 3, 2222.0)]
+    wire = b"".join(enc.encode(m) for r in stream for m in messages_from_record(r))
+    wire += b"\xfa\xfb\xff" + b"".join(enc.encode(m) for r in last
+                                      for m in messages_from_record(r))
+    out = tmp_path / "rec.jsonl"
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        extra = {"timeout": ["--timeout", "0.3"], "duration": ["--duration", "0.6"]}
+        argv, env = cli_command("record", os.ttyname(slave), "--out", str(out),
+                                *extra.get(how, []))
+        proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
+        try:
+            os.read(master, 100)  # its Start: the port is open (opening flushes its input)
+            os.write(master, wire)
+            if how.startswith("sig"):
+                time.sleep(0.5)  # it reads all of it, then waits for more
+                proc.send_signal(signal.SIGINT if how == "sigint" else signal.SIGTERM)
+            _, err = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    finally:
+        os.close(slave)
+        os.close(master)
+    assert proc.returncode == 0, err
+    recs = list(iter_log(out, LogStats(), strict=True))
+    assert recs[-3:] == last
+    assert len(recs) == len(stream) + 3
+    assert _summary_counts(err) == (len(recs), len(recs))
