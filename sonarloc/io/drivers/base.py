@@ -22,6 +22,7 @@ from typing import ClassVar
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.logfile import Record
 from sonarloc.io.protocol.messages import DecoderStats, Message
+from sonarloc.io.protocol.records import RecordAssembler
 
 RecordCallback = Callable[[Record], None]
 
@@ -173,16 +174,28 @@ class Driver(ABC):
         """Decoder and driver counters in one flat dict."""
         out = self.decoder_stats.as_dict()
         out.update({f.name: getattr(self.stats, f.name) for f in fields(self.stats)})
+        restarts = self._module_restarts()
+        if restarts is not None:
+            out["module_restarts"] = restarts
         return out
 
     def summary(self) -> str:
         """One line of counters: good/CRC/skipped/gaps first."""
         s = self.stats
         extra = [f"{s.records} records"]
+        restarts = self._module_restarts()
+        if restarts:
+            extra.append(f"module restarts {restarts}")
         for name in ("reconnects", "dropped", "malformed_lines"):
             if getattr(s, name):
                 extra.append(f"{name.replace('_', ' ')} {getattr(s, name)}")
         return f"{self.decoder_stats.summary()}; {', '.join(extra)}"
+
+    def _module_restarts(self) -> int | None:
+        """Restarts of the module seen by a driver of the module protocol (its
+        ``assembler``'s clock); None for other drivers."""
+        asm = getattr(self, "assembler", None)
+        return asm.clock.restarts if isinstance(asm, RecordAssembler) else None
 
     # -- for subclasses ---------------------------------------------------------------
     def _deliver(self, recs: list[Record]) -> None:

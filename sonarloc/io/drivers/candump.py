@@ -136,7 +136,8 @@ class CandumpDriver(Driver):
                 return
             if self.rate is not None and frame.timestamp is not None:
                 self._pace(frame.timestamp, self.rate)
-            recs = [r for m in self.decoder.feed(frame) for r in self.assembler.push(m)]
+            recs = [r for m in self.decoder.feed(frame)
+                    for r in self.assembler.push(m, frame.timestamp)]
             if recs:
                 self._deliver(recs)
                 return
