@@ -25,6 +25,7 @@ from sonarloc.io.drivers import open_driver, parse_source
 from sonarloc.io.logfile import LogWriter, Record, RigRecord
 
 HOLD_MAX = 100_000  # readings held back while waiting for the rig
+FLUSH_S = 0.5  # the log on disk lags the device by at most this (a robot's power may fail)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -125,12 +126,15 @@ def run(args: argparse.Namespace) -> int:
     t_end = None if args.duration is None else time.monotonic() + args.duration
     try:
         with driver, LogWriter(args.out) as writer:
-            last_data = time.monotonic()
+            last_data = flushed = time.monotonic()
             try:
                 while not stop:
                     now = time.monotonic()
                     if t_end is not None and now >= t_end:
                         break
+                    if now - flushed >= FLUSH_S:
+                        writer.flush()
+                        flushed = now
                     try:  # short reads, so SIGTERM and --duration are noticed quickly
                         rec = driver.read(timeout=0.2)
                     except DeviceTimeoutError:

@@ -67,3 +67,62 @@ def test_readings_behind_a_false_header_are_recorded_when_recording_stops(
     assert recs[-3:] == last
     assert len(recs) == len(stream) + 3
     assert _summary_counts(err) == (len(recs), len(recs))
+
+
+def test_full_disk_keeps_a_valid_log_and_names_the_file(run_cli, cli_command, tmp_path) -> None:
+    # Before: "sonarloc record: error: [Errno 27] File too large" (which file?) and a log
+    # cut in the middle of a line (the text buffer's last flush, 8 KiB at a time).
+    import resource
+
+    from sonarloc.io.drivers.sim import SimModule
+
+    dump, full, cut = tmp_path / "sonar.log", tmp_path / "full.jsonl", tmp_path / "cut.jsonl"
+    sim = SimModule.to_candump(ring_stream(duration_s=2.0), dump)
+    sim.run()
+    sim.close()
+    run_cli("record", f"candump:{dump}", "--out", str(full), check=True)
+    limit = 10_000
+    assert full.stat().st_size > 2 * limit
+
+    def small_disk() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    argv, env = cli_command("record", f"candump:{dump}", "--out", str(cut))
+    proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=60,
+                          preexec_fn=small_disk)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and str(cut) in proc.stderr
+    assert "File too large" in proc.stderr
+    text = cut.read_text()
+    assert text.endswith("\n") and limit - 300 < len(text) <= limit
+    assert full.read_text().startswith(text)  # whole lines, the first ones
+    list(iter_log(cut, strict=True))
+
+
+def test_a_killed_recorder_leaves_the_log_of_all_but_the_last_half_second(
+        cli_command, tmp_path) -> None:
+    # The robot's power fails (SIGKILL): no buffer is flushed at exit, so what is on disk
+    # is what `record` wrote before. A slow stream (about 3 kB/s) must not sit for
+    # seconds in a write buffer.
+    from sonarloc.io.drivers.sim import SimModule
+
+    out = tmp_path / "rec.jsonl"
+    stream = list(ring_stream(duration_s=20.0, dt_s=0.02))
+    with SimModule.on_tcp(stream, rate=1.0) as sim:
+        argv, env = cli_command("record", sim.url, "--out", str(out))
+        proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
+        try:
+            end = time.monotonic() + 10.0
+            while sim.stats.records == 0 and time.monotonic() < end:
+                time.sleep(0.01)
+            time.sleep(1.2)
+            sent_t = sim._t_now  # the stream time of the last record sent
+            proc.kill()
+            proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    recs = list(iter_log(out, strict=True))
+    assert recs and recs[0].type == "rig"
+    assert recs[-1].t_s > sent_t - 0.5 - 0.2
