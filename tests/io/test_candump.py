@@ -130,3 +130,16 @@ def test_other_python_can_formats(tmp_path) -> None:
                     logger.on_message_received(f)
     got, _ = read_all(f"candump:{path}")
     assert len(got) == 1 + sum(r.type in ("odom", "tof") for r in recs)
+
+
+def test_record_names_the_first_bad_line_of_a_candump(tmp_path, run_cli) -> None:
+    # FORMATS.md: a bad file names the line. `record` said only "malformed lines 2".
+    path, out = tmp_path / "sonar.log", tmp_path / "rec.jsonl"
+    write_candump(path, duration_s=0.3)
+    lines = path.read_text().splitlines()
+    lines[30] = "garbage in the log"
+    lines[40] = lines[40].replace("#", "#ZZ")
+    path.write_text("\n".join(lines) + "\n")
+    proc = run_cli("record", f"candump:{path}", "--out", str(out), check=True)
+    assert "malformed lines 2 (first: line 31: " in proc.stderr
+    assert iter_log(out) is not None and sum(1 for _ in iter_log(out)) > 50

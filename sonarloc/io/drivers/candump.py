@@ -84,6 +84,14 @@ class CandumpDriver(Driver):
     def decoder_stats(self) -> DecoderStats:
         return self.decoder.stats
 
+    def summary(self) -> str:
+        """The counters, and the first malformed line by number."""
+        out = super().summary()
+        if self.malformed:
+            lineno, msg = self.malformed[0]
+            out += f" (first: line {lineno}: {msg})"
+        return out
+
     def _open(self) -> None:
         if not self.path.is_file():
             raise DeviceError(f"cannot open {self.source}: no such file")
