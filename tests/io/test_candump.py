@@ -3,9 +3,11 @@ python-can's reader; a damaged log is read to the end with every problem counted
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import random
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from io_streams import ring_stream
@@ -143,3 +145,38 @@ def test_record_names_the_first_bad_line_of_a_candump(tmp_path, run_cli) -> None
     proc = run_cli("record", f"candump:{path}", "--out", str(out), check=True)
     assert "malformed lines 2 (first: line 31: " in proc.stderr
     assert iter_log(out) is not None and sum(1 for _ in iter_log(out)) > 50
+
+
+@pytest.mark.parametrize("kind", ["candump", "sim"])
+def test_paced_replay_across_a_time_jump_keeps_to_the_read_timeout(tmp_path, kind) -> None:
+    # A log whose clock jumps ahead (4 s here, an hour in the field) replayed with a rate:
+    # read(timeout) slept through the whole jump, so `record --option rate=1` ignored
+    # --duration and SIGTERM for as long.
+    import time
+
+    from sonarloc.errors import DeviceTimeoutError
+
+    stream = list(ring_stream(duration_s=0.2))
+    jump = 4.0
+    late = [dataclasses.replace(r, t_s=r.t_s + jump) for r in ring_stream(duration_s=0.2)
+            if r.type in ("odom", "tof")]
+    path = tmp_path / ("sonar.log" if kind == "candump" else "sonar.jsonl")
+    if kind == "candump":
+        sim = SimModule.to_candump(stream + late, path)
+        sim.run()
+        sim.close()
+    else:
+        with LogWriter(path) as w:
+            w.write_all(stream + late)
+    n_before = sum(r.type in ("rig", "odom", "tof") for r in stream)
+    with open_driver(f"{kind}:{path}", rate=20.0) as drv:
+        got = [drv.read(timeout=1.0) for _ in range(n_before)]
+        t = time.monotonic()
+        with pytest.raises(DeviceTimeoutError):
+            drv.read(timeout=0.05)
+        assert time.monotonic() - t < 0.15  # not the 0.2 s the jump takes at rate 20
+        with pytest.raises(DeviceTimeoutError):
+            drv.read(timeout=0.05)
+        got += list(drv.records(timeout=1.0))  # nothing lost: the rest comes when due
+    assert [r.t_s for r in got if r.type != "rig"] == \
+        pytest.approx([r.t_s for r in stream + late if r.type in ("odom", "tof")], abs=1e-6)

@@ -39,6 +39,19 @@ class DriverStats:
     callback_errors: int = 0  # exceptions raised by an on_record callback
 
 
+def sleep_until(due: float, deadline: float | None) -> bool:
+    """Sleep until ``time.monotonic()`` reaches ``due``, but not past ``deadline`` (None:
+    no limit); True if ``due`` was reached. Paced replays use it so that a jump ahead in a
+    file's time does not hold up ``read(timeout)``."""
+    if deadline is not None and due > deadline:
+        time.sleep(max(deadline - time.monotonic(), 0.0))
+        return False
+    wait = due - time.monotonic()
+    if wait > 0:
+        time.sleep(wait)
+    return True
+
+
 class Driver(ABC):
     """Base of all drivers. Use as a context manager, or call :meth:`open`/:meth:`close`.
 

@@ -52,7 +52,7 @@ from typing import IO, Any, ClassVar
 import can
 
 from sonarloc.errors import DeviceError, LogFormatError
-from sonarloc.io.drivers.base import Driver, RecordCallback
+from sonarloc.io.drivers.base import Driver, RecordCallback, sleep_until
 from sonarloc.io.logfile import LogStats, LogWriter, Record, RigRecord, iter_log
 from sonarloc.io.protocol.canbus import CanDecoder, CanEncoder
 from sonarloc.io.protocol.framing import SerialDecoder, SerialEncoder, type_code
@@ -679,6 +679,7 @@ class SimDriver(Driver):
         self._encoder = SerialEncoder()
         self._iter: Iterator[Record] | None = None
         self._t0: tuple[float, float] | None = None
+        self._due: tuple[Record, list[Message]] | None = None  # read before its time (rate)
 
     @property
     def source(self) -> str:
@@ -701,24 +702,29 @@ class SimDriver(Driver):
 
     def _pull(self, timeout: float | None) -> None:
         it = self._iter
+        deadline = None if timeout is None else time.monotonic() + timeout
         while it is not None:
-            try:
-                rec = next(it)
-            except StopIteration:
-                break
-            except LogFormatError as err:
-                self._fail(err)
-                break
-            msgs = messages_from_record(rec)
-            if not msgs:
-                continue
+            if self._due is not None:
+                (rec, msgs), self._due = self._due, None
+            else:
+                try:
+                    rec = next(it)
+                except StopIteration:
+                    break
+                except LogFormatError as err:
+                    self._fail(err)
+                    break
+                msgs = messages_from_record(rec)
+                if not msgs:
+                    continue
             if self.rate is not None:
                 now = time.monotonic()
                 if self._t0 is None:
                     self._t0 = (now, rec.t_s)
-                wait = self._t0[0] + (rec.t_s - self._t0[1]) / self.rate - now
-                if wait > 0:
-                    time.sleep(wait)
+                if not sleep_until(self._t0[0] + (rec.t_s - self._t0[1]) / self.rate,
+                                   deadline):
+                    self._due = (rec, msgs)  # the timeout comes first: read() says so
+                    return
             wire = b"".join(self._encoder.encode(m) for m in msgs)
             recs = [r for m in self.decoder.feed(wire) for r in self.assembler.push(m)]
             if recs:
