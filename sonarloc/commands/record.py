@@ -21,10 +21,12 @@ from types import FrameType
 from typing import Any
 
 from sonarloc.errors import DeviceTimeoutError
-from sonarloc.io.drivers import open_driver, parse_source
+from sonarloc.io.drivers import Driver, open_driver, parse_source
 from sonarloc.io.logfile import LogWriter, Record, RigRecord
 
 HOLD_MAX = 100_000  # readings held back while waiting for the rig
+_DEVICE = {"serial": "the sonarloc module", "can": "the sonarloc module",
+           "pioneer": "a Pioneer robot", "maxbotix": "a MaxBotix sensor"}
 FLUSH_S = 0.5  # the log on disk lags the device by at most this (a robot's power may fail)
 
 
@@ -80,6 +82,21 @@ def driver_options(args: argparse.Namespace) -> dict[str, Any]:
             raise ValueError(f"--no-start applies to the module protocol, not {name}")
         opts["start"] = False
     return opts
+
+
+def _silence(driver: Driver, timeout: float) -> str:
+    """The error of a source that gave no reading: bytes that never formed a frame
+    are another trouble than no bytes at all."""
+    s = driver.decoder_stats
+    what = _DEVICE.get(driver.scheme, "the device")
+    if s.bytes_in and not s.frames:
+        return (f"{driver.source}: no readings within {timeout:g} s: {s.bytes_in} bytes came "
+                f"but no packet of {what} in them (wrong --baud?) ({driver.summary()})")
+    foreign = s.unknown + s.bad_length + s.error_frames
+    if foreign and not s.frames:
+        return (f"{driver.source}: no readings within {timeout:g} s: {foreign} frames came "
+                f"but none of {what} ({driver.summary()})")
+    return f"{driver.source}: no data within {timeout:g} s ({driver.summary()})"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -140,10 +157,8 @@ def run(args: argparse.Namespace) -> int:
                     except DeviceTimeoutError:
                         if time.monotonic() - last_data < args.timeout:
                             continue
-                        if sum(counts.values()) + len(held) == 0:
-                            raise DeviceTimeoutError(
-                                f"{driver.source}: no data within {args.timeout:g} s "
-                                f"({driver.summary()})") from None
+                        if counts["odom"] + counts["tof"] + len(held) == 0:  # a rig at most
+                            raise DeviceTimeoutError(_silence(driver, args.timeout)) from None
                         note = f"; stopped after {args.timeout:g} s without data"
                         break
                     last_data = time.monotonic()

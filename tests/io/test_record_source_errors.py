@@ -1,0 +1,52 @@
+"""`sonarloc record` on a line that carries bytes but no readings (a wrong line speed,
+the wrong device): the error says so instead of "no data"."""
+
+from __future__ import annotations
+
+import os
+import random
+import subprocess
+import time
+import tty
+
+import pytest
+
+
+@pytest.mark.parametrize("source", ["serial", "maxbotix"])
+def test_noise_on_the_line_is_not_called_no_data(cli_command, tmp_path, source) -> None:
+    # A baud mismatch turns every byte into noise. Before: "no data within 0.6 s
+    # (... skipped 5200 B ...)" for the module, and for a MaxBotix (whose rig is known
+    # beforehand) exit 0 with a log of the rig alone.
+    out = tmp_path / "rec.jsonl"
+    rng = random.Random(5)
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    try:
+        argv, env = cli_command("record", path if source == "serial" else f"{source}:{path}",
+                                "--out", str(out), "--timeout", "0.6")
+        proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
+        try:
+            if source == "serial":
+                os.read(master, 100)  # its Start: the port is open
+            else:
+                time.sleep(0.4)
+            end = time.monotonic() + 10.0
+            while proc.poll() is None and time.monotonic() < end:
+                # never an "R" (a MaxBotix frame) nor 0xFA 0xFB (a packet's start)
+                os.write(master, bytes(rng.choice(b"\x00\x13\x7f\x80\xaa\xfe 0123456789\r")
+                                       for _ in range(100)))
+                time.sleep(0.01)
+            _, err = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    finally:
+        os.close(slave)
+        os.close(master)
+    assert proc.returncode == 2, err
+    assert err.count("\n") == 1
+    assert "no readings within 0.6 s" in err and "bytes came but no packet" in err
+    assert "wrong --baud?" in err
+    assert ("the sonarloc module" if source == "serial" else "a MaxBotix sensor") in err
