@@ -50,3 +50,33 @@ def test_noise_on_the_line_is_not_called_no_data(cli_command, tmp_path, source) 
     assert "no readings within 0.6 s" in err and "bytes came but no packet" in err
     assert "wrong --baud?" in err
     assert ("the sonarloc module" if source == "serial" else "a MaxBotix sensor") in err
+
+
+def test_an_unplugged_module_is_named_in_the_summary(cli_command, tmp_path) -> None:
+    # The module's terminal goes away mid-stream: `record` stops after --timeout and said
+    # only "stopped after 0.5 s without data", as if the module had fallen silent.
+    from io_streams import ring_stream
+
+    from sonarloc.io.drivers.sim import SimModule
+
+    out = tmp_path / "rec.jsonl"
+    sim = SimModule.on_pty(list(ring_stream(duration_s=30.0)), rate=1.0).start()
+    try:
+        argv, env = cli_command("record", sim.url, "--out", str(out), "--timeout", "0.5")
+        proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
+        try:
+            end = time.monotonic() + 10.0
+            while sim.stats.records < 20 and time.monotonic() < end:
+                time.sleep(0.01)
+        finally:
+            sim.close()  # unplugged
+        try:
+            _, err = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    finally:
+        sim.close()
+    assert proc.returncode == 0, err
+    assert "stopped after 0.5 s without data" in err and "disconnects 1" in err

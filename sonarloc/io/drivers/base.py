@@ -199,7 +199,7 @@ class Driver(ABC):
         restarts = self._module_restarts()
         if restarts:
             extra.append(f"module restarts {restarts}")
-        for name in ("reconnects", "dropped", "malformed_lines"):
+        for name in ("disconnects", "reconnects", "dropped", "malformed_lines"):
             if getattr(s, name):
                 extra.append(f"{name.replace('_', ' ')} {getattr(s, name)}")
         return f"{self.decoder_stats.summary()}; {', '.join(extra)}"
