@@ -145,6 +145,8 @@ def run(args: argparse.Namespace) -> int:
         sim.close()
     s = sim.stats
     print(f"sent {s.records} records ({s.messages} messages, {s.lost} lost, "
-          f"rig {s.rigs_sent} times, {s.commands} commands)"
+          f"rig {s.rigs_sent} times, {s.commands} commands"
+          + (f", {s.unsendable} unsendable (first: {s.first_unsendable})" if s.unsendable
+             else "") + ")"
           + (f"; log: {log_stats.summary()}" if args.log else ""), file=sys.stderr)
     return 0

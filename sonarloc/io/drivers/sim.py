@@ -426,6 +426,18 @@ class SimStats:
     lost: int = 0  # messages the transport could not deliver
     rigs_sent: int = 0
     commands: int = 0
+    unsendable: int = 0  # readings the wire cannot carry (a negative TOF, a sensor id > 255)
+    first_unsendable: str = ""  # the first of them and why
+
+    def note_unsendable(self, rec: Record, err: ValueError) -> None:
+        self.unsendable += 1
+        if not self.first_unsendable:
+            self.first_unsendable = _unsendable(rec, err)
+
+
+def _unsendable(rec: Record, err: ValueError) -> str:
+    """Which record the wire could not carry, and why."""
+    return f"{rec.type} at t_s {rec.t_s:g}: {err}"[:200]
 
 
 class SimModule:
@@ -617,7 +629,11 @@ class SimModule:
                 if isinstance(rec, RigRecord):
                     self._rig, self._rig_due = rec, True
                     continue
-                msgs = messages_from_record(rec)
+                try:
+                    msgs = messages_from_record(rec)
+                except ValueError as err:  # skipped and counted: the rest still goes
+                    self.stats.note_unsendable(rec, err)
+                    continue
                 if not msgs:
                     continue
                 if t0 is not None and self.duration_s is not None \
@@ -641,7 +657,11 @@ class SimModule:
                     rig = dataclasses.replace(self._rig, t_s=rec.t_s)
                     if self._send(messages_from_record(rig), rec.t_s):
                         self.stats.rigs_sent += 1
-                self._send(msgs, rec.t_s)
+                try:
+                    self._send(msgs, rec.t_s)
+                except ValueError as err:  # beyond the bus's range (CAN odometry)
+                    self.stats.note_unsendable(rec, err)
+                    continue
                 self.stats.records += 1
         except BaseException as err:
             self.error = err
@@ -680,6 +700,8 @@ class SimDriver(Driver):
         self._iter: Iterator[Record] | None = None
         self._t0: tuple[float, float] | None = None
         self._due: tuple[Record, list[Message]] | None = None  # read before its time (rate)
+        self.unsendable = 0  # records the wire cannot carry (skipped, counted)
+        self.first_unsendable = ""
 
     @property
     def source(self) -> str:
@@ -688,6 +710,13 @@ class SimDriver(Driver):
     @property
     def decoder_stats(self) -> DecoderStats:
         return self.decoder.stats
+
+    def summary(self) -> str:
+        """The counters, and the records the wire could not carry (the first named)."""
+        out = super().summary()
+        if self.unsendable:
+            out += f", unsendable {self.unsendable} (first: {self.first_unsendable})"
+        return out
 
     def _open(self) -> None:
         if isinstance(self._source, (str, Path)):
@@ -714,7 +743,12 @@ class SimDriver(Driver):
                 except LogFormatError as err:
                     self._fail(err)
                     break
-                msgs = messages_from_record(rec)
+                try:
+                    msgs = messages_from_record(rec)
+                except ValueError as err:  # skipped and counted, as a module does
+                    self.unsendable += 1
+                    self.first_unsendable = self.first_unsendable or _unsendable(rec, err)
+                    continue
                 if not msgs:
                     continue
             if self.rate is not None:
