@@ -119,13 +119,15 @@ def run(args: argparse.Namespace) -> int:
     counts: Counter[str] = Counter()
     held: list[Record] = []
     have_rig = False
+    rig_changes: list[float] = []  # times of rigs other than the first
     note = ""
 
     def take(rec: Record) -> None:
         nonlocal have_rig, held
         if isinstance(rec, RigRecord):
-            if have_rig:
-                return  # a changed rig mid-log is not representable; keep the first
+            if have_rig:  # a changed rig mid-log is not representable; keep the first
+                rig_changes.append(rec.t_s)  # (the driver drops unchanged repeats)
+                return
             have_rig = True
             writer.write(rec)
             counts["rig"] += 1
@@ -182,5 +184,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"recorded {n} records ({kinds or 'none'}) to {args.out}{note}", file=sys.stderr)
     if not have_rig:
         print("warning: the source sent no rig description", file=sys.stderr)
+    if rig_changes:
+        k = len(rig_changes)
+        print(f"warning: the rig changed at t_s {rig_changes[0]:g} ({k} time{'s' * (k > 1)}); "
+              f"the log keeps the first rig, which may not fit the readings after that",
+              file=sys.stderr)
     print(f"{driver.source}: {driver.summary()}", file=sys.stderr)
     return 0

@@ -80,3 +80,39 @@ def test_an_unplugged_module_is_named_in_the_summary(cli_command, tmp_path) -> N
         sim.close()
     assert proc.returncode == 0, err
     assert "stopped after 0.5 s without data" in err and "disconnects 1" in err
+
+
+def test_a_changed_rig_is_warned_about(cli_command, tmp_path) -> None:
+    # A module reconfigured (or another module plugged in) mid-recording sends another
+    # rig: the log keeps the first (one rig per log), and said nothing about it.
+    from io_streams import ring_rig
+
+    from sonarloc.io.logfile import RigRecord, SensorMount, TofRecord
+    from sonarloc.io.protocol.framing import SerialEncoder
+    from sonarloc.io.protocol.records import messages_from_record
+
+    enc = SerialEncoder()
+    other = RigRecord((SensorMount(0, 0.1, 0.0, 0.0),), t_s=0.2)
+    recs = [ring_rig(), TofRecord(0.1, 3, 1000.0), other, TofRecord(0.3, 0, 1200.0)]
+    wire = b"".join(enc.encode(m) for r in recs for m in messages_from_record(r))
+    out = tmp_path / "rec.jsonl"
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        argv, env = cli_command("record", os.ttyname(slave), "--out", str(out),
+                                "--timeout", "0.4")
+        proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
+        try:
+            os.read(master, 100)  # its Start: the port is open
+            os.write(master, wire)
+            _, err = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    finally:
+        os.close(slave)
+        os.close(master)
+    assert proc.returncode == 0, err
+    assert "warning: the rig changed at t_s 0.2 (1 time)" in err
+    assert out.read_text().count('"type":"rig"') == 1
