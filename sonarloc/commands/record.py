@@ -20,7 +20,7 @@ from collections import Counter
 from types import FrameType
 from typing import Any
 
-from sonarloc.errors import DeviceTimeoutError
+from sonarloc.errors import DeviceTimeoutError, LogFormatError
 from sonarloc.io.drivers import Driver, open_driver, parse_source
 from sonarloc.io.logfile import LogWriter, Record, RigRecord
 
@@ -179,6 +179,9 @@ def run(args: argparse.Namespace) -> int:
                 counts[r.type] += 1
     finally:
         signal.signal(signal.SIGTERM, old)
+    if counts["odom"] + counts["tof"] == 0 and driver.stats.malformed_lines:
+        hint = " (candump logs are written by `candump -L`)" if driver.scheme == "candump" else ""
+        raise LogFormatError(f"{driver.source}: no readings in it{hint}: {driver.summary()}")
     n = sum(counts.values())
     kinds = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
     print(f"recorded {n} records ({kinds or 'none'}) to {args.out}{note}", file=sys.stderr)

@@ -180,3 +180,15 @@ def test_paced_replay_across_a_time_jump_keeps_to_the_read_timeout(tmp_path, kin
         got += list(drv.records(timeout=1.0))  # nothing lost: the rest comes when due
     assert [r.t_s for r in got if r.type != "rig"] == \
         pytest.approx([r.t_s for r in stream + late if r.type in ("odom", "tof")], abs=1e-6)
+
+
+def test_a_file_of_no_candump_lines_is_an_error(tmp_path, run_cli) -> None:
+    # `candump can0 > x.log` (without -L) writes another format: every line was skipped,
+    # and record exited 0 with an empty log.
+    path, out = tmp_path / "plain.log", tmp_path / "rec.jsonl"
+    path.write_text("  can0  130   [7]  00 00 00 00 FC 85 10\n"
+                    "  can0  131   [7]  00 D0 07 00 00 00 00\n")
+    proc = run_cli("record", f"candump:{path}", "--out", str(out))
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "no readings" in proc.stderr and "malformed lines 2 (first: line 1: " in proc.stderr
+    assert "candump -L" in proc.stderr
