@@ -64,3 +64,19 @@ def test_serve_sim_reports_what_it_skipped(run_cli, tmp_path) -> None:
         w.write_all(_stream())
     proc = run_cli("serve-sim", "--log", str(log), "--candump", str(dump), check=True)
     assert "4 unsendable (first: tof at t_s 0.0501: `tof_us` must be non-negative" in proc.stderr
+
+
+def test_sim_driver_names_the_bad_lines_of_its_log(tmp_path, run_cli) -> None:
+    # `record sim:LOG` said "good 4 ...; 3 records" of a log with a malformed line, a
+    # record of unknown type and time going backwards (serve-sim --log named them).
+    log, out = tmp_path / "in.jsonl", tmp_path / "rec.jsonl"
+    log.write_text('{"type":"rig","sensors":[{"id":0,"x_m":0,"y_m":0,"yaw_deg":0}]}\n'
+                   'not json\n'
+                   '{"type":"tof","t_s":0.1,"sensor":0,"tof_us":1000.0}\n'
+                   '{"type":"tof","t_s":0.05,"sensor":0,"tof_us":1000.0}\n'
+                   '{"type":"bogus"}\n')
+    proc = run_cli("record", f"sim:{log}", "--out", str(out), check=True)
+    assert "malformed lines 1" in proc.stderr
+    assert "1 malformed (first: line 2: " in proc.stderr
+    assert "1 of unknown type (bogus: 1)" in proc.stderr
+    assert "time went backwards 1 times (first: line 4" in proc.stderr

@@ -712,10 +712,14 @@ class SimDriver(Driver):
         return self.decoder.stats
 
     def summary(self) -> str:
-        """The counters, and the records the wire could not carry (the first named)."""
+        """The counters, the records the wire could not carry (the first named) and
+        what the log reader met besides good records (lines named)."""
         out = super().summary()
         if self.unsendable:
             out += f", unsendable {self.unsendable} (first: {self.first_unsendable})"
+        ls = self.log_stats
+        if ls.malformed_count or ls.unknown or ls.time_backwards_count:
+            out += f"; log: {ls.summary()}"
         return out
 
     def _open(self) -> None:
@@ -743,6 +747,7 @@ class SimDriver(Driver):
                 except LogFormatError as err:
                     self._fail(err)
                     break
+                self.stats.malformed_lines = self.log_stats.malformed_count
                 try:
                     msgs = messages_from_record(rec)
                 except ValueError as err:  # skipped and counted, as a module does
@@ -764,4 +769,5 @@ class SimDriver(Driver):
             if recs:
                 self._deliver(recs)
                 return
+        self.stats.malformed_lines = self.log_stats.malformed_count
         self._end()
