@@ -151,18 +151,26 @@ class PtyTransport(_ByteTransport):
         return str(self.link) if self.link is not None else self.slave_path
 
     def _new_pty(self) -> None:
+        link = self.link
+        if link is not None and link.exists() and not link.is_symlink():
+            # a symlink is ours to replace (left by a module killed earlier); a file is not
+            raise DeviceError(f"link {link} exists and is not a symlink; not replacing it")
         master, slave = os.openpty()
         tty.setraw(slave)  # no echo, no CR/LF translation: a clean 8-bit line
         path = os.ttyname(slave)
         os.close(slave)
         os.set_blocking(master, False)
+        if link is not None:
+            tmp = link.with_name(link.name + ".new")
+            try:
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+                os.symlink(path, tmp)
+                os.replace(tmp, link)
+            except OSError as err:
+                os.close(master)
+                raise DeviceError(f"cannot link {link} to {path}: {err.strerror}") from err
         self._master, self.slave_path = master, path
-        if self.link is not None:
-            tmp = self.link.with_name(self.link.name + ".new")
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
-            os.symlink(path, tmp)
-            os.replace(tmp, self.link)
 
     def replug(self) -> None:
         """Pull the cable and plug it back: the old pty closes, a new one takes the link."""
