@@ -71,3 +71,60 @@ def test_clock_tells_a_restart_from_readings_out_of_order() -> None:
     clk = ModuleClock()  # the 32-bit wrap is not a restart
     assert clk.unwrap(0xFFFF_FF00) == 0xFFFF_FF00
     assert clk.unwrap(0x10) == (1 << 32) + 0x10 and clk.restarts == 0
+
+
+def test_a_restarted_can_module_that_waits_for_start_is_started_again() -> None:
+    # A module comes back from a restart waiting for the host's Start, as at power-up.
+    # A serial host reconnects and sends it; a CAN host never did: the recording ended.
+    first = list(ring_stream(duration_s=2.0))
+    second = list(ring_stream(duration_s=0.5, seed=3))
+    channel = f"wake-{random.random()}"
+    with SimModule.on_can(first, channel=channel, rate=20.0) as sim1, \
+            open_driver(sim1.url, wake_s=0.3) as drv:
+        got1 = drain(sim1, drv, quiet_s=0.2)
+        sim1.close()
+        with SimModule.on_can(second, channel=channel, rate=20.0) as sim2:  # waits for Start
+            got2 = drain(sim2, drv, quiet_s=0.2, limit_s=5.0)
+        counters = drv.counters()
+    assert len(_times(got1)) == len(_times(first))
+    assert len(_times(got2)) == len(_times(second))
+    assert counters["wakeups"] >= 1 and counters["module_restarts"] == 1
+
+
+def test_a_silent_serial_module_is_sent_start_again() -> None:
+    # The module's processor resets behind a USB adapter that stays plugged in: the
+    # host's port never fails, so it never reconnected and never sent Start again.
+    import os
+    import tty
+
+    from sonarloc.io.protocol.framing import START, SerialDecoder, SerialEncoder
+    from sonarloc.io.protocol.messages import Start, Stop
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    host_side = SerialDecoder()
+
+    def commands(wait_s: float) -> list[int]:
+        import select
+        end = time.monotonic() + wait_s
+        out: list[int] = []
+        while time.monotonic() < end and not out:
+            if select.select([master], [], [], 0.05)[0]:
+                out += [f.type for f in host_side.feed_frames(os.read(master, 4096))]
+        return out
+
+    try:
+        with open_driver(os.ttyname(slave), wake_s=0.3) as drv:
+            assert START in commands(1.0)  # on connect
+            os.write(master, SerialEncoder().encode(Stop()))  # data, then the reset
+            t = time.monotonic()
+            assert START in commands(2.0)  # again, after 0.3 s of silence
+            assert 0.25 < time.monotonic() - t < 1.5
+            drv.send(Stop())  # the host stopped it: silence is wanted, no Start
+            commands(0.1)
+            assert commands(0.8) == []
+            drv.send(Start())
+            assert drv.counters()["wakeups"] >= 1
+    finally:
+        os.close(slave)
+        os.close(master)
