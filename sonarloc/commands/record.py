@@ -118,12 +118,13 @@ def run(args: argparse.Namespace) -> int:
     old = signal.signal(signal.SIGTERM, on_term)
     counts: Counter[str] = Counter()
     held: list[Record] = []
+    hold = True  # readings are held back until the rig comes (at most HOLD_MAX)
     have_rig = False
     rig_changes: list[float] = []  # times of rigs other than the first
     note = ""
 
     def take(rec: Record) -> None:
-        nonlocal have_rig, held
+        nonlocal have_rig, held, hold
         if isinstance(rec, RigRecord):
             if have_rig:  # a changed rig mid-log is not representable; keep the first
                 rig_changes.append(rec.t_s)  # (the driver drops unchanged repeats)
@@ -136,9 +137,15 @@ def run(args: argparse.Namespace) -> int:
                 counts[r.type] += 1
             held = []
             return
-        if not have_rig and len(held) < HOLD_MAX:
-            held.append(rec)
-            return
+        if not have_rig and hold:
+            if len(held) < HOLD_MAX:
+                held.append(rec)
+                return
+            hold = False  # no rig after so many: write them, in the order of time
+            for r in held:
+                writer.write(r)
+                counts[r.type] += 1
+            held = []
         writer.write(rec)
         counts[rec.type] += 1
 

@@ -126,3 +126,25 @@ def test_a_killed_recorder_leaves_the_log_of_all_but_the_last_half_second(
     recs = list(iter_log(out, strict=True))
     assert recs and recs[0].type == "rig"
     assert recs[-1].t_s > sent_t - 0.5 - 0.2
+
+
+def test_a_source_without_rig_keeps_time_order_past_the_hold_limit(tmp_path, monkeypatch,
+                                                                    capsys) -> None:
+    # Readings are held back until the rig comes; past HOLD_MAX of them they were written
+    # at once, and the held ones only at the end: the log went back in time.
+    import argparse
+
+    from sonarloc.commands import record
+    from sonarloc.io.logfile import LogWriter
+
+    log, out = tmp_path / "in.jsonl", tmp_path / "rec.jsonl"
+    with LogWriter(log) as w:
+        w.write_all(r for r in ring_stream(duration_s=1.0) if r.type in ("odom", "tof"))
+    monkeypatch.setattr(record, "HOLD_MAX", 50)
+    args = argparse.Namespace(source=f"sim:{log}", out=str(out), duration=None, timeout=5.0,
+                              baud=None, no_start=False, option=[])
+    assert record.run(args) == 0
+    stats = LogStats()
+    recs = list(iter_log(out, stats))
+    assert len(recs) > 100 and stats.time_backwards_count == 0
+    assert "no rig description" in capsys.readouterr().err
