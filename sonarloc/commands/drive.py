@@ -17,7 +17,7 @@ import json
 import math
 import time
 
-from sonarloc.commands._args import accept_negative_values
+from sonarloc.commands._args import accept_negative_values, refuse_overwrite
 
 # Values such as "-180:180:3" start with "-": let argparse take them as values.
 
@@ -74,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
     from sonarloc.report.pipeline import DriveConfig, run_drive
     from sonarloc.report.progress import Progress
 
+    refuse_overwrite({"--poses": args.poses, "--plot": None if args.no_plot else args.plot},
+                     {"--map": args.map, "--rig": args.rig})
     t0 = time.perf_counter()
     from sonarloc.world.rig import parse_pan_schedule
 

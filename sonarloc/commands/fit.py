@@ -24,7 +24,7 @@ from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.result import Landmark
 from sonarloc.fit.segment import SegmenterConfig, SegmenterStats
 from sonarloc.io.scancsv import BLOCK_ROWS, ScanReadings, iter_scan_csv
-from sonarloc.physics.sound import speed_of_sound_mps
+from sonarloc.physics.sound import check_air_speed_of_sound, speed_of_sound_mps
 from sonarloc.physics.tof import ModuleParams
 
 
@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     module = ModuleParams()
     try:
         if args.speed_of_sound is not None:
-            module = ModuleParams(c_mps=args.speed_of_sound)
+            module = ModuleParams(c_mps=check_air_speed_of_sound(args.speed_of_sound,
+                                                                 "the speed of sound"))
         elif args.temperature is not None:
             module = ModuleParams(c_mps=float(speed_of_sound_mps(args.temperature)))
     except ValueError as exc:     # (the module's own check of the speed of sound)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from sonarloc.commands._args import accept_negative_values, parse_pose
+from sonarloc.commands._args import accept_negative_values, parse_pose, refuse_overwrite
 from sonarloc.errors import LogFormatError
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import LocalizerConfig
@@ -60,6 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    refuse_overwrite({"--out": args.out}, {"LOG": args.log, "--map": args.map})
     init = parse_pose(args.init, "--init") if args.init is not None else None
     fmap = FeatureMap.from_map(load_map(args.map))
     gap = {} if args.odom_gap is None else {"odom_gap_s": args.odom_gap}

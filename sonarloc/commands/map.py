@@ -15,14 +15,13 @@ there, never given the nearest pose. POSES.csv must be base_link poses: a scan C
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 
+from sonarloc.commands._args import refuse_overwrite
 from sonarloc.errors import LogFormatError
 from sonarloc.io.posescsv import read_poses_csv
 from sonarloc.maps.build import BuildConfig, build_from_log
-from sonarloc.maps.geojson import map_from_geojson
+from sonarloc.maps.geojson import map_from_geojson, write_geojson
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,9 +50,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_build(args: argparse.Namespace) -> int:
     if args.min_observations < 1:
         raise ValueError(f"--min-observations must be at least 1, got {args.min_observations}")
-    for name, path in (("LOG", args.log), ("--poses", args.poses)):
-        if path and os.path.exists(args.out) and os.path.samefile(path, args.out):
-            raise ValueError(f"--out {args.out} is the input {name}: it would be overwritten")
+    refuse_overwrite({"--out": args.out}, {"LOG": args.log, "--poses": args.poses})
     poses = read_poses_csv(args.poses) if args.poses else None
     if not args.odom_gap > 0:
         raise ValueError(f"--odom-gap must be positive, got {args.odom_gap}")
@@ -68,10 +65,7 @@ def _run_build(args: argparse.Namespace) -> int:
             *result.skipped_summary()]))
     obj = result.geojson()
     map_from_geojson(obj)  # what we write must load
-    lines = [json.dumps(f, separators=(", ", ": ")) for f in obj["features"]]
-    body = ",\n".join("  " + line for line in lines)
-    with open(args.out, "w", encoding="utf-8") as handle:
-        handle.write('{"type": "FeatureCollection", "features": [\n' + body + "\n]}\n")
+    write_geojson(obj, args.out)
     if not args.quiet:
         print(f"sonarloc map build: {result.summary()}; wrote {args.out}", file=sys.stderr)
     return 0

@@ -18,6 +18,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from sonarloc.commands._args import refuse_overwrite
+
 
 def _kind(sub: Any, name: str, help_text: str, what: str) -> argparse.ArgumentParser:
     """A plot kind's parser; its --help says what it draws (and needs), not only usage."""
@@ -164,6 +166,10 @@ def _trajectory_figure(args: argparse.Namespace, plt: Any) -> Any:
 def run(args: argparse.Namespace) -> int:
     from sonarloc.report.plots import require_matplotlib
 
+    inputs = {"SCAN": "scan", "LOG": "log", "--fits": "fits", "--poses": "poses",
+              "--map": "map"}   # (each plot has some of them)
+    refuse_overwrite({"--out": args.out},
+                     {name: getattr(args, attr, None) for name, attr in inputs.items()})
     plt = require_matplotlib()
     make = {"scan": _scan_figure, "map": _map_figure, "trajectory": _trajectory_figure}
     fig = make[args.plot_command](args, plt)

@@ -20,6 +20,7 @@ from collections import Counter
 from types import FrameType
 from typing import Any
 
+from sonarloc.commands._args import refuse_overwrite
 from sonarloc.errors import DeviceTimeoutError, LogFormatError
 from sonarloc.io.drivers import Driver, open_driver, parse_source
 from sonarloc.io.logfile import LogWriter, Record, RigRecord
@@ -100,6 +101,7 @@ def _silence(driver: Driver, timeout: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    refuse_overwrite({"--out": args.out}, {"SOURCE": args.source})
     for name in ("duration", "timeout"):
         v = getattr(args, name)
         if v is not None and not (math.isfinite(v) and v > 0):

@@ -16,6 +16,7 @@ import argparse
 import math
 import sys
 
+from sonarloc.commands._args import refuse_overwrite
 from sonarloc.io.logfile import InitRecord
 
 
@@ -81,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from sonarloc.io import rosbag
 
     if args.rosbag_command == "import":
+        refuse_overwrite({"--out": args.out}, {"BAG": args.bag, "--rig": args.rig})
         rig, rig_names = (rosbag.load_rig_json(args.rig) if args.rig else (None, []))
         sensors = [rosbag.parse_sensor_spec(s) for s in args.sensor]
         stats = rosbag.import_bag(
@@ -95,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     from sonarloc.io.posescsv import read_poses_csv
 
+    refuse_overwrite({"--out": args.out}, {"POSES": args.poses, "--log": args.log})
     track = read_poses_csv(args.poses)
     odometry = rosbag.odometry_from_log(args.log) if args.log else None
     done = rosbag.export_poses(track, args.out, odometry=odometry, ros_version=args.ros,

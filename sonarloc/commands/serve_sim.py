@@ -20,6 +20,7 @@ import sys
 from collections.abc import Iterator
 from types import FrameType
 
+from sonarloc.commands._args import refuse_overwrite
 from sonarloc.io.drivers.sim import (
     CanBusTransport,
     CandumpTransport,
@@ -116,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--rate must be a positive number, got {args.rate!r}")
     if args.link and (args.listen or args.can or args.candump):
         raise ValueError("--link goes with --pty only")
+    refuse_overwrite({"--candump": args.candump, "--sent-log": args.sent_log},
+                     {"--map": args.map, "--log": args.log, "--rig": args.rig})
     rate = args.rate if args.rate is not None else (None if args.candump else 1.0)
     log_stats = LogStats()
     records = _records(args, log_stats)

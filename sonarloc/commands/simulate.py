@@ -14,7 +14,7 @@ import math
 import sys
 from collections import Counter
 
-from sonarloc.commands._args import accept_negative_values, parse_pose
+from sonarloc.commands._args import accept_negative_values, parse_pose, refuse_overwrite
 from sonarloc.io.logfile import LogWriter
 from sonarloc.io.scancsv import write_scan_csv
 from sonarloc.maps.geojson import load_map
@@ -67,6 +67,8 @@ def _int(name: str, text: str | None, minimum: int) -> int | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    refuse_overwrite({"--out": args.out, "--scan-csv": args.scan_csv},
+                     {"--map": args.map, "--rig": args.rig})
     at = parse_pose(args.at) if args.at is not None else None
     duration = _duration(args.duration)
     pan = parse_pan_schedule(args.pan) if args.pan is not None else None

@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -64,6 +66,11 @@ SNAP_M = 0.01
 MAX_COORD_M = 1e8
 """Largest coordinate or radius accepted [m]: far beyond any map in metres (projected
 coordinates such as UTM stay below 1e7 m); larger values overflow the geometry."""
+
+MAX_KAPPA_US = 1e6
+"""Largest reflecting strength accepted [us]: a reflector whose on-axis delay is this
+many times the module's detection limit (12 us) never echoes; larger values (1e308)
+overflowed the simulator's delays."""
 
 LONLAT_CRS = re.compile(r"(CRS(84|83|27)|EPSG(:+|/0/)(4326|4269|4258|4979))$", re.IGNORECASE)
 """Names of longitude/latitude coordinate systems in an (old-style GeoJSON) ``crs``
@@ -309,6 +316,8 @@ def _validate(index: int, feat: MapFeature) -> None:
         k = props["kappa_us"]
         if not _finite_number(k) or k <= 0:
             raise _fail(index, f"`kappa_us` must be a positive number, got {k!r}")
+        if k > MAX_KAPPA_US:
+            raise _fail(index, f"`kappa_us` must be at most {MAX_KAPPA_US:g} us, got {k!r}")
     if "id" in props and props["id"] is not None \
             and (isinstance(props["id"], bool) or not isinstance(props["id"], (str, int))):
         raise _fail(index, f"`id` must be a string or integer, got {props['id']!r}")
@@ -370,14 +379,22 @@ def build_map(features: Sequence[MapFeature]) -> Map:
     MapError
         naming the feature index and the problem.
     """
-    ids: dict[Any, int] = {}
+    # ids as the labels they become (FeatureMap, fit association): 1 and "1" are one
+    # label, and a feature without id is labelled f<index>
+    ids: dict[str, tuple[int, Any]] = {}
     for i, feat in enumerate(features):
         _validate(i, feat)
         fid = feat.properties.get("id")
         if fid is not None:
-            if fid in ids:
-                raise _fail(i, f"duplicate id {fid!r} (also feature {ids[fid]})")
-            ids[fid] = i
+            if str(fid) in ids:
+                j, other = ids[str(fid)]
+                same = "" if other == fid else f" as {other!r}: the same label"
+                raise _fail(i, f"duplicate id {fid!r} (also feature {j}{same})")
+            ids[str(fid)] = (i, fid)
+    for i, feat in enumerate(features):
+        if feat.properties.get("id") is None and f"f{i}" in ids:
+            j, fid = ids[f"f{i}"]
+            raise _fail(j, f"id {fid!r} is the label of feature {i}, which has no id")
 
     reflectors: list[Reflector] = []
     tree_geoms: list[BaseGeometry] = []
@@ -522,9 +539,27 @@ def _geometry_json(geom: BaseGeometry) -> dict[str, Any]:
 
 
 def save_map(world_map: Map, path: str | Path) -> None:
-    """Write a map as GeoJSON (one feature per line, readable diffs)."""
-    obj = map_to_geojson(world_map)
+    """Write a map as GeoJSON (:func:`write_geojson`)."""
+    write_geojson(map_to_geojson(world_map), path)
+
+
+def write_geojson(obj: dict[str, Any], path: str | Path) -> None:
+    """Write a FeatureCollection ``obj`` to ``path``, one feature per line (readable
+    diffs), atomically: into a temporary file beside it, renamed over it once complete,
+    so a crash or a full disk leaves the previous map whole instead of a truncated one."""
     lines = [json.dumps(f, separators=(", ", ": ")) for f in obj["features"]]
     body = ",\n".join("  " + line for line in lines)
     text = '{"type": "FeatureCollection", "features": [\n' + body + "\n]}\n"
-    Path(path).write_text(text, encoding="utf-8")
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp",
+                               dir=target.parent if str(target.parent) else ".")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+        # the permissions of the file replaced, or a new file's usual ones (mkstemp's
+        # are the owner's only)
+        os.chmod(tmp, target.stat().st_mode & 0o7777 if target.exists() else 0o644)
+        os.replace(tmp, target)
+    except BaseException:
+        os.unlink(tmp)
+        raise

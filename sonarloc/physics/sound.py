@@ -24,6 +24,24 @@ def speed_of_sound_mps(temperature_c: ArrayLike) -> NDArray[np.float64]:
     return 331.3 + 0.606 * t
 
 
+AIR_C_RANGE_MPS = (250.0, 450.0)
+"""Speeds of sound [m/s] a sonar in air can meet, with a margin: 301 m/s at -50 degC to
+368 m/s at 60 degC in dry air (:func:`speed_of_sound_mps`), a few m/s more in humid air.
+A value outside is a typo or a unit error (``3.43``, ``3430``, ``1e308``), which the
+fit would otherwise turn into landmarks at the wrong range marked ``ok``."""
+
+
+def check_air_speed_of_sound(c_mps: float, name: str = "c_mps") -> float:
+    """``c_mps`` as a float if it is a speed of sound in air (:data:`AIR_C_RANGE_MPS`);
+    ValueError naming ``name`` otherwise."""
+    lo, hi = AIR_C_RANGE_MPS
+    c = float(c_mps)
+    if not lo <= c <= hi:     # (NaN fails too)
+        raise ValueError(f"{name} must be within [{lo:g}, {hi:g}] m/s (sound in air: "
+                         f"301 m/s at -50 degC to 368 m/s at 60 degC), got {c_mps!r}")
+    return c
+
+
 def range_from_tof_m(tof_us: ArrayLike, c_mps: float = 343.0) -> NDArray[np.float64]:
     """Range to the reflector, r = c To / 2, from a round-trip time in microseconds."""
     return np.asarray(tof_us, dtype=float) * 1e-6 * c_mps / 2.0

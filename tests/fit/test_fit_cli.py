@@ -248,3 +248,22 @@ def test_fit_spreadsheet_csv_and_overlong_field(tmp_path, rng, run_cli):
         proc = run_cli("fit", str(bad), "--json")
         assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
         assert match in proc.stderr
+
+
+def test_fit_refuses_a_speed_of_sound_that_is_not_air(tmp_path, capsys):
+    # 3 m/s put a pole 12.8 mm away marked ok, 1e308 m/s printed overflow warnings:
+    # typos and unit errors are refused (as --temperature is outside [-50, 60] degC)
+    from sonarloc.cli import main
+
+    scan = tmp_path / "scan.csv"
+    scan.write_text("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,8000\n", encoding="utf-8")
+    for value in ("3", "3.43", "3430", "1e308", "nan", "inf", "-343"):
+        assert main(["fit", str(scan), "--speed-of-sound", value]) == 2, value
+        out = capsys.readouterr()
+        assert out.out == "" and out.err.strip() == (
+            "sonarloc fit: error: --speed-of-sound: the speed of sound must be within "
+            "[250, 450] m/s (sound in air: 301 m/s at -50 degC to 368 m/s at 60 degC), "
+            f"got {float(value)!r}"), value
+    for value in ("250", "343", "450"):
+        assert main(["fit", str(scan), "--speed-of-sound", value, "--json"]) == 0, value
+        assert json.loads(capsys.readouterr().out)["readings"]["total"] == 1

@@ -1,5 +1,8 @@
 import json
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -10,7 +13,7 @@ from hypothesis import strategies as st
 from sonarloc.errors import MapError
 from sonarloc.maps import build_map, load_map, map_from_geojson, map_to_geojson, save_map
 from sonarloc.world.scene import Scene
-from tests.conftest import MAPS
+from tests.conftest import MAPS, REPO
 
 
 def fc(*features):
@@ -126,6 +129,16 @@ def test_vertices_property_and_explicit_corner_override():
          "feature 0: `vertices`"),
         (fc(feat("Point", [0, 0], kind="pole", id="a"), feat("Point", [1, 0], kind="rod", id="a")),
          "feature 1: duplicate id 'a'"),
+        # ids become labels (FeatureMap, fit association): 1 and "1" shared one, and an
+        # id "f1" the label of feature 1 without id
+        (fc(feat("Point", [0, 0], kind="pole", id=1), feat("Point", [1, 0], kind="rod", id="1")),
+         "feature 1: duplicate id '1' \\(also feature 0 as 1: the same label\\)"),
+        (fc(feat("Point", [0, 0], kind="pole", id="f1"), feat("Point", [1, 0], kind="rod")),
+         "feature 0: id 'f1' is the label of feature 1, which has no id"),
+        # a reflector too weak to echo by orders of magnitude (1e308 overflowed the
+        # simulator's delays)
+        (fc(feat("Point", [0, 0], kind="pole", kappa_us=1e308)),
+         "feature 0: `kappa_us` must be at most 1e\\+06 us"),
         # a repeated position is a wall of no direction (a LineString's was refused)
         (fc(feat("Polygon", [[[0, 0], [4, 0], [4, 0], [4, 4], [0, 0]]], kind="wall")),
          "feature 0: zero-length segment at vertex 1 of Polygon ring 0"),
@@ -296,3 +309,36 @@ def test_garbage_maps_give_map_or_maperror(obj):
         return
     for r in m.reflectors:  # what loads is sound
         assert r.kappa_us > 0 and r.radius_m >= 0 and not r.geometry.is_empty
+
+
+def test_save_map_replaces_the_file_whole_or_not_at_all(tmp_path):
+    # written into a temporary file beside it and renamed over it: a crash or a full
+    # disk mid-write leaves the previous map, not a truncated file a robot then loads
+    room = load_map(MAPS / "room.geojson")
+    path = tmp_path / "map.geojson"
+    path.write_text("previous map\n", encoding="utf-8")
+    path.chmod(0o640)
+    save_map(room, path)
+    assert map_to_geojson(load_map(path)) == map_to_geojson(room)
+    assert path.stat().st_mode & 0o777 == 0o640          # the replaced file's permissions
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.geojson"]
+    fresh = tmp_path / "new.geojson"
+    save_map(room, fresh)
+    assert fresh.stat().st_mode & 0o777 == 0o644
+    # a disk that fills up mid-write (a file size limit, in a process of its own): the
+    # previous map stays whole (it was truncated, then cut off), no partial file is left
+    code = ("import resource, signal, sys; from sonarloc.maps import load_map, save_map; "
+            "m = load_map(sys.argv[1]); signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (500, 500)); save_map(m, sys.argv[2])")
+    before = path.read_bytes()
+    proc = subprocess.run([sys.executable, "-c", code, str(MAPS / "room.geojson"), str(path)],
+                          capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode != 0 and "File too large" in proc.stderr, proc.stderr
+    assert path.read_bytes() == before and len(before) > 500
+    # a target that cannot be replaced (a directory): an error, nothing left behind
+    (tmp_path / "dir.geojson").mkdir()
+    with pytest.raises(OSError):
+        save_map(room, tmp_path / "dir.geojson")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.geojson", "map.geojson",
+                                                          "new.geojson"]

@@ -79,3 +79,67 @@ def test_fit_bad_option_values_are_reported_like_any_bad_input(tmp_path: Path, r
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1, (option, proc.stderr)
         assert lines[0].startswith(f"sonarloc fit: error: {option}"), (option, proc.stderr)
+
+
+def _overwrite_cases(tmp: Path) -> list[tuple[list[str], str]]:
+    """(argv, the message) of each command naming one file as an input and an output, or
+    as two outputs."""
+    log, poses, scan, rig = (tmp / n for n in ("log.jsonl", "poses.csv", "scan.csv", "rig.json"))
+    geo = tmp / "room.geojson"
+    return [
+        (["localize", str(log), "--map", str(geo), "--out", str(log)],
+         f"--out {log} is the input LOG"),
+        (["localize", str(log), "--map", str(geo), "--out", str(tmp / "." / "room.geojson")],
+         "is the input --map"),
+        (["map", "build", str(log), "--poses", str(poses), "--out", str(poses)],
+         "is the input --poses"),
+        (["simulate", "--map", str(geo), "--out", str(geo)], "is the input --map"),
+        (["simulate", "--map", str(geo), "--rig", str(rig), "--out", str(tmp / "new.jsonl"),
+          "--scan-csv", str(rig)], "--scan-csv"),
+        (["simulate", "--map", str(geo), "--out", str(scan), "--scan-csv", str(scan)],
+         f"--scan-csv {scan} is also --out"),
+        (["record", str(log), "--out", str(log)], "is the input SOURCE"),
+        (["rosbag", "export", str(poses), "--log", str(log), "--out", str(log)],
+         "is the input --log"),
+        (["serve-sim", "--log", str(log), "--candump", str(log)], "is the input --log"),
+        (["plot", "trajectory", str(log), "--poses", str(poses), "--out", str(poses)],
+         "is the input --poses"),
+        (["plot", "scan", str(scan), "--out", str(scan)], "is the input SCAN"),
+        (["drive", "--poses", str(tmp / "p.csv"), "--plot", str(tmp / "p.csv")],
+         "is also --poses"),
+    ]
+
+
+def test_no_command_writes_over_a_file_it_reads(tmp_path: Path, capsys):
+    # `sonarloc localize LOG --out LOG` opened the recording for writing before reading
+    # it: 1740 lines became one, and the command then said the log had no record
+    from sonarloc.cli import main
+
+    contents = {}
+    for name in ("log.jsonl", "poses.csv", "scan.csv", "rig.json"):
+        (tmp_path / name).write_text(f"{name}: must survive\n", encoding="utf-8")
+        contents[name] = f"{name}: must survive\n"
+    geo = (MAPS / "room.geojson").read_text(encoding="utf-8")
+    (tmp_path / "room.geojson").write_text(geo, encoding="utf-8")
+    contents["room.geojson"] = geo
+    for argv, message in _overwrite_cases(tmp_path):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and "overwrit" in err and len(err.splitlines()) == 1, (argv, err)
+        for name, text in contents.items():
+            assert (tmp_path / name).read_text(encoding="utf-8") == text, (argv, name)
+        assert not (tmp_path / "p.csv").exists() and not (tmp_path / "new.jsonl").exists()
+
+
+def test_localize_out_naming_its_log_keeps_the_recording(tmp_path: Path, run_cli):
+    # the same through a real process and a real log: refused before anything is opened
+    log = tmp_path / "drive.jsonl"
+    run_cli("simulate", "--map", str(MAPS / "room.geojson"), "--out", str(log),
+            "--duration", "2", check=True)
+    before = log.read_bytes()
+    proc = run_cli("localize", str(log), "--map", str(MAPS / "room.geojson"),
+                   "--out", str(log))
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.strip() == (f"sonarloc localize: error: --out {log} is the input LOG: "
+                                   "it would be overwritten")
+    assert log.read_bytes() == before and len(before.splitlines()) > 100
