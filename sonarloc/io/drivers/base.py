@@ -21,7 +21,7 @@ from typing import ClassVar
 
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.logfile import Record
-from sonarloc.io.protocol.messages import DecoderStats, Message, Start, Stop
+from sonarloc.io.protocol.messages import DecoderStats, Message
 from sonarloc.io.protocol.records import RecordAssembler
 
 RecordCallback = Callable[[Record], None]
@@ -37,31 +37,6 @@ class DriverStats:
     dropped: int = 0  # records lost because the caller did not read them fast enough
     malformed_lines: int = 0  # text logs: lines no reader could parse
     callback_errors: int = 0  # exceptions raised by an on_record callback
-    wakeups: int = 0  # Start sent again to a module silent for wake_s (restarted, waiting)
-
-
-class Wakeup:
-    """When to send Start again to a module of the protocol that fell silent: it may
-    have restarted and wait for a host's Start, as at power-up. Never after the host
-    sent Stop (until it sends Start)."""
-
-    def __init__(self) -> None:
-        self._last = time.monotonic()  # last byte or frame heard, or Start sent
-        self._stopped = False
-
-    def heard(self) -> None:
-        self._last = time.monotonic()
-
-    def sent(self, msg: Message) -> None:
-        if isinstance(msg, Stop):
-            self._stopped = True
-        elif isinstance(msg, Start):
-            self._stopped = False
-            self._last = time.monotonic()
-
-    def due(self, wake_s: float | None) -> bool:
-        return wake_s is not None and not self._stopped and \
-            time.monotonic() - self._last >= wake_s
 
 
 def sleep_until(due: float, deadline: float | None) -> bool:
@@ -224,7 +199,7 @@ class Driver(ABC):
         restarts = self._module_restarts()
         if restarts:
             extra.append(f"module restarts {restarts}")
-        for name in ("disconnects", "reconnects", "wakeups", "dropped", "malformed_lines"):
+        for name in ("disconnects", "reconnects", "dropped", "malformed_lines"):
             if getattr(s, name):
                 extra.append(f"{name.replace('_', ' ')} {getattr(s, name)}")
         return f"{self.decoder_stats.summary()}; {', '.join(extra)}"

@@ -17,7 +17,7 @@ from typing import Any
 import can
 
 from sonarloc.errors import DeviceError
-from sonarloc.io.drivers.base import Driver, RecordCallback, Wakeup
+from sonarloc.io.drivers.base import Driver, RecordCallback
 from sonarloc.io.protocol.canbus import CanDecoder, CanEncoder
 from sonarloc.io.protocol.messages import Ack, DecoderStats, Message, RequestRig, Start
 from sonarloc.io.protocol.records import RecordAssembler
@@ -42,9 +42,6 @@ class CanDriver(Driver):
     interface, channel : python-can interface name and channel (``"virtual"``, ``"x"``).
     bus : an already open bus to use instead (the caller keeps ownership).
     start : send Start and RequestRig after opening.
-    wake_s : with ``start``, send them again after this many seconds without a frame
-        (a restarted module waits for a host's Start); not after the host sent Stop.
-        None: never.
     max_bus_errors : consecutive bus errors after which :meth:`read` raises.
     bus_options : passed to :class:`can.Bus` (``bitrate=500000``, ...).
     """
@@ -53,15 +50,9 @@ class CanDriver(Driver):
 
     def __init__(self, interface: str = "virtual", channel: Any = "sonarloc", *,
                  bus: can.BusABC | None = None, start: bool = True, max_bus_errors: int = 20,
-                 wake_s: float | None = 2.0, on_record: RecordCallback | None = None,
-                 queue_size: int = 100_000, **bus_options: Any):
+                 on_record: RecordCallback | None = None, queue_size: int = 100_000,
+                 **bus_options: Any):
         super().__init__(on_record=on_record, queue_size=queue_size)
-        if wake_s is not None and not wake_s > 0:
-            raise ValueError(f"`wake_s` must be positive or None, got {wake_s!r}")
-        self.wake_s = wake_s
-        self._wake = Wakeup()
-        self._wake_stop = threading.Event()
-        self._wake_thread: threading.Thread | None = None
         self.interface = interface
         self.channel = channel
         self.start_on_open = start
@@ -108,27 +99,8 @@ class CanDriver(Driver):
         if self.start_on_open:
             self.send(Start())
             self.send(RequestRig())
-            if self.wake_s is not None:
-                self._wake_thread = threading.Thread(target=self._wake_up, daemon=True,
-                                                     name=f"sonarloc {self.source} wake-up")
-                self._wake_thread.start()
-
-    def _wake_up(self) -> None:
-        """Send Start again to a module that fell silent (it may have restarted)."""
-        while not self._wake_stop.wait(0.05):
-            if self._wake.due(self.wake_s):
-                self.stats.wakeups += 1
-                try:
-                    self.send(Start())
-                    self.send(RequestRig())
-                except DeviceError:
-                    self._wake.sent(Start())  # try again after wake_s
 
     def _close(self) -> None:
-        self._wake_stop.set()
-        if self._wake_thread is not None:
-            self._wake_thread.join()
-            self._wake_thread = None
         if self._notifier is not None:
             self._notifier.stop()
             self._notifier = None
@@ -144,16 +116,11 @@ class CanDriver(Driver):
                 self.bus.send(f, timeout=1.0)
         except can.CanError as err:
             raise DeviceError(f"{self.source}: send failed: {err}") from err
-        self._wake.sent(msg)
 
     def _on_frame(self, frame: can.Message) -> None:
         self._consecutive_errors = 0
-        good = self.decoder.stats.frames
-        msgs = self.decoder.feed(frame)
-        if self.decoder.stats.frames > good:  # the module's, not another node's
-            self._wake.heard()
         out = []
-        for m in msgs:
+        for m in self.decoder.feed(frame):
             if isinstance(m, Ack):
                 self.acks = (self.acks + [m])[-16:]
             out.extend(self.assembler.push(m, frame.timestamp))

@@ -140,8 +140,6 @@ class PortDriver(Driver):
         while not self._stop.is_set():
             try:
                 data = self._read()
-                if data:
-                    self._on_bytes(data)
                 self._on_idle()
             except _PORT_ERRORS + (DeviceError,) as err:
                 if self._stop.is_set():
@@ -155,6 +153,8 @@ class PortDriver(Driver):
                     return
                 self._reopen()
                 continue
+            if data:
+                self._on_bytes(data)
 
     def _reopen(self) -> None:
         delay = self.backoff_s[0]

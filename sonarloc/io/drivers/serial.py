@@ -11,7 +11,6 @@ import threading
 import time
 from typing import Any
 
-from sonarloc.io.drivers.base import Wakeup
 from sonarloc.io.drivers.port import PortDriver
 from sonarloc.io.protocol.framing import SerialDecoder, SerialEncoder, SerialFrame
 from sonarloc.io.protocol.messages import Ack, DecoderStats, Message, RequestRig, Start
@@ -26,22 +25,14 @@ class SerialDriver(PortDriver):
     url : ``/dev/ttyUSB0``, a pty path, ``socket://127.0.0.1:PORT``, ``loop://``, ...
     start : send Start and RequestRig after every (re)connect, so a module that waits
         for a host begins streaming and a host that joins late learns the rig.
-    wake_s : with ``start``, send them again after this many seconds without a byte
-        (a module that restarted behind a port that stayed open waits for a Start);
-        not after the host sent Stop. None: never.
     Other parameters: :class:`~sonarloc.io.drivers.port.PortDriver`.
     """
 
     scheme = "serial"
 
-    def __init__(self, url: str, *, start: bool = True, wake_s: float | None = 2.0,
-                 **kwargs: Any):
+    def __init__(self, url: str, *, start: bool = True, **kwargs: Any):
         super().__init__(url, **kwargs)
-        if wake_s is not None and not wake_s > 0:
-            raise ValueError(f"`wake_s` must be positive or None, got {wake_s!r}")
         self.start_on_connect = start
-        self.wake_s = wake_s
-        self._wake = Wakeup()
         self.decoder = SerialDecoder()
         self.assembler = RecordAssembler()
         self._encoder = SerialEncoder()
@@ -56,25 +47,14 @@ class SerialDriver(PortDriver):
         """Frame ``msg`` with this host's sequence number and write it."""
         with self._send_lock:
             self.write(self._encoder.encode(msg))
-        self._wake.sent(msg)
 
     def _on_connect(self) -> None:
-        self._wake.heard()
         if self.start_on_connect:
             self.send(Start())
             self.send(RequestRig())
 
     def _on_bytes(self, data: bytes) -> None:
-        frames = self.decoder.feed_frames(data)
-        if frames:  # the module's packets, not line noise
-            self._wake.heard()
-        self._handle(frames)
-
-    def _on_idle(self) -> None:
-        if self.start_on_connect and self._wake.due(self.wake_s):
-            self.stats.wakeups += 1
-            self.send(Start())
-            self.send(RequestRig())
+        self._handle(self.decoder.feed_frames(data))
 
     def _on_stream_end(self) -> None:
         self._handle(self.decoder.flush())
