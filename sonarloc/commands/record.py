@@ -21,11 +21,14 @@ from types import FrameType
 from typing import Any
 
 from sonarloc.commands._args import refuse_overwrite
-from sonarloc.errors import DeviceTimeoutError
-from sonarloc.io.drivers import open_driver, parse_source
+from sonarloc.errors import DeviceTimeoutError, LogFormatError
+from sonarloc.io.drivers import Driver, open_driver, parse_source
 from sonarloc.io.logfile import LogWriter, Record, RigRecord
 
 HOLD_MAX = 100_000  # readings held back while waiting for the rig
+_DEVICE = {"serial": "the sonarloc module", "can": "the sonarloc module",
+           "pioneer": "a Pioneer robot", "maxbotix": "a MaxBotix sensor"}
+FLUSH_S = 0.5  # the log on disk lags the device by at most this (a robot's power may fail)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,6 +85,21 @@ def driver_options(args: argparse.Namespace) -> dict[str, Any]:
     return opts
 
 
+def _silence(driver: Driver, timeout: float) -> str:
+    """The error of a source that gave no reading: bytes that never formed a frame
+    are another trouble than no bytes at all."""
+    s = driver.decoder_stats
+    what = _DEVICE.get(driver.scheme, "the device")
+    if s.bytes_in and not s.frames:
+        return (f"{driver.source}: no readings within {timeout:g} s: {s.bytes_in} bytes came "
+                f"but no packet of {what} in them (wrong --baud?) ({driver.summary()})")
+    foreign = s.unknown + s.bad_length + s.error_frames
+    if foreign and not s.frames:
+        return (f"{driver.source}: no readings within {timeout:g} s: {foreign} frames came "
+                f"but none of {what} ({driver.summary()})")
+    return f"{driver.source}: no data within {timeout:g} s ({driver.summary()})"
+
+
 def run(args: argparse.Namespace) -> int:
     refuse_overwrite({"--out": args.out}, {"SOURCE": args.source})
     for name in ("duration", "timeout"):
@@ -102,57 +120,86 @@ def run(args: argparse.Namespace) -> int:
     old = signal.signal(signal.SIGTERM, on_term)
     counts: Counter[str] = Counter()
     held: list[Record] = []
+    hold = True  # readings are held back until the rig comes (at most HOLD_MAX)
     have_rig = False
+    rig_changes: list[float] = []  # times of rigs other than the first
     note = ""
+
+    def take(rec: Record) -> None:
+        nonlocal have_rig, held, hold
+        if isinstance(rec, RigRecord):
+            if have_rig:  # a changed rig mid-log is not representable; keep the first
+                rig_changes.append(rec.t_s)  # (the driver drops unchanged repeats)
+                return
+            have_rig = True
+            writer.write(rec)
+            counts["rig"] += 1
+            for r in held:
+                writer.write(r)
+                counts[r.type] += 1
+            held = []
+            return
+        if not have_rig and hold:
+            if len(held) < HOLD_MAX:
+                held.append(rec)
+                return
+            hold = False  # no rig after so many: write them, in the order of time
+            for r in held:
+                writer.write(r)
+                counts[r.type] += 1
+            held = []
+        writer.write(rec)
+        counts[rec.type] += 1
+
     t_end = None if args.duration is None else time.monotonic() + args.duration
     try:
         with driver, LogWriter(args.out) as writer:
-            last_data = time.monotonic()
-            while not stop:
-                now = time.monotonic()
-                if t_end is not None and now >= t_end:
-                    break
-                try:  # short reads, so SIGTERM and --duration are noticed quickly
-                    rec = driver.read(timeout=0.2)
-                except DeviceTimeoutError:
-                    if time.monotonic() - last_data < args.timeout:
-                        continue
-                    if sum(counts.values()) + len(held) == 0:
-                        raise DeviceTimeoutError(
-                            f"{driver.source}: no data within {args.timeout:g} s "
-                            f"({driver.summary()})") from None
-                    note = f"; stopped after {args.timeout:g} s without data"
-                    break
-                except KeyboardInterrupt:
-                    break
-                last_data = time.monotonic()
-                if rec is None:
-                    break
-                if isinstance(rec, RigRecord):
-                    if have_rig:
-                        continue  # a changed rig mid-log is not representable; keep the first
-                    have_rig = True
-                    writer.write(rec)
-                    counts["rig"] += 1
-                    for r in held:
-                        writer.write(r)
-                        counts[r.type] += 1
-                    held = []
-                    continue
-                if not have_rig and len(held) < HOLD_MAX:
-                    held.append(rec)
-                    continue
-                writer.write(rec)
-                counts[rec.type] += 1
+            last_data = flushed = time.monotonic()
+            try:
+                while not stop:
+                    now = time.monotonic()
+                    if t_end is not None and now >= t_end:
+                        break
+                    if now - flushed >= FLUSH_S:
+                        writer.flush()
+                        flushed = now
+                    try:  # short reads, so SIGTERM and --duration are noticed quickly
+                        rec = driver.read(timeout=0.2)
+                    except DeviceTimeoutError:
+                        if time.monotonic() - last_data < args.timeout:
+                            continue
+                        if counts["odom"] + counts["tof"] + len(held) == 0:  # a rig at most
+                            raise DeviceTimeoutError(_silence(driver, args.timeout)) from None
+                        note = f"; stopped after {args.timeout:g} s without data"
+                        break
+                    last_data = time.monotonic()
+                    if rec is None:
+                        break
+                    take(rec)
+            except KeyboardInterrupt:
+                pass
+            # what the device delivered is kept: the records still queued, and those the
+            # decoder recovers when the driver closes (good packets behind a false header)
+            driver.close()
+            while (rec := driver.read(timeout=0)) is not None:
+                take(rec)
             for r in held:  # no rig ever came
                 writer.write(r)
                 counts[r.type] += 1
     finally:
         signal.signal(signal.SIGTERM, old)
+    if counts["odom"] + counts["tof"] == 0 and driver.stats.malformed_lines:
+        hint = " (candump logs are written by `candump -L`)" if driver.scheme == "candump" else ""
+        raise LogFormatError(f"{driver.source}: no readings in it{hint}: {driver.summary()}")
     n = sum(counts.values())
     kinds = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
     print(f"recorded {n} records ({kinds or 'none'}) to {args.out}{note}", file=sys.stderr)
     if not have_rig:
         print("warning: the source sent no rig description", file=sys.stderr)
+    if rig_changes:
+        k = len(rig_changes)
+        print(f"warning: the rig changed at t_s {rig_changes[0]:g} ({k} time{'s' * (k > 1)}); "
+              f"the log keeps the first rig, which may not fit the readings after that",
+              file=sys.stderr)
     print(f"{driver.source}: {driver.summary()}", file=sys.stderr)
     return 0

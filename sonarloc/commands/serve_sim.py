@@ -14,6 +14,7 @@ module waits for the host's Start command (every sonarloc driver sends it).
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import signal
 import sys
@@ -94,8 +95,10 @@ def _transport(args: argparse.Namespace) -> Transport:
 
 
 def _records(args: argparse.Namespace, log_stats: LogStats) -> Iterator[Record]:
-    if args.log:
-        return iter_log(args.log, log_stats)
+    if args.log:  # opened now: a missing log fails before the module is announced
+        log = iter_log(args.log, log_stats)
+        first = next(log, None)
+        return itertools.chain([first] if first is not None else [], log)
     from sonarloc.commands._args import parse_pose
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import parse_pan_schedule, rig_by_name
@@ -148,6 +151,8 @@ def run(args: argparse.Namespace) -> int:
         sim.close()
     s = sim.stats
     print(f"sent {s.records} records ({s.messages} messages, {s.lost} lost, "
-          f"rig {s.rigs_sent} times, {s.commands} commands)"
+          f"rig {s.rigs_sent} times, {s.commands} commands"
+          + (f", {s.unsendable} unsendable (first: {s.first_unsendable})" if s.unsendable
+             else "") + ")"
           + (f"; log: {log_stats.summary()}" if args.log else ""), file=sys.stderr)
     return 0

@@ -375,30 +375,79 @@ def _backwards(stats: LogStats, strict: bool, lineno: int, last_t: float, t: flo
 
 
 class LogWriter:
-    """Write records as JSONL to a path or text stream (use as a context manager)."""
+    """Write records as JSONL to a path or text stream (use as a context manager).
+
+    A file is written in whole lines only: when the disk fills (or a file size limit is
+    reached) the lines written so far stay, the partial one is cut off, and the
+    ``OSError`` names the file, so a log cut short is still valid up to its last line.
+    """
+
+    BUFFER = 1 << 16  # bytes collected before a write to the file
 
     def __init__(self, target: str | Path | IO[str]):
+        self._raw: IO[bytes] | None = None
+        self._handle: IO[str] | None = None
         if isinstance(target, (str, Path)):
-            self._handle: IO[str] = open(target, "w", encoding="utf-8")  # noqa: SIM115
-            self._close = True
+            self.path = str(target)
+            self._raw = open(target, "wb", buffering=0)  # noqa: SIM115
         else:
-            self._handle, self._close = target, False
+            self.path = str(getattr(target, "name", "<stream>"))
+            self._handle = target
+        self._lines: list[str] = []
+        self._pending = 0  # characters in _lines
+        self._written = 0  # bytes of whole lines in the file
+        self._failed: OSError | None = None
 
     def write(self, rec: Record) -> None:
-        self._handle.write(json.dumps(record_to_dict(rec), separators=(",", ":")) + "\n")
+        line = json.dumps(record_to_dict(rec), separators=(",", ":")) + "\n"
+        if self._handle is not None:
+            self._handle.write(line)
+            return
+        self._lines.append(line)
+        self._pending += len(line)
+        if self._pending >= self.BUFFER:
+            self.flush()
 
     def write_all(self, recs: Iterable[Record]) -> None:
         for rec in recs:
             self.write(rec)
 
     def flush(self) -> None:
-        self._handle.flush()
+        if self._handle is not None:
+            self._handle.flush()
+            return
+        if self._failed is not None:
+            raise self._failed
+        if not self._lines or self._raw is None:
+            return
+        data = "".join(self._lines).encode("utf-8")
+        self._lines, self._pending = [], 0
+        view, done = memoryview(data), 0
+        try:
+            while done < len(data):
+                done += self._raw.write(view[done:]) or 0
+        except OSError as err:
+            kept = data.rfind(b"\n", 0, done) + 1  # whole lines only
+            try:
+                self._raw.truncate(self._written + kept)
+            except OSError:
+                pass
+            self._written += kept
+            self._failed = OSError(err.errno, f"cannot write {self.path}: {err.strerror} "
+                                              f"(the log is whole up to there)")
+            raise self._failed from err
+        self._written += len(data)
 
     def close(self) -> None:
-        if self._close:
-            self._handle.close()
-        else:
-            self._handle.flush()
+        if self._raw is None:
+            if self._handle is not None:
+                self._handle.flush()
+            return
+        try:
+            if self._failed is None:
+                self.flush()
+        finally:
+            self._raw.close()
 
     def __enter__(self) -> LogWriter:
         return self

@@ -237,7 +237,13 @@ def _open_reader(bag: Path) -> Any:
     try:
         return rb.highlevel.AnyReader([bag], default_typestore=store)
     except Exception as err:  # rosbags raises its own error classes
-        raise RosbagError(f"cannot open bag {bag}: {err}") from err
+        raise RosbagError(f"cannot open bag {bag}: {_first_line(err)}") from err
+
+
+def _first_line(err: BaseException) -> str:
+    """The first line of an error's message (rosbags quotes whole YAML parser reports)."""
+    lines = str(err).strip().splitlines()
+    return lines[0] if lines else type(err).__name__
 
 
 def _static_transforms(reader: Any, conns: list[Any]) -> dict[str, tuple[str, tuple[float, ...]]]:
@@ -390,7 +396,7 @@ def import_bag(
         raise
     except Exception as err:
         if type(err).__module__.startswith("rosbags"):
-            raise RosbagError(f"bag {bag}: {err}") from err
+            raise RosbagError(f"bag {bag}: {_first_line(err)}") from err
         raise
     return stats
 

@@ -3,9 +3,11 @@ python-can's reader; a damaged log is read to the end with every problem counted
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import random
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from io_streams import ring_stream
@@ -130,3 +132,63 @@ def test_other_python_can_formats(tmp_path) -> None:
                     logger.on_message_received(f)
     got, _ = read_all(f"candump:{path}")
     assert len(got) == 1 + sum(r.type in ("odom", "tof") for r in recs)
+
+
+def test_record_names_the_first_bad_line_of_a_candump(tmp_path, run_cli) -> None:
+    # FORMATS.md: a bad file names the line. `record` said only "malformed lines 2".
+    path, out = tmp_path / "sonar.log", tmp_path / "rec.jsonl"
+    write_candump(path, duration_s=0.3)
+    lines = path.read_text().splitlines()
+    lines[30] = "garbage in the log"
+    lines[40] = lines[40].replace("#", "#ZZ")
+    path.write_text("\n".join(lines) + "\n")
+    proc = run_cli("record", f"candump:{path}", "--out", str(out), check=True)
+    assert "malformed lines 2 (first: line 31: " in proc.stderr
+    assert iter_log(out) is not None and sum(1 for _ in iter_log(out)) > 50
+
+
+@pytest.mark.parametrize("kind", ["candump", "sim"])
+def test_paced_replay_across_a_time_jump_keeps_to_the_read_timeout(tmp_path, kind) -> None:
+    # A log whose clock jumps ahead (4 s here, an hour in the field) replayed with a rate:
+    # read(timeout) slept through the whole jump, so `record --option rate=1` ignored
+    # --duration and SIGTERM for as long.
+    import time
+
+    from sonarloc.errors import DeviceTimeoutError
+
+    stream = list(ring_stream(duration_s=0.2))
+    jump = 4.0
+    late = [dataclasses.replace(r, t_s=r.t_s + jump) for r in ring_stream(duration_s=0.2)
+            if r.type in ("odom", "tof")]
+    path = tmp_path / ("sonar.log" if kind == "candump" else "sonar.jsonl")
+    if kind == "candump":
+        sim = SimModule.to_candump(stream + late, path)
+        sim.run()
+        sim.close()
+    else:
+        with LogWriter(path) as w:
+            w.write_all(stream + late)
+    n_before = sum(r.type in ("rig", "odom", "tof") for r in stream)
+    with open_driver(f"{kind}:{path}", rate=20.0) as drv:
+        got = [drv.read(timeout=1.0) for _ in range(n_before)]
+        t = time.monotonic()
+        with pytest.raises(DeviceTimeoutError):
+            drv.read(timeout=0.05)
+        assert time.monotonic() - t < 0.15  # not the 0.2 s the jump takes at rate 20
+        with pytest.raises(DeviceTimeoutError):
+            drv.read(timeout=0.05)
+        got += list(drv.records(timeout=1.0))  # nothing lost: the rest comes when due
+    assert [r.t_s for r in got if r.type != "rig"] == \
+        pytest.approx([r.t_s for r in stream + late if r.type in ("odom", "tof")], abs=1e-6)
+
+
+def test_a_file_of_no_candump_lines_is_an_error(tmp_path, run_cli) -> None:
+    # `candump can0 > x.log` (without -L) writes another format: every line was skipped,
+    # and record exited 0 with an empty log.
+    path, out = tmp_path / "plain.log", tmp_path / "rec.jsonl"
+    path.write_text("  can0  130   [7]  00 00 00 00 FC 85 10\n"
+                    "  can0  131   [7]  00 D0 07 00 00 00 00\n")
+    proc = run_cli("record", f"candump:{path}", "--out", str(out))
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "no readings" in proc.stderr and "malformed lines 2 (first: line 1: " in proc.stderr
+    assert "candump -L" in proc.stderr

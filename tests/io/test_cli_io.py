@@ -124,3 +124,12 @@ def test_serve_sim_on_a_virtual_can_bus_says_no_other_process_hears_it(run_cli) 
                    "--duration", "0.2", "--linger", "0")
     assert proc.returncode == 0 and proc.stdout.splitlines()[0] == "can:virtual:x"
     assert "reaches only this process" in proc.stderr and "socketcan:vcan0" in proc.stderr
+
+
+def test_serve_sim_with_a_missing_log_announces_nothing(run_cli, tmp_path) -> None:
+    # It printed the source to open (stdout's first line, what scripts read) and
+    # "serving the sonar module on ...", and only then failed on the missing log.
+    proc = run_cli("serve-sim", "--log", str(tmp_path / "none.jsonl"), "--listen",
+                   "127.0.0.1:0", "--no-wait")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.count("\n") == 1 and "cannot open log" in proc.stderr

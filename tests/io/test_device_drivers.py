@@ -3,6 +3,7 @@ carrying junk next to the module's frames."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 import os
@@ -16,7 +17,7 @@ import can
 import pytest
 from io_streams import drain, ring_stream
 
-from sonarloc.errors import DeviceError
+from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.drivers import open_driver
 from sonarloc.io.drivers.sim import SimModule
 from sonarloc.io.logfile import LogWriter, OdomRecord, RigRecord, TofRecord, iter_log
@@ -266,3 +267,23 @@ def test_pioneer_rig_and_converter_from_the_record_command_line(tmp_path) -> Non
     assert conv.range_conv == 0.268
     with pytest.raises(ValueError, match="`rig` must be a rig JSON file"):
         open_driver("pioneer:loop://", rig=5, handshake=False)
+
+
+@pytest.mark.parametrize(("unit", "good", "short"), [("mm", b"R1234\r", b"R124\r"),
+                                                     ("cm", b"R123\r", b"R1234\r")])
+def test_maxbotix_frame_with_a_byte_lost_is_not_a_range(unit, good, short) -> None:
+    # Line noise that drops one digit of "R1234\r" (1234 mm) left "R124\r", read as an
+    # obstacle at 124 mm: the decoder took 3 or 4 digits whatever the sensor sends.
+    pty = Pty()
+    try:
+        with open_driver(f"maxbotix:{pty.path}", unit=unit) as drv:
+            drv.read(1.0)  # the rig
+            os.write(pty.master, good + short + good)
+            got = [drv.read(1.0) for _ in range(2)]
+            with pytest.raises(DeviceTimeoutError):
+                drv.read(0.2)
+            stats = drv.decoder.stats
+    finally:
+        pty.close()
+    assert got[0] == dataclasses.replace(got[1], t_s=got[0].t_s)
+    assert (stats.frames, stats.bad_length) == (2, 1)

@@ -303,3 +303,26 @@ def test_pty_close_without_a_reading_host_gives_up() -> None:
         assert 0.15 < time.monotonic() - t0 < 2.0
     finally:
         host.close()
+
+
+def test_pty_link_never_replaces_a_file(tmp_path, run_cli) -> None:
+    # `serve-sim --pty --link notes.txt` replaced the user's file by a symlink to the
+    # terminal, and deleted it when the module stopped.
+    keep = tmp_path / "notes.txt"
+    keep.write_text("mine\n")
+    with pytest.raises(DeviceError, match="exists and is not a symlink"):
+        PtyTransport(keep)
+    proc = run_cli("serve-sim", "--log", str(keep), "--pty", "--link", str(keep))
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "exists and is not a symlink" in proc.stderr
+    assert keep.read_text() == "mine\n"
+    with pytest.raises(DeviceError, match="cannot link"):
+        PtyTransport(tmp_path / "no" / "dir" / "tty")
+    stale = tmp_path / "ttySONAR"  # a link left behind by a module killed earlier
+    stale.symlink_to("/dev/pts/999999")
+    tr = PtyTransport(stale)
+    try:
+        assert os.readlink(stale) == tr.slave_path
+    finally:
+        tr.close()
+    assert not stale.exists() and not stale.is_symlink()

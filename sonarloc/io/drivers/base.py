@@ -22,6 +22,7 @@ from typing import ClassVar
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.logfile import Record
 from sonarloc.io.protocol.messages import DecoderStats, Message
+from sonarloc.io.protocol.records import RecordAssembler
 
 RecordCallback = Callable[[Record], None]
 
@@ -36,6 +37,19 @@ class DriverStats:
     dropped: int = 0  # records lost because the caller did not read them fast enough
     malformed_lines: int = 0  # text logs: lines no reader could parse
     callback_errors: int = 0  # exceptions raised by an on_record callback
+
+
+def sleep_until(due: float, deadline: float | None) -> bool:
+    """Sleep until ``time.monotonic()`` reaches ``due``, but not past ``deadline`` (None:
+    no limit); True if ``due`` was reached. Paced replays use it so that a jump ahead in a
+    file's time does not hold up ``read(timeout)``."""
+    if deadline is not None and due > deadline:
+        time.sleep(max(deadline - time.monotonic(), 0.0))
+        return False
+    wait = due - time.monotonic()
+    if wait > 0:
+        time.sleep(wait)
+    return True
 
 
 class Driver(ABC):
@@ -173,16 +187,28 @@ class Driver(ABC):
         """Decoder and driver counters in one flat dict."""
         out = self.decoder_stats.as_dict()
         out.update({f.name: getattr(self.stats, f.name) for f in fields(self.stats)})
+        restarts = self._module_restarts()
+        if restarts is not None:
+            out["module_restarts"] = restarts
         return out
 
     def summary(self) -> str:
         """One line of counters: good/CRC/skipped/gaps first."""
         s = self.stats
         extra = [f"{s.records} records"]
-        for name in ("reconnects", "dropped", "malformed_lines"):
+        restarts = self._module_restarts()
+        if restarts:
+            extra.append(f"module restarts {restarts}")
+        for name in ("disconnects", "reconnects", "dropped", "malformed_lines"):
             if getattr(s, name):
                 extra.append(f"{name.replace('_', ' ')} {getattr(s, name)}")
         return f"{self.decoder_stats.summary()}; {', '.join(extra)}"
+
+    def _module_restarts(self) -> int | None:
+        """Restarts of the module seen by a driver of the module protocol (its
+        ``assembler``'s clock); None for other drivers."""
+        asm = getattr(self, "assembler", None)
+        return asm.clock.restarts if isinstance(asm, RecordAssembler) else None
 
     # -- for subclasses ---------------------------------------------------------------
     def _deliver(self, recs: list[Record]) -> None:

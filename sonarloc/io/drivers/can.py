@@ -123,7 +123,7 @@ class CanDriver(Driver):
         for m in self.decoder.feed(frame):
             if isinstance(m, Ack):
                 self.acks = (self.acks + [m])[-16:]
-            out.extend(self.assembler.push(m))
+            out.extend(self.assembler.push(m, frame.timestamp))
         self._deliver(out)
 
     def _on_bus_error(self, exc: Exception) -> None:

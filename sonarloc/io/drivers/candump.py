@@ -19,7 +19,7 @@ from typing import IO
 import can
 
 from sonarloc.errors import DeviceError
-from sonarloc.io.drivers.base import Driver, RecordCallback
+from sonarloc.io.drivers.base import Driver, RecordCallback, sleep_until
 from sonarloc.io.protocol.canbus import CanDecoder
 from sonarloc.io.protocol.messages import DecoderStats
 from sonarloc.io.protocol.records import RecordAssembler
@@ -75,6 +75,7 @@ class CandumpDriver(Driver):
         self._frames: Iterator[can.Message] | None = None
         self._lines: _NumberedLines | None = None
         self._t0: tuple[float, float] | None = None  # (wall, frame timestamp)
+        self._due: can.Message | None = None  # a frame read before its time (rate)
 
     @property
     def source(self) -> str:
@@ -83,6 +84,14 @@ class CandumpDriver(Driver):
     @property
     def decoder_stats(self) -> DecoderStats:
         return self.decoder.stats
+
+    def summary(self) -> str:
+        """The counters, and the first malformed line by number."""
+        out = super().summary()
+        if self.malformed:
+            lineno, msg = self.malformed[0]
+            out += f" (first: line {lineno}: {msg})"
+        return out
 
     def _open(self) -> None:
         if not self.path.is_file():
@@ -125,29 +134,34 @@ class CandumpDriver(Driver):
             return
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            try:
-                frame = next(frames)
-            except StopIteration:
-                self._end()
+            frame, self._due = self._due, None
+            if frame is None:
+                try:
+                    frame = next(frames)
+                except StopIteration:
+                    self._end()
+                    return
+                except DeviceError as err:
+                    self._fail(err)
+                    self._end()
+                    return
+            if self.rate is not None and frame.timestamp is not None and \
+                    not self._pace(frame.timestamp, self.rate, deadline):
+                self._due = frame  # the timeout comes first: read() says so
                 return
-            except DeviceError as err:
-                self._fail(err)
-                self._end()
-                return
-            if self.rate is not None and frame.timestamp is not None:
-                self._pace(frame.timestamp, self.rate)
-            recs = [r for m in self.decoder.feed(frame) for r in self.assembler.push(m)]
+            recs = [r for m in self.decoder.feed(frame)
+                    for r in self.assembler.push(m, frame.timestamp)]
             if recs:
                 self._deliver(recs)
                 return
             if deadline is not None and time.monotonic() >= deadline:
                 return
 
-    def _pace(self, stamp: float, rate: float) -> None:
+    def _pace(self, stamp: float, rate: float, deadline: float | None) -> bool:
+        """Wait until a frame stamped ``stamp`` is due; False (after waiting until
+        ``deadline``) if it is due later."""
         now = time.monotonic()
         if self._t0 is None:
             self._t0 = (now, stamp)
-            return
-        wait = self._t0[0] + (stamp - self._t0[1]) / rate - now
-        if wait > 0:
-            time.sleep(wait)
+            return True
+        return sleep_until(self._t0[0] + (stamp - self._t0[1]) / rate, deadline)

@@ -18,6 +18,7 @@ from sonarloc.io.protocol.messages import DecoderStats
 
 UNITS_M = {"mm": 1e-3, "cm": 1e-2, "in": 0.0254}
 DEFAULT_MAX = {"mm": 5000, "cm": 765, "in": 254}  # HRLV-MaxSonar, XL-MaxSonar, LV-MaxSonar
+DIGITS = {"mm": 4, "cm": 3, "in": 3}  # digits per frame
 
 
 class MaxbotixDriver(PortDriver):
@@ -55,7 +56,7 @@ class MaxbotixDriver(PortDriver):
             raise ValueError(f"`mount` must be x_m, y_m, yaw_deg in base_link (e.g. "
                              f"0.1,0,90), got {mount!r}") from None
         self.rig = RigRecord((SensorMount(self.sensor, x_m, y_m, yaw_deg),), speed_of_sound_mps)
-        self.decoder = MaxbotixDecoder()
+        self.decoder = MaxbotixDecoder(DIGITS[unit])
         self._t0 = time.monotonic()
         self._rig_sent = False
 

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 from sonarloc.io.drivers.port import PortDriver
@@ -60,8 +61,9 @@ class SerialDriver(PortDriver):
 
     def _handle(self, frames: list[SerialFrame]) -> None:
         out = []
+        now = time.monotonic()
         for f in frames:
             if isinstance(f.message, Ack):
                 self.acks = (self.acks + [f.message])[-16:]
-            out.extend(self.assembler.push(f.message))
+            out.extend(self.assembler.push(f.message, now))
         self._deliver(out)

@@ -52,7 +52,7 @@ from typing import IO, Any, ClassVar
 import can
 
 from sonarloc.errors import DeviceError, LogFormatError
-from sonarloc.io.drivers.base import Driver, RecordCallback
+from sonarloc.io.drivers.base import Driver, RecordCallback, sleep_until
 from sonarloc.io.logfile import LogStats, LogWriter, Record, RigRecord, iter_log
 from sonarloc.io.protocol.canbus import CanDecoder, CanEncoder
 from sonarloc.io.protocol.framing import SerialDecoder, SerialEncoder, type_code
@@ -151,18 +151,26 @@ class PtyTransport(_ByteTransport):
         return str(self.link) if self.link is not None else self.slave_path
 
     def _new_pty(self) -> None:
+        link = self.link
+        if link is not None and link.exists() and not link.is_symlink():
+            # a symlink is ours to replace (left by a module killed earlier); a file is not
+            raise DeviceError(f"link {link} exists and is not a symlink; not replacing it")
         master, slave = os.openpty()
         tty.setraw(slave)  # no echo, no CR/LF translation: a clean 8-bit line
         path = os.ttyname(slave)
         os.close(slave)
         os.set_blocking(master, False)
+        if link is not None:
+            tmp = link.with_name(link.name + ".new")
+            try:
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+                os.symlink(path, tmp)
+                os.replace(tmp, link)
+            except OSError as err:
+                os.close(master)
+                raise DeviceError(f"cannot link {link} to {path}: {err.strerror}") from err
         self._master, self.slave_path = master, path
-        if self.link is not None:
-            tmp = self.link.with_name(self.link.name + ".new")
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
-            os.symlink(path, tmp)
-            os.replace(tmp, self.link)
 
     def replug(self) -> None:
         """Pull the cable and plug it back: the old pty closes, a new one takes the link."""
@@ -426,6 +434,18 @@ class SimStats:
     lost: int = 0  # messages the transport could not deliver
     rigs_sent: int = 0
     commands: int = 0
+    unsendable: int = 0  # readings the wire cannot carry (a negative TOF, a sensor id > 255)
+    first_unsendable: str = ""  # the first of them and why
+
+    def note_unsendable(self, rec: Record, err: ValueError) -> None:
+        self.unsendable += 1
+        if not self.first_unsendable:
+            self.first_unsendable = _unsendable(rec, err)
+
+
+def _unsendable(rec: Record, err: ValueError) -> str:
+    """Which record the wire could not carry, and why."""
+    return f"{rec.type} at t_s {rec.t_s:g}: {err}"[:200]
 
 
 class SimModule:
@@ -617,7 +637,11 @@ class SimModule:
                 if isinstance(rec, RigRecord):
                     self._rig, self._rig_due = rec, True
                     continue
-                msgs = messages_from_record(rec)
+                try:
+                    msgs = messages_from_record(rec)
+                except ValueError as err:  # skipped and counted: the rest still goes
+                    self.stats.note_unsendable(rec, err)
+                    continue
                 if not msgs:
                     continue
                 if t0 is not None and self.duration_s is not None \
@@ -641,7 +665,11 @@ class SimModule:
                     rig = dataclasses.replace(self._rig, t_s=rec.t_s)
                     if self._send(messages_from_record(rig), rec.t_s):
                         self.stats.rigs_sent += 1
-                self._send(msgs, rec.t_s)
+                try:
+                    self._send(msgs, rec.t_s)
+                except ValueError as err:  # beyond the bus's range (CAN odometry)
+                    self.stats.note_unsendable(rec, err)
+                    continue
                 self.stats.records += 1
         except BaseException as err:
             self.error = err
@@ -679,6 +707,9 @@ class SimDriver(Driver):
         self._encoder = SerialEncoder()
         self._iter: Iterator[Record] | None = None
         self._t0: tuple[float, float] | None = None
+        self._due: tuple[Record, list[Message]] | None = None  # read before its time (rate)
+        self.unsendable = 0  # records the wire cannot carry (skipped, counted)
+        self.first_unsendable = ""
 
     @property
     def source(self) -> str:
@@ -687,6 +718,17 @@ class SimDriver(Driver):
     @property
     def decoder_stats(self) -> DecoderStats:
         return self.decoder.stats
+
+    def summary(self) -> str:
+        """The counters, the records the wire could not carry (the first named) and
+        what the log reader met besides good records (lines named)."""
+        out = super().summary()
+        if self.unsendable:
+            out += f", unsendable {self.unsendable} (first: {self.first_unsendable})"
+        ls = self.log_stats
+        if ls.malformed_count or ls.unknown or ls.time_backwards_count:
+            out += f"; log: {ls.summary()}"
+        return out
 
     def _open(self) -> None:
         if isinstance(self._source, (str, Path)):
@@ -701,27 +743,39 @@ class SimDriver(Driver):
 
     def _pull(self, timeout: float | None) -> None:
         it = self._iter
+        deadline = None if timeout is None else time.monotonic() + timeout
         while it is not None:
-            try:
-                rec = next(it)
-            except StopIteration:
-                break
-            except LogFormatError as err:
-                self._fail(err)
-                break
-            msgs = messages_from_record(rec)
-            if not msgs:
-                continue
+            if self._due is not None:
+                (rec, msgs), self._due = self._due, None
+            else:
+                try:
+                    rec = next(it)
+                except StopIteration:
+                    break
+                except LogFormatError as err:
+                    self._fail(err)
+                    break
+                self.stats.malformed_lines = self.log_stats.malformed_count
+                try:
+                    msgs = messages_from_record(rec)
+                except ValueError as err:  # skipped and counted, as a module does
+                    self.unsendable += 1
+                    self.first_unsendable = self.first_unsendable or _unsendable(rec, err)
+                    continue
+                if not msgs:
+                    continue
             if self.rate is not None:
                 now = time.monotonic()
                 if self._t0 is None:
                     self._t0 = (now, rec.t_s)
-                wait = self._t0[0] + (rec.t_s - self._t0[1]) / self.rate - now
-                if wait > 0:
-                    time.sleep(wait)
+                if not sleep_until(self._t0[0] + (rec.t_s - self._t0[1]) / self.rate,
+                                   deadline):
+                    self._due = (rec, msgs)  # the timeout comes first: read() says so
+                    return
             wire = b"".join(self._encoder.encode(m) for m in msgs)
             recs = [r for m in self.decoder.feed(wire) for r in self.assembler.push(m)]
             if recs:
                 self._deliver(recs)
                 return
+        self.stats.malformed_lines = self.log_stats.malformed_count
         self._end()

@@ -26,11 +26,19 @@ def encode_range(value: int, digits: int = 4) -> bytes:
 
 
 class MaxbotixDecoder:
-    """Bytes in, range values (in the sensor's unit) out, with counters."""
+    """Bytes in, range values (in the sensor's unit) out, with counters.
 
-    def __init__(self) -> None:
+    ``digits``: the number of digits the sensor sends (4 in mm, 3 in cm or inches), so
+    that a frame that lost a digit to line noise is counted (``bad_length``) rather than
+    read as a range ten times too short; None takes 3 or 4.
+    """
+
+    def __init__(self, digits: int | None = None) -> None:
+        if digits not in (None, _MIN_DIGITS, _MAX_DIGITS):
+            raise ValueError(f"`digits` must be 3, 4 or None, got {digits!r}")
         self.stats = DecoderStats()
         self._buf = bytearray()
+        self._digits = (_MIN_DIGITS, _MAX_DIGITS) if digits is None else (digits, digits)
 
     @property
     def pending(self) -> int:
@@ -68,7 +76,7 @@ class MaxbotixDecoder:
                     pos = n
                 break  # wait for the rest
             elif buf[j] == _CR:
-                if digits >= _MIN_DIGITS:
+                if self._digits[0] <= digits <= self._digits[1]:
                     out.append(int(buf[pos + 1:j]))
                     stats.frames += 1
                     stats.bytes_framed += j + 1 - pos

@@ -89,19 +89,41 @@ class ModuleClock:
     messages slightly out of order and the wrap every 71.6 min are both handled.
     The first reading is taken as is (no offset), so a stream that starts at
     clock 0 gives ``t_s`` equal to the simulator's.
+
+    A step back of more than :attr:`RESTART_US` (1 s) is a restarted module, whose
+    clock began again at zero: it is counted (``restarts``) and the clock re-based so
+    that time goes on from the last reading, by the host's time between the two
+    readings when the caller gives arrival times (``host_s``), else by nothing.
     """
 
-    __slots__ = ("last",)
+    RESTART_US = 1_000_000
+
+    __slots__ = ("last", "offset", "restarts", "_host_last")
 
     def __init__(self) -> None:
         self.last: int | None = None
+        self.offset = 0  # added to readings of a restarted module
+        self.restarts = 0
+        self._host_last: float | None = None
 
-    def unwrap(self, raw: int) -> int:
+    def unwrap(self, raw: int, host_s: float | None = None) -> int:
+        """The unwrapped count of clock reading ``raw``, which arrived at the host's time
+        ``host_s`` (seconds on any clock of the host; None if unknown)."""
         if self.last is None:
             self.last = raw
-            return raw
-        d = (raw - self.last + CLOCK_MODULUS // 2) % CLOCK_MODULUS - CLOCK_MODULUS // 2
-        self.last += d
+        else:
+            d = (raw + self.offset - self.last + CLOCK_MODULUS // 2) % CLOCK_MODULUS \
+                - CLOCK_MODULUS // 2
+            if d < -self.RESTART_US:
+                self.restarts += 1
+                gap = 0
+                if host_s is not None and self._host_last is not None:
+                    gap = max(round((host_s - self._host_last) * 1e6), 0)
+                self.offset += gap - d
+                d = gap
+            self.last += d
+        if host_s is not None:
+            self._host_last = host_s
         return self.last
 
 
@@ -123,14 +145,17 @@ class RecordAssembler:
         self._mounts: dict[int, RigMount] = {}
         self.rig: RigRecord | None = None
 
-    def push(self, msg: Message) -> list[Record]:
+    def push(self, msg: Message, host_s: float | None = None) -> list[Record]:
+        """The records completed by ``msg``, which arrived at the host's time ``host_s``
+        (seconds on any one clock of the host; it times the outage of a restarted
+        module, see :class:`ModuleClock`)."""
         if isinstance(msg, Echo):
-            t = self.clock.unwrap(msg.ping_time_us) / 1e6
+            t = self.clock.unwrap(msg.ping_time_us, host_s) / 1e6
             tof = None if msg.no_echo else msg.tof_counts * COUNT_US
             pan = None if msg.pan_cdeg is None else msg.pan_cdeg / 100.0
             return [TofRecord(t, msg.sensor, tof, pan)]
         if isinstance(msg, Odom):
-            return [OdomRecord(self.clock.unwrap(msg.time_us) / 1e6, msg.x_dmm / 1e4,
+            return [OdomRecord(self.clock.unwrap(msg.time_us, host_s) / 1e6, msg.x_dmm / 1e4,
                                msg.y_dmm / 1e4, msg.yaw_mdeg / 1000.0)]
         if isinstance(msg, RigInfo):
             self._info, self._mounts = msg, {}
@@ -142,15 +167,16 @@ class RecordAssembler:
             self._mounts[msg.sensor] = msg
             if len(self._mounts) < self._info.n_sensors:
                 return []
-            return self._finish_rig(self._info)
+            return self._finish_rig(self._info, host_s)
         self.stats.other += 1
         return []
 
-    def _finish_rig(self, info: RigInfo) -> list[Record]:
+    def _finish_rig(self, info: RigInfo, host_s: float | None) -> list[Record]:
         mounts = tuple(SensorMount(m.sensor, m.x_dmm / 1e4, m.y_dmm / 1e4, m.yaw_cdeg / 100.0)
                        for m in self._mounts.values())
         self._info, self._mounts = None, {}
-        rig = RigRecord(mounts, info.c_cmps / 100.0, self.clock.unwrap(info.time_us) / 1e6)
+        rig = RigRecord(mounts, info.c_cmps / 100.0,
+                        self.clock.unwrap(info.time_us, host_s) / 1e6)
         if self.rig is not None and (self.rig.sensors, self.rig.speed_of_sound_mps) == (
                 rig.sensors, rig.speed_of_sound_mps):
             self.stats.rig_repeats += 1
