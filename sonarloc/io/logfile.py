@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import IO, Any, ClassVar, TypeGuard
 
 from sonarloc.errors import LogFormatError
+from sonarloc.physics.sound import check_air_speed_of_sound
 
 
 @dataclass(frozen=True)
@@ -171,9 +172,9 @@ def _record_checked(obj: dict[str, Any], kind: object) -> Record | None:
                 raise ValueError(f"sensors[{i}]: {err}") from None
         if len({m.id for m in mounts}) != len(mounts):
             raise ValueError("sensor ids must be unique")
-        c = _num(obj, "speed_of_sound_mps", 343.0)
-        if c <= 0:
-            raise ValueError(f"`speed_of_sound_mps` must be positive, got {c!r}")
+        # (3 m/s, a typo or another unit, left every reading unmatched by the map)
+        c = check_air_speed_of_sound(_num(obj, "speed_of_sound_mps", 343.0),
+                                     "`speed_of_sound_mps`")
         return RigRecord(tuple(mounts), c, _num(obj, "t_s", 0.0))
     return None
 

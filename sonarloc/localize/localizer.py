@@ -62,6 +62,7 @@ from sonarloc.localize.echoes import EchoObservation
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.relocalize import Relocalization, RelocalizeConfig, Relocalizer
+from sonarloc.physics.sound import check_air_speed_of_sound
 
 Array = NDArray[np.float64]
 Method = Literal["kuc", "conventional", "specular", "odometry"]
@@ -610,8 +611,7 @@ class Localizer:
 
     def set_rig(self, sensors: Sequence[SensorMount], speed_of_sound_mps: float = 343.0) -> None:
         """Transducer mount poses in ``base_link`` and the speed of sound."""
-        if not (math.isfinite(speed_of_sound_mps) and speed_of_sound_mps > 0):
-            raise ValueError(f"`speed_of_sound_mps` must be positive, got {speed_of_sound_mps!r}")
+        check_air_speed_of_sound(speed_of_sound_mps, "`speed_of_sound_mps`")
         self._mounts = {m.id: np.array([m.x_m, m.y_m, math.radians(m.yaw_deg)])
                         for m in sensors}
         self._c_mps = float(speed_of_sound_mps)

@@ -75,3 +75,17 @@ def test_strict_raises_with_line_number():
 def test_missing_file_is_a_clear_error(tmp_path):
     with pytest.raises(LogFormatError, match="cannot open log"):
         list(iter_log(tmp_path / "nope.jsonl"))
+
+
+def test_a_rig_whose_speed_of_sound_is_not_air_is_malformed():
+    # a rig record of 3 m/s (a typo, or another unit) was taken: every reading of the
+    # log then matched nothing in the map, the run ended `lost` with no word of why
+    rig = ('{"type":"rig","t_s":0,"sensors":[{"id":0,"x_m":0.2,"y_m":0,"yaw_deg":0}],'
+           '"speed_of_sound_mps":%s}')
+    for c in ("3", "3430", "0"):
+        stats = LogStats()
+        assert list(iter_log(io.StringIO(rig % c), stats)) == []
+        ((line, msg),) = stats.malformed
+        assert line == 1 and msg.startswith("`speed_of_sound_mps` must be within [250, 450]")
+    (rec,) = iter_log(io.StringIO(rig % "331.3"))
+    assert isinstance(rec, RigRecord) and rec.speed_of_sound_mps == 331.3

@@ -232,3 +232,13 @@ def test_pose_estimate_of_equals_the_constructor():
     assert a.x_m == b.x_m == 1.0
     with pytest.raises(AttributeError):
         a.t_s = 1.0   # type: ignore[misc]
+
+
+def test_set_rig_refuses_a_speed_of_sound_that_is_not_air():
+    from sonarloc.io.logfile import SensorMount
+
+    loc = Localizer(room_map(), LocalizerConfig())
+    for c in (3.0, 3430.0, math.nan, -343.0):
+        with pytest.raises(ValueError, match=r"`speed_of_sound_mps` must be within \[250, 450\]"):
+            loc.set_rig([SensorMount(0, 0.2, 0.0, 0.0)], c)
+    loc.set_rig([SensorMount(0, 0.2, 0.0, 0.0)], 343.0)
