@@ -50,6 +50,7 @@ from sonarloc.io.logfile import (
     iter_log,
 )
 from sonarloc.io.posescsv import PoseTrack
+from sonarloc.physics.sound import check_air_speed_of_sound
 
 RANGE_TYPE = "sensor_msgs/msg/Range"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
@@ -337,8 +338,7 @@ def import_bag(
         raise ValueError(f"`stamp` must be 'header' or 'bag', got {stamp!r}")
     c = speed_of_sound_mps if speed_of_sound_mps is not None else (
         rig.speed_of_sound_mps if rig is not None else 343.0)
-    if not (c > 0 and math.isfinite(c)):
-        raise ValueError(f"`speed_of_sound_mps` must be positive, got {c!r}")
+    c = check_air_speed_of_sound(c, "`speed_of_sound_mps`")   # (the log's rig record)
     stats = ImportStats()
     try:
         with _open_reader(bag) as reader:

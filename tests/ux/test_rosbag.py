@@ -326,3 +326,10 @@ def test_truth_topic(tmp_path: Path):
     assert len(truth) == stats.truth == 18
     assert truth[3].t_s - t0 == pytest.approx(0.3, abs=1e-6)
     assert (truth[3].x_m, truth[3].y_m) == pytest.approx((0.15 + 1.0, 0.03))
+
+
+def test_import_refuses_a_speed_of_sound_that_is_not_air(tmp_path: Path):
+    # the log's rig record would be refused when read (3 m/s: every reading unmatched)
+    with pytest.raises(ValueError, match=r"`speed_of_sound_mps` must be within \[250, 450\]"):
+        rosbag.import_bag(tmp_path / "none.bag", tmp_path / "out.jsonl", speed_of_sound_mps=3.0)
+    assert not (tmp_path / "out.jsonl").exists()

@@ -15,6 +15,7 @@ from sonarloc.io.drivers.port import PortDriver
 from sonarloc.io.logfile import RigRecord, SensorMount, TofRecord
 from sonarloc.io.protocol.maxbotix import MaxbotixDecoder
 from sonarloc.io.protocol.messages import DecoderStats
+from sonarloc.physics.sound import check_air_speed_of_sound
 
 UNITS_M = {"mm": 1e-3, "cm": 1e-2, "in": 0.0254}
 DEFAULT_MAX = {"mm": 5000, "cm": 765, "in": 254}  # HRLV-MaxSonar, XL-MaxSonar, LV-MaxSonar
@@ -44,8 +45,7 @@ class MaxbotixDriver(PortDriver):
         super().__init__(url, **kwargs)
         if unit not in UNITS_M:
             raise ValueError(f"`unit` must be one of {', '.join(UNITS_M)}, got {unit!r}")
-        if not speed_of_sound_mps > 0:
-            raise ValueError(f"`speed_of_sound_mps` must be positive, got {speed_of_sound_mps!r}")
+        check_air_speed_of_sound(speed_of_sound_mps, "`speed_of_sound_mps`")
         self.unit_m = UNITS_M[unit]
         self.max_value = DEFAULT_MAX[unit] if max_value is None else int(max_value)
         self.sensor = int(sensor)
