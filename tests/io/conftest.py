@@ -7,9 +7,12 @@ test we wait briefly for threads to end and then compare against the state befor
 from __future__ import annotations
 
 import os
+import subprocess
 import threading
 import time
-from collections.abc import Iterator
+import tty
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 
 import pytest
 
@@ -52,3 +55,33 @@ def no_leaks() -> Iterator[None]:
     assert not extra, f"test leaked threads: {[t.name for t in extra]}"
     assert not new_buses, f"test leaked virtual CAN buses: {new_buses}"
     assert not new_fds, f"test leaked file descriptors: {new_fds}"
+
+
+RecordOnPty = Callable[..., AbstractContextManager[tuple["subprocess.Popen[str]", int]]]
+
+
+@pytest.fixture
+def record_on_pty(cli_command) -> RecordOnPty:
+    """``with record_on_pty(*ARGS, scheme="") as (proc, master)``: ``sonarloc record`` of a
+    raw pseudo-terminal (``scheme``: a driver's prefix, e.g. ``"maxbotix:"``) with ARGS,
+    stderr piped, the terminal's other end ``master`` to write the device's bytes to; the
+    process is killed if it still runs at the end, and the pty closed."""
+
+    @contextmanager
+    def run(*args: str, scheme: str = "") -> Iterator[tuple[subprocess.Popen[str], int]]:
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        try:
+            argv, env = cli_command("record", scheme + os.ttyname(slave), *args)
+            proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
+            try:
+                yield proc, master
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.communicate()
+        finally:
+            os.close(slave)
+            os.close(master)
+
+    return run

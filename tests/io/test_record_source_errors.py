@@ -7,44 +7,30 @@ import os
 import random
 import subprocess
 import time
-import tty
 
 import pytest
 
 
 @pytest.mark.parametrize("source", ["serial", "maxbotix"])
-def test_noise_on_the_line_is_not_called_no_data(cli_command, tmp_path, source) -> None:
+def test_noise_on_the_line_is_not_called_no_data(record_on_pty, tmp_path, source) -> None:
     # A baud mismatch turns every byte into noise. Before: "no data within 0.6 s
     # (... skipped 5200 B ...)" for the module, and for a MaxBotix (whose rig is known
     # beforehand) exit 0 with a log of the rig alone.
     out = tmp_path / "rec.jsonl"
     rng = random.Random(5)
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    path = os.ttyname(slave)
-    try:
-        argv, env = cli_command("record", path if source == "serial" else f"{source}:{path}",
-                                "--out", str(out), "--timeout", "0.6")
-        proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
-        try:
-            if source == "serial":
-                os.read(master, 100)  # its Start: the port is open
-            else:
-                time.sleep(0.4)
-            end = time.monotonic() + 10.0
-            while proc.poll() is None and time.monotonic() < end:
-                # never an "R" (a MaxBotix frame) nor 0xFA 0xFB (a packet's start)
-                os.write(master, bytes(rng.choice(b"\x00\x13\x7f\x80\xaa\xfe 0123456789\r")
-                                       for _ in range(100)))
-                time.sleep(0.01)
-            _, err = proc.communicate(timeout=10)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
-    finally:
-        os.close(slave)
-        os.close(master)
+    with record_on_pty("--out", str(out), "--timeout", "0.6",
+                       scheme="" if source == "serial" else f"{source}:") as (proc, master):
+        if source == "serial":
+            os.read(master, 100)  # its Start: the port is open
+        else:
+            time.sleep(0.4)
+        end = time.monotonic() + 10.0
+        while proc.poll() is None and time.monotonic() < end:
+            # never an "R" (a MaxBotix frame) nor 0xFA 0xFB (a packet's start)
+            os.write(master, bytes(rng.choice(b"\x00\x13\x7f\x80\xaa\xfe 0123456789\r")
+                                   for _ in range(100)))
+            time.sleep(0.01)
+        _, err = proc.communicate(timeout=10)
     assert proc.returncode == 2, err
     assert err.count("\n") == 1
     assert "no readings within 0.6 s" in err and "bytes came but no packet" in err
@@ -82,7 +68,7 @@ def test_an_unplugged_module_is_named_in_the_summary(cli_command, tmp_path) -> N
     assert "stopped after 0.5 s without data" in err and "disconnects 1" in err
 
 
-def test_a_changed_rig_is_warned_about(cli_command, tmp_path) -> None:
+def test_a_changed_rig_is_warned_about(record_on_pty, tmp_path) -> None:
     # A module reconfigured (or another module plugged in) mid-recording sends another
     # rig: the log keeps the first (one rig per log), and said nothing about it.
     from io_streams import ring_rig
@@ -96,23 +82,10 @@ def test_a_changed_rig_is_warned_about(cli_command, tmp_path) -> None:
     recs = [ring_rig(), TofRecord(0.1, 3, 1000.0), other, TofRecord(0.3, 0, 1200.0)]
     wire = b"".join(enc.encode(m) for r in recs for m in messages_from_record(r))
     out = tmp_path / "rec.jsonl"
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    try:
-        argv, env = cli_command("record", os.ttyname(slave), "--out", str(out),
-                                "--timeout", "0.4")
-        proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
-        try:
-            os.read(master, 100)  # its Start: the port is open
-            os.write(master, wire)
-            _, err = proc.communicate(timeout=20)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
-    finally:
-        os.close(slave)
-        os.close(master)
+    with record_on_pty("--out", str(out), "--timeout", "0.4") as (proc, master):
+        os.read(master, 100)  # its Start: the port is open
+        os.write(master, wire)
+        _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
     assert "warning: the rig changed at t_s 0.2 (1 time)" in err
     assert out.read_text().count('"type":"rig"') == 1

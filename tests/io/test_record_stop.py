@@ -9,7 +9,6 @@ import re
 import signal
 import subprocess
 import time
-import tty
 
 import pytest
 from io_streams import ring_stream
@@ -29,7 +28,7 @@ def _summary_counts(stderr: str) -> tuple[int, int]:
 
 @pytest.mark.parametrize("how", ["timeout", "duration", "sigint", "sigterm"])
 def test_readings_behind_a_false_header_are_recorded_when_recording_stops(
-        cli_command, tmp_path, how) -> None:
+        record_on_pty, tmp_path, how) -> None:
     # A module that falls quiet right after a false header (line noise "FA FB FF") leaves
     # its last good packets waiting for 255 bytes that never come; the driver recovers
     # them when it closes (PROTOCOL.md: flush), but `record` had stopped reading by then
@@ -41,27 +40,14 @@ def test_readings_behind_a_false_header_are_recorded_when_recording_stops(
     wire += b"\xfa\xfb\xff" + b"".join(enc.encode(m) for r in last
                                       for m in messages_from_record(r))
     out = tmp_path / "rec.jsonl"
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    try:
-        extra = {"timeout": ["--timeout", "0.3"], "duration": ["--duration", "0.6"]}
-        argv, env = cli_command("record", os.ttyname(slave), "--out", str(out),
-                                *extra.get(how, []))
-        proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
-        try:
-            os.read(master, 100)  # its Start: the port is open (opening flushes its input)
-            os.write(master, wire)
-            if how.startswith("sig"):
-                time.sleep(0.5)  # it reads all of it, then waits for more
-                proc.send_signal(signal.SIGINT if how == "sigint" else signal.SIGTERM)
-            _, err = proc.communicate(timeout=20)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
-    finally:
-        os.close(slave)
-        os.close(master)
+    extra = {"timeout": ["--timeout", "0.3"], "duration": ["--duration", "0.6"]}
+    with record_on_pty("--out", str(out), *extra.get(how, [])) as (proc, master):
+        os.read(master, 100)  # its Start: the port is open (opening flushes its input)
+        os.write(master, wire)
+        if how.startswith("sig"):
+            time.sleep(0.5)  # it reads all of it, then waits for more
+            proc.send_signal(signal.SIGINT if how == "sigint" else signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
     recs = list(iter_log(out, LogStats(), strict=True))
     assert recs[-3:] == last
