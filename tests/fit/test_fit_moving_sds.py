@@ -8,6 +8,7 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_fit_quality.py"
 
@@ -17,6 +18,7 @@ def _rms_z(rows: list[dict[str, float | str]], err: str, sd: str) -> float:
     return float(np.sqrt(np.mean(z * z)))
 
 
+@pytest.mark.slow    # (six simulated drives, 8-11 s: a Monte-Carlo check)
 def test_short_moving_points_report_honest_sds():
     """Points of fewer than 15 echoes (most of them pieces left by the travel cut) on six
     30 s drives: RMS of range error/SD near 1. Before session 14 the piece after a cut

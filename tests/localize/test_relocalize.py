@@ -214,6 +214,7 @@ def test_kidnapped_robot_stays_off_without_relocalization(room_log):
     assert rows0[-1][1] > 0.1
 
 
+@pytest.mark.slow    # (10 s; test_cli_relocalize_without_init runs the same path)
 def test_start_without_a_prior(room_log):
     recs = [r for r in room_log if not isinstance(r, InitRecord)]
     text = io.StringIO()
