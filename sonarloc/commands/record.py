@@ -125,31 +125,34 @@ def run(args: argparse.Namespace) -> int:
     rig_changes: list[float] = []  # times of rigs other than the first
     note = ""
 
+    def write(rec: Record) -> None:
+        writer.write(rec)
+        counts[rec.type] += 1
+
+    def release() -> None:
+        """Write the readings held back, in the order they came."""
+        nonlocal held
+        for r in held:
+            write(r)
+        held = []
+
     def take(rec: Record) -> None:
-        nonlocal have_rig, held, hold
+        nonlocal have_rig, hold
         if isinstance(rec, RigRecord):
             if have_rig:  # a changed rig mid-log is not representable; keep the first
                 rig_changes.append(rec.t_s)  # (the driver drops unchanged repeats)
                 return
             have_rig = True
-            writer.write(rec)
-            counts["rig"] += 1
-            for r in held:
-                writer.write(r)
-                counts[r.type] += 1
-            held = []
+            write(rec)
+            release()
             return
         if not have_rig and hold:
             if len(held) < HOLD_MAX:
                 held.append(rec)
                 return
             hold = False  # no rig after so many: write them, in the order of time
-            for r in held:
-                writer.write(r)
-                counts[r.type] += 1
-            held = []
-        writer.write(rec)
-        counts[rec.type] += 1
+            release()
+        write(rec)
 
     t_end = None if args.duration is None else time.monotonic() + args.duration
     try:
@@ -183,9 +186,7 @@ def run(args: argparse.Namespace) -> int:
             driver.close()
             while (rec := driver.read(timeout=0)) is not None:
                 take(rec)
-            for r in held:  # no rig ever came
-                writer.write(r)
-                counts[r.type] += 1
+            release()  # no rig ever came
     finally:
         signal.signal(signal.SIGTERM, old)
     if counts["odom"] + counts["tof"] == 0 and driver.stats.malformed_lines:
