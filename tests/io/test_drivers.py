@@ -75,6 +75,19 @@ def test_open_errors_are_device_errors(tmp_path) -> None:
         open_driver("can:no-such-interface:x")
 
 
+def test_a_second_reader_of_one_tty_is_refused() -> None:
+    """Two readers of one tty would each get part of the bytes (gaps, CRC errors in both):
+    the second open fails naming the port, the first keeps every record."""
+    stream = list(ring_stream(duration_s=0.5))
+    with SimModule.on_pty(stream, rate=10.0) as sim, open_driver(sim.url) as drv:
+        with pytest.raises(DeviceError, match=f"cannot open {sim.url}.*lock"):
+            open_driver(sim.url)
+        got = read_until_done(sim, drv)
+        c = drv.counters()
+    assert sum(isinstance(r, TofRecord) for r in got) == sum(r.type == "tof" for r in stream)
+    assert (c["crc_errors"], c["bytes_skipped"], c["seq_gaps"]) == (0, 0, 0)
+
+
 # -- end to end over three transports ----------------------------------------------------
 TRANSPORTS = {
     "pty": lambda recs, **kw: SimModule.on_pty(recs, **kw),

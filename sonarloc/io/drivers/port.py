@@ -77,9 +77,14 @@ class PortDriver(Driver):
 
     # -- port handling ------------------------------------------------------------------
     def _connect(self) -> serial.SerialBase:
+        # A device file is locked for this driver alone (flock, as pyserial's
+        # ``exclusive``): a second reader of one tty takes every other chunk of bytes,
+        # so both would see corrupt frames and gaps; it now fails to open, naming the
+        # port. URL ports (socket://, loop://, ...) have no file to lock.
+        options = {"exclusive": "://" not in self.url, **self._port_options}
         try:
             return serial.serial_for_url(self.url, baudrate=self.baudrate,
-                                         timeout=self.read_timeout_s, **self._port_options)
+                                         timeout=self.read_timeout_s, **options)
         except _PORT_ERRORS as err:
             raise DeviceError(f"cannot open {self.source}: {err}") from err
 
