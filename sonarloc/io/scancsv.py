@@ -133,7 +133,10 @@ def iter_scan_csv(source: str | Path | IO[str], block_rows: int = BLOCK_ROWS
     names = [h.strip() for h in header]
     missing = [c for c in REQUIRED if c not in names]
     if missing:
-        raise LogFormatError(f"line 1: header lacks column(s) {', '.join(missing)}")
+        hint = next((f" (it is one field with {name} in it: the columns must be separated "
+                     f"by commas)" for sep, name in ((";", "semicolons"), ("\t", "tabs"))
+                     if len(names) == 1 and sep in names[0]), "")
+        raise LogFormatError(f"line 1: header lacks column(s) {', '.join(missing)}{hint}")
     col = {name: names.index(name) for name in names if name in (*REQUIRED, "sensor")}
     first_line, t_before, any_block = 2, -math.inf, False
     while True:

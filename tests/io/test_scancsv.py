@@ -37,6 +37,11 @@ def test_sensor_ids_of_64_bits_read_exactly():
     [
         ("", "line 1: empty"),
         ("t_s,x_m,y_m,tof_us\n0,0,0,1\n", "lacks column.*yaw_deg"),
+        # a European spreadsheet's export: the delimiter is named, not just the columns
+        ("t_s;x_m;y_m;yaw_deg;tof_us\n0;0;0;0;1\n",
+         "lacks column.*one field with semicolons in it: the columns must be separated by "
+         "commas"),
+        ("t_s\tx_m\ty_m\tyaw_deg\ttof_us\n0\t0\t0\t0\t1\n", "one field with tabs"),
         ("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,1\n0.1,zero,0,0,1\n", "line 3: column `x_m`"),
         ("t_s,x_m,y_m,yaw_deg,tof_us\n0,0,0,0,1\n\n0.1,0,0,nan,1\n", "line 4: column `yaw_deg`"),
         ("t_s,x_m,y_m,yaw_deg,tof_us\n1,0,0,0,1\n0.5,0,0,0,1\n", "line 3: `t_s` went backwards"),
