@@ -109,4 +109,16 @@ def run(args: argparse.Namespace) -> int:
     used = ", ".join(f"{Tier(t).label} {n}" for t, n in sorted(tiers.items()) if t >= 0)
     print(f"wrote {n_rec} records to {args.out}: {n_ping} pings, {n_echo} echoes"
           + (f" (tiers: {used})" if used else ""), file=sys.stderr)
+    if n_ping and not n_echo:
+        print(f"warning: no ping had an echo: nothing of the map was in range"
+              f"{_outside(at, world_map.bounds)}", file=sys.stderr)
     return 0
+
+
+def _outside(at: tuple[float, float, float] | None,
+             bounds: tuple[float, float, float, float]) -> str:
+    """Why a still robot saw nothing, if its pose is off the map."""
+    if at is None or (bounds[0] <= at[0] <= bounds[2] and bounds[1] <= at[1] <= bounds[3]):
+        return ""
+    return (f" (--at {at[0]:g},{at[1]:g} is outside the map, which spans x {bounds[0]:g}"
+            f"..{bounds[2]:g} m, y {bounds[1]:g}..{bounds[3]:g} m)")

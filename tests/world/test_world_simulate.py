@@ -139,6 +139,20 @@ def test_cli_drive_with_rig_file(run_cli, tmp_path):
     assert sum(isinstance(r, TofRecord) for r in recs) == 80
 
 
+@pytest.mark.parametrize(("at", "why"), [("50,50,0", "--at 50,50 is outside the map, "
+                                                      "which spans x 0..8 m, y 0..5 m"),
+                                         ("4,2.5,0", None)])
+def test_cli_a_still_robot_that_sees_nothing_is_warned(capsys, tmp_path, at, why):
+    # Before: "wrote 180 records ...: 136 pings, 0 echoes" and nothing else, exit 0.
+    code = cli_main(["simulate", "--map", str(MAPS / "room.geojson"), "--at", at,
+                     "--duration", "1", "--out", str(tmp_path / "x.jsonl")])
+    assert code == 0
+    err = capsys.readouterr().err
+    warned = "warning: no ping had an echo: nothing of the map was in range" in err
+    assert warned == (why is not None), err
+    assert why is None or f"({why})" in err
+
+
 @pytest.mark.parametrize(
     ("args", "match"),
     [
