@@ -782,6 +782,10 @@ class BuildResult:
     readings: int = 0
     skipped: Counter[str] = field(default_factory=Counter)
     notes: list[str] = field(default_factory=list)
+    odom_travel_m: float = 0.0
+    """Distance the odometry travelled over the log (its drift grows with it)."""
+    odom_turn_deg: float = 0.0
+    """Heading change the odometry summed over the log, degrees."""
 
     def geojson(self) -> dict[str, Any]:
         return self.builder.geojson()
@@ -896,6 +900,10 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
             if odo_t and rec.t_s < odo_t[-1]:
                 skipped["odom_time_backwards"] += 1
                 continue
+            if odo_p:
+                step = se2.between(odo_p[-1], p)
+                result.odom_travel_m += math.hypot(step[0], step[1])
+                result.odom_turn_deg += abs(math.degrees(step[2]))
             odo_t.append(rec.t_s)
             odo_p.append(p)
             if len(odo_t) > 4096:  # only recent odometry is needed: keep memory flat
@@ -925,6 +933,18 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
             skipped["tof_after_last_odom"] += 1
     if anchored and init is None:
         result.notes.append("no init record: the map frame is the first odometry pose")
+    if anchored and result.odom_travel_m >= DRIFT_NOTE_TRAVEL_M:
+        # a map from odometry alone holds the odometry's drift (on a 60 s lap of the
+        # room: walls tilted and doubled, and a localizer using it got lost)
+        result.notes.append(
+            f"poses from odometry alone over {result.odom_travel_m:.1f} m and "
+            f"{result.odom_turn_deg:.0f} deg: its drift is in the map (--poses POSES.csv "
+            f"from `sonarloc localize LOG --map MAP --out POSES.csv` keeps it out)")
+
+
+DRIFT_NOTE_TRAVEL_M = 5.0
+"""Odometry travel [m] from which a map built without poses says its drift is in it
+(a few metres of wheel odometry drift by centimetres and degrees)."""
 
 
 def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,

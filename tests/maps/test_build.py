@@ -1,5 +1,6 @@
 import io
 import math
+import re
 
 import numpy as np
 import pytest
@@ -225,6 +226,8 @@ def test_build_cli_from_odometry_and_bad_input(run_cli, tmp_path):
     proc = run_cli("map", "build", str(bad), "--out", str(out), check=True)
     assert "line 51" in proc.stderr and "sonar" in proc.stderr
     assert "landmarks fitted" in proc.stderr
+    assert re.search(r"poses from odometry alone over \d+\.\d m and \d+ deg: its drift is "
+                     r"in the map \(--poses POSES.csv from `sonarloc localize", proc.stderr)
     map_from_geojson(__import__("json").loads(out.read_text()))
     proc = run_cli("map", "build", str(bad), "--poses", str(tmp_path / "none.csv"), "--out",
                    str(out))

@@ -216,6 +216,10 @@ def test_readings_inside_a_gap_of_the_poses_are_counted_not_interpolated(records
                                      if not (isinstance(r, TruthRecord) and t0 < r.t_s < t1)])):
         result = build(cut, poses, min_observations=2)
         assert result.skipped["tof_in_odom_gap"] == inside
+        # built from odometry alone over metres, the summary says its drift is in the map
+        drift = [n for n in result.notes if "poses from odometry alone over" in n]
+        assert len(drift) == (poses is None), result.notes
+        assert result.odom_travel_m > 5.0 and result.odom_turn_deg > 30.0
         assert result.readings == sum(isinstance(r, TofRecord) for r in records) - inside
         assert result.geojson()["features"]
         again = build(cut, poses, min_observations=2, odom_gap_s=float("inf"))
@@ -230,6 +234,7 @@ def test_a_gap_of_a_robot_standing_still_keeps_its_readings():
     cut = [r for r in recs if not (isinstance(r, OdomRecord) and 1.0 < r.t_s < 4.0)]
     result = build(cut, min_observations=1)
     assert "tof_in_odom_gap" not in result.skipped
+    assert result.odom_travel_m < 1e-9 and not any("drift" in n for n in result.notes)
     assert result.readings == sum(isinstance(r, TofRecord) for r in recs)
 
 
