@@ -111,7 +111,7 @@ def _candidates_d2(state: Gaussian, obs: Observation, feats: Feature
     """(N,) d2 and log det S of one observation against N same-kind features."""
     z_pred, h = ekf.measure(state.mean, obs, feats)
     nu = ekf.innovation(obs.z, z_pred, obs.angle_index)
-    s = h @ state.cov @ np.swapaxes(h, -1, -2) + obs.cov
+    s = h @ state.cov @ np.swapaxes(h, -1, -2) + ekf.measurement_cov(state.mean, obs, feats)
     s = 0.5 * (s + np.swapaxes(s, -1, -2))
     # positive definite, finite and not numerically singular (correlation of its two
     # components below 1 - 5e-13): a belief of 1e150 m made solve raise "Singular matrix"

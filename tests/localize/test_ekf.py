@@ -247,6 +247,31 @@ def test_axis_range_wall_jacobian_and_values(rng, poses, sensors):
     assert np.isinf(z2[0])
 
 
+def test_axis_range_of_a_wall_takes_the_beams_width_into_its_variance():
+    # The echo comes from anywhere in the beam: the bearing's SD enters the axis range
+    # through the ray's slope, d sin(psi) / cos(psi)^2 (the conventional EKF had the
+    # range SD alone and was overconfident at oblique walls: NEES 9.5 on room drives).
+    cov = np.diag([0.01**2, math.radians(10.0) ** 2])
+    wall = Feature("wall", np.array([3.0, 0.0]))
+    for psi_deg in (0.0, 30.0, 60.0):
+        psi = math.radians(psi_deg)
+        obs = Observation("range_axis", np.array([2.0, 0.0]), cov, np.array([0.1, 0.0, psi]))
+        r = ekf.measurement_cov(np.array([1.0, 0.0, 0.0]), obs, wall)
+        slope = 1.9 * math.sin(psi) / math.cos(psi) ** 2
+        assert np.allclose(r, cov + np.diag([slope**2 * cov[1, 1], 0.0]))
+        # the ray's slope is the range's derivative with respect to the axis direction
+        step = 1e-6
+        z_a, _ = ekf.axis_range_wall([1, 0, 0], [0.1, 0.0, psi + step], [3.0, 0.0])
+        z_b, _ = ekf.axis_range_wall([1, 0, 0], [0.1, 0.0, psi - step], [3.0, 0.0])
+        assert math.isclose((z_a[0] - z_b[0]) / (2 * step), slope, rel_tol=1e-6, abs_tol=1e-9)
+    # points, and the other observation kinds, keep their covariance
+    point = Feature("point", np.array([3.0, 0.5]))
+    obs = Observation("range_axis", np.array([2.0, 0.0]), cov, np.array([0.1, 0.0, 0.5]))
+    assert np.array_equal(ekf.measurement_cov(np.zeros(3), obs, point), cov)
+    spec = Observation("range_bearing", np.array([2.0, 0.0]), cov, np.array([0.1, 0.0, 0.5]))
+    assert np.array_equal(ekf.measurement_cov(np.zeros(3), spec, wall), cov)
+
+
 def test_single_filter_predict_matches_batched(rng):
     noise = OdomNoise()
     for _ in range(50):
