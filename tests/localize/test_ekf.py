@@ -264,6 +264,15 @@ def test_axis_range_of_a_wall_takes_the_beams_width_into_its_variance():
         z_a, _ = ekf.axis_range_wall([1, 0, 0], [0.1, 0.0, psi + step], [3.0, 0.0])
         z_b, _ = ekf.axis_range_wall([1, 0, 0], [0.1, 0.0, psi - step], [3.0, 0.0])
         assert math.isclose((z_a[0] - z_b[0]) / (2 * step), slope, rel_tol=1e-6, abs_tol=1e-9)
+    # grazing incidence: one reading pinned the yaw variance to 1e-15 (a single-wall map
+    # ended 0.9 m off); now it tells the yaw no more than the beam's width can
+    prior = Gaussian(np.array([1.0, 0.0, 0.0]), np.diag([0.05**2, 0.05**2, 0.2**2]))
+    psi = math.radians(89.9999)
+    obs = Observation("range_axis", np.array([0.0, 0.0]), cov, np.array([0.1, 0.0, psi]))
+    z_pred, _ = ekf.axis_range_wall(prior.mean, obs.sensor, wall.params)
+    post, innov = ekf.update(prior, Observation("range_axis", z_pred, cov, obs.sensor), wall)
+    assert bool(innov.accepted)
+    assert post.cov[2, 2] > 0.5 / (1 / 0.2**2 + 1 / cov[1, 1])
     # points, and the other observation kinds, keep their covariance
     point = Feature("point", np.array([3.0, 0.5]))
     obs = Observation("range_axis", np.array([2.0, 0.0]), cov, np.array([0.1, 0.0, 0.5]))
