@@ -591,6 +591,10 @@ class Localizer:
         # dropping the oldest when no odometry arrives is O(1))
         self._pending: deque[TofRecord] = deque()
         self._last_odom_t = -math.inf
+        # time of the first odometry since the prior (NaN before it): a reading older
+        # than it has no pose at all (`tof_before_odom`), one older than the trimmed
+        # history had one (`tof_older_than_history`)
+        self._odom_start_t = math.nan
         self._last_pushed_t = -math.inf  # the latest reading given to the segmenter
         self._consecutive_rejected = 0
         self._last_accept_t = -math.inf
@@ -628,12 +632,13 @@ class Localizer:
         as at the end of a stream): the next odometry may run on a restarted clock, which
         would place them at the wrong pose."""
         if self._pending:
-            self.stats.skipped["tof_after_last_odom"] += len(self._pending)
+            self.stats.skipped[self._no_odom_after()] += len(self._pending)
         if self._source is not None:
             for lm in self._source.flush():
                 self.add_landmark(lm)
             self._source = None
             self._last_pushed_t = -math.inf
+        self._odom_start_t = math.nan
         self._prior = Gaussian.from_pose(x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
         self._unknown = False
         self._entries.clear()
@@ -1187,12 +1192,22 @@ class Localizer:
         if self._entries:
             self._drain_pending(self._last_odom_t)
         if self._pending:
-            self.stats.skipped["tof_after_last_odom"] += len(self._pending)
+            self.stats.skipped[self._no_odom_after()] += len(self._pending)
             self._pending.clear()
         if self._source is not None:
             for lm in self._source.flush():
                 out.append(self.add_landmark(lm))
         return out
+
+    def _no_odom_after(self) -> str:
+        """Counter of readings no odometry came after: past the last odometry, or, with
+        none since the prior, before any (one name online and in batch)."""
+        return "tof_after_last_odom" if math.isfinite(self._odom_start_t) else "tof_before_odom"
+
+    def _too_old(self, t_s: float) -> str:
+        """Counter of a reading older than the history's first entry: before the first
+        odometry since the prior (no pose at all), or trimmed from the history."""
+        return "tof_older_than_history" if t_s >= self._odom_start_t else "tof_before_odom"
 
     # -- queries --------------------------------------------------------------------
 
@@ -1282,6 +1297,8 @@ class Localizer:
         self._last_accept_t = t
 
     def _append(self, e: _Entry) -> None:
+        if not math.isfinite(self._odom_start_t):
+            self._odom_start_t = e.t
         self._entries.append(e)
         self._times.append(e.t)
 
@@ -1357,7 +1374,7 @@ class Localizer:
         if self.config.method == "odometry":
             return
         if r.t_s < self._times[0]:
-            self.stats.skipped["tof_older_than_history"] += 1
+            self.stats.skipped[self._too_old(r.t_s)] += 1
             return
         i = max(bisect.bisect_right(self._times, r.t_s), 1)
         if self._in_odom_gap(r.t_s, i):

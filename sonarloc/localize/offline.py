@@ -286,7 +286,7 @@ class OfflinePipeline:
         if final or sel.all():
             ready = np.flatnonzero(sel)
             if ready.size < t_all.size:     # final: no odometry reaches these readings
-                loc.stats.skipped["tof_after_last_odom"] += int(t_all.size - ready.size)
+                loc.stats.skipped[loc._no_odom_after()] += int(t_all.size - ready.size)
             self._tof_t, self._tof_sensor, self._tof_us, self._tof_pan = [], [], [], []
         else:
             ready, later = np.flatnonzero(sel), np.flatnonzero(~sel).tolist()
@@ -309,7 +309,12 @@ class OfflinePipeline:
         t = t_all[ready]
         old = t < first_t
         if old.any():
-            loc.stats.skipped["tof_older_than_history"] += int(np.count_nonzero(old))
+            start = loc._odom_start_t if loc._times else first_t
+            before = int(np.count_nonzero(old & ~(t >= start)))
+            for name, n in (("tof_before_odom", before),
+                            ("tof_older_than_history", int(np.count_nonzero(old)) - before)):
+                if n:
+                    loc.stats.skipped[name] += n
             ready, t, tof = ready[~old], t[~old], tof[~old]
             if not ready.size:
                 return

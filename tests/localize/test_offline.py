@@ -1,6 +1,7 @@
 """The offline (batch) replay: same landmarks, fused on time, rows for every odom record."""
 
 import io
+import json
 import math
 
 import numpy as np
@@ -351,6 +352,24 @@ def test_readings_waiting_at_an_init_are_counted_online_and_in_batch(ring_log, f
         # before the init, and again at the end of the log
         assert skipped["tof_after_last_odom"] == 2 * late + 3, mode
         assert res.localizer.stats.tof == 2 * sum(isinstance(r, TofRecord) for r in recs) + 3
+
+
+def test_readings_before_the_first_odometry_have_one_name_online_and_in_batch(ring_log, fmap):
+    """A log without an ``init`` record whose first second has readings and no odometry,
+    replayed with an ``init`` pose (`localize --init`): those readings have no pose, and
+    both modes say so with one name (online said ``tof_after_last_odom``, batch
+    ``tof_older_than_history``)."""
+    lines = [ln for ln in ring_log.splitlines(keepends=True) if '"type":"init"' not in ln]
+    text = "".join(ln for ln in lines
+                   if not ('"type":"odom"' in ln and json.loads(ln)["t_s"] < 1.0))
+    before = sum(isinstance(r, TofRecord) and r.t_s < 1.0 for r in iter_log(io.StringIO(text)))
+    assert before > 50
+    for mode in ("online", "batch"):
+        res, _ = _rows(text, fmap, mode=mode, init=(1.07, 0.96, 1.6))
+        skipped = res.localizer.stats.skipped
+        assert skipped["tof_before_odom"] == before, (mode, skipped)
+        assert "tof_older_than_history" not in skipped and \
+            "tof_after_last_odom" not in skipped, (mode, skipped)
 
 
 def _odom_gap(text, t0, t1):
