@@ -15,7 +15,7 @@ import tty
 
 import pytest
 import serial
-from io_streams import drain, ring_stream
+from io_streams import device_records, drain, ring_stream
 
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.drivers import BACKENDS, driver_class, open_driver, parse_source
@@ -180,6 +180,29 @@ def test_pty_unplug_and_replug(tmp_path) -> None:
     assert isinstance(first[0], RigRecord)
     times = [r.t_s for r in first + rest if not isinstance(r, RigRecord)]
     assert times == sorted(times) and times[-1] == pytest.approx(3.0, abs=0.01)
+
+
+def test_a_pty_that_hung_up_is_not_reopened() -> None:
+    # The module's terminal closes; the kernel gives /dev/pts/N to the next pty opened on
+    # the machine (another test's module, someone's shell). The driver reopened the path,
+    # sent Start to it and recorded its data (a CLI test failed ~1 run in 10 on a busy host).
+    stream = list(ring_stream(duration_s=0.3))
+    with SimModule.on_pty(stream, rate=None) as sim, \
+            open_driver(sim.url, backoff_s=(0.01, 0.02)) as drv:
+        path = sim.url
+        got = drain(sim, drv, quiet_s=0.2)
+        sim.close()  # hangs the terminal up
+        master, slave = os.openpty()  # most likely /dev/pts/N again
+        try:
+            while (rec := drv.read(timeout=5.0)) is not None:  # ended, not a timeout
+                got.append(rec)
+        finally:
+            os.close(slave)
+            os.close(master)
+        counters = drv.counters()
+    assert path.startswith("/dev/pts/")
+    assert len(got) == len(device_records(stream))
+    assert counters["disconnects"] == 1 and counters["reconnects"] == 0
 
 
 def test_damaged_byte_stream_through_a_pty() -> None:

@@ -4,7 +4,8 @@ Any pyserial port or URL works: device paths (``/dev/ttyUSB0``, a pseudo-termina
 ``socket://HOST:PORT``, ``loop://``, ``rfc2217://``. The reader thread feeds the bytes
 to a pure decoder (subclass); when the port fails (cable pulled, TCP peer gone,
 pty closed) the decoder is flushed so no good packet is lost, the port is closed
-and reopened with exponential back-off until :meth:`close`.
+and reopened with exponential back-off until :meth:`close`; a pty named by its
+``/dev/pts/N`` path is not reopened (its number is reused): the stream ends.
 """
 
 from __future__ import annotations
@@ -21,6 +22,11 @@ from sonarloc.errors import DeviceError
 from sonarloc.io.drivers.base import Driver, RecordCallback
 
 _PORT_ERRORS = (serial.SerialException, OSError, ValueError, TypeError)
+
+PTY_SLAVES = "/dev/pts/"
+"""A pseudo-terminal named by this path is not reopened once it hangs up: its number goes
+to the next terminal opened on the machine (another program's), which the driver would
+read from and send Start to. A stable link to it (``serve-sim --pty --link``) is."""
 
 READ_CHUNK = 4096
 """Most bytes one read of a ``socket://`` port takes (what the socket holds, up to this)."""
@@ -166,6 +172,9 @@ class PortDriver(Driver):
                 if not self.reconnect:
                     self._fail(err)
                     self._end()
+                    return
+                if self.url.startswith(PTY_SLAVES):
+                    self._end()  # the module's terminal is gone for good: the stream ended
                     return
                 self._reopen()
                 continue
