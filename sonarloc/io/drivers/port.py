@@ -162,24 +162,34 @@ class PortDriver(Driver):
         while not self._stop.is_set():
             try:
                 data = self._read()
+            except _PORT_ERRORS + (DeviceError,) as err:
+                if not self._lost(err):
+                    return
+                continue
+            if data:  # before the idle hook, which may act on how long the line was quiet
+                self._on_bytes(data)
+            try:
                 self._on_idle()
             except _PORT_ERRORS + (DeviceError,) as err:
-                if self._stop.is_set():
-                    break
-                self.stats.disconnects += 1
-                self._drop_port()
-                self._on_stream_end()
-                if not self.reconnect:
-                    self._fail(err)
-                    self._end()
+                if not self._lost(err):
                     return
-                if self.url.startswith(PTY_SLAVES):
-                    self._end()  # the module's terminal is gone for good: the stream ended
-                    return
-                self._reopen()
-                continue
-            if data:
-                self._on_bytes(data)
+
+    def _lost(self, err: BaseException) -> bool:
+        """The port failed: flush, count, and reopen it; False if the reader must end."""
+        if self._stop.is_set():
+            return False
+        self.stats.disconnects += 1
+        self._drop_port()
+        self._on_stream_end()
+        if not self.reconnect:
+            self._fail(err)
+            self._end()
+            return False
+        if self.url.startswith(PTY_SLAVES):
+            self._end()  # the module's terminal is gone for good: the stream ended
+            return False
+        self._reopen()
+        return True
 
     def _reopen(self) -> None:
         delay = self.backoff_s[0]
