@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import os
 import random
+import socket
 import subprocess
 import sys
 import threading
@@ -14,7 +15,7 @@ import tty
 
 import pytest
 import serial
-from io_streams import drain, ring_stream
+from io_streams import device_records, drain, ring_stream
 
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.drivers import BACKENDS, driver_class, open_driver, parse_source
@@ -194,6 +195,29 @@ def test_pty_unplug_and_replug(tmp_path) -> None:
     assert times == sorted(times) and times[-1] == pytest.approx(3.0, abs=0.01)
 
 
+def test_a_pty_that_hung_up_is_not_reopened() -> None:
+    # The module's terminal closes; the kernel gives /dev/pts/N to the next pty opened on
+    # the machine (another test's module, someone's shell). The driver reopened the path,
+    # sent Start to it and recorded its data (a CLI test failed ~1 run in 10 on a busy host).
+    stream = list(ring_stream(duration_s=0.3))
+    with SimModule.on_pty(stream, rate=None) as sim, \
+            open_driver(sim.url, backoff_s=(0.01, 0.02)) as drv:
+        path = sim.url
+        got = drain(sim, drv, quiet_s=0.2)
+        sim.close()  # hangs the terminal up
+        master, slave = os.openpty()  # most likely /dev/pts/N again
+        try:
+            while (rec := drv.read(timeout=5.0)) is not None:  # ended, not a timeout
+                got.append(rec)
+        finally:
+            os.close(slave)
+            os.close(master)
+        counters = drv.counters()
+    assert path.startswith("/dev/pts/")
+    assert len(got) == len(device_records(stream))
+    assert counters["disconnects"] == 1 and counters["reconnects"] == 0
+
+
 def test_damaged_byte_stream_through_a_pty() -> None:
     """Good packets, bit flips and garbage written to a real pty: exact counters."""
     rng = random.Random(7)
@@ -339,3 +363,45 @@ def test_pty_link_never_replaces_a_file(tmp_path, run_cli) -> None:
     finally:
         tr.close()
     assert not stale.exists() and not stale.is_symlink()
+
+
+class _ChunkCounter(SerialDriver):
+    """A SerialDriver that notes the size of every read its port loop hands on."""
+
+    def __init__(self, url: str, **kwargs) -> None:
+        super().__init__(url, **kwargs)
+        self.chunks: list[int] = []
+
+    def _on_bytes(self, data: bytes) -> None:
+        self.chunks.append(len(data))
+        super()._on_bytes(data)
+
+
+def test_socket_url_reads_what_is_waiting_not_a_byte_per_call() -> None:
+    # pyserial's socket:// says in_waiting 1 for any amount waiting, and the reader took
+    # one byte per read (~20 us of CPU a byte). 20 kB with junk and a damaged packet in it,
+    # all waiting in the socket: a few reads, and every byte and packet accounted for.
+    enc = SerialEncoder()
+    recs = [r for r in ring_stream(duration_s=4.0) if r.type in ("rig", "odom", "tof")]
+    packets = [enc.encode(m) for r in recs for m in messages_from_record(r)]
+    bad = bytearray(packets[500])
+    bad[-1] ^= 0x40  # CRC fails: its bytes are skipped, the decoder resyncs on the next
+    wire = b"".join(packets[:500]) + b"\xfa\xfb\x07junk" + bytes(bad) + b"".join(packets[501:])
+    server = socket.create_server(("127.0.0.1", 0))
+    try:
+        with _ChunkCounter(f"socket://127.0.0.1:{server.getsockname()[1]}", start=False,
+                           reconnect=False) as drv:
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(wire)
+                got = []
+                while len(got) < len(recs) - 1:  # all but the damaged packet's reading
+                    got.append(drv.read(2.0))
+                with pytest.raises(DeviceTimeoutError):
+                    drv.read(0.1)
+            s = drv.decoder.stats
+    finally:
+        server.close()
+    assert s.bytes_in == len(wire) == s.bytes_framed + s.bytes_skipped
+    assert s.frames == len(packets) - 1 and s.crc_errors >= 1
+    assert len(drv.chunks) <= len(wire) // 1000  # 4 kB reads: ~5 of them, not 19 500

@@ -3,15 +3,21 @@ its clock starts again from zero, and the host's log must not go back in time.""
 
 from __future__ import annotations
 
+import os
 import random
+import select
 import time
+import tty
 
 import pytest
 from io_streams import drain, ring_stream
 
 from sonarloc.io.drivers import open_driver
+from sonarloc.io.drivers.base import Wakeup
 from sonarloc.io.drivers.sim import SimModule
-from sonarloc.io.protocol.records import ModuleClock
+from sonarloc.io.protocol.framing import START, STOP, SerialDecoder, SerialEncoder
+from sonarloc.io.protocol.messages import RequestRig, Start, Stop
+from sonarloc.io.protocol.records import ModuleClock, messages_from_record
 
 
 def _times(recs: list) -> list[float]:
@@ -71,3 +77,85 @@ def test_clock_tells_a_restart_from_readings_out_of_order() -> None:
     clk = ModuleClock()  # the 32-bit wrap is not a restart
     assert clk.unwrap(0xFFFF_FF00) == 0xFFFF_FF00
     assert clk.unwrap(0x10) == (1 << 32) + 0x10 and clk.restarts == 0
+
+
+def test_wakeup_rule_with_the_clock_given() -> None:
+    # Start again only after wake_s without the module, every wake_s while it stays
+    # silent, never after the host's Stop (until its Start).
+    w = Wakeup(2.0, now=100.0)
+    assert not w.due(101.9) and w.due(102.0)  # silent since the host opened
+    w.heard(101.0)  # a healthy stream: every frame moves the deadline
+    assert not w.due(102.9) and w.due(103.0)
+    w.heard(102.5)
+    w.heard(102.0)  # a late callback does not move it back
+    assert not w.due(104.4) and w.due(104.5)
+    w.sent(Start(), 104.5)  # the wake-up itself: the next one wake_s later
+    assert not w.due(106.4) and w.due(106.5)
+    w.sent(RequestRig(), 110.0)  # other commands change nothing
+    assert w.due(110.0)
+    w.sent(Stop(), 110.0)  # the host wants silence
+    assert not w.due(1e9)
+    w.sent(Start(), 200.0)
+    assert not w.due(201.9) and w.due(202.0)
+    assert not Wakeup(None, 0.0).due(1e9)
+    with pytest.raises(ValueError, match="wake_s"):
+        Wakeup(0.0, 0.0)
+
+
+def test_a_restarted_can_module_that_waits_for_start_is_started_again() -> None:
+    # The module restarts and waits for a host's Start, as at power-up, saying nothing:
+    # a serial host reconnects and sends Start, a CAN host has no link to lose and never
+    # did: the recording went dead. The wake-up repeats until the module is heard, so it
+    # does not matter whether the first one comes before the new module listens.
+    first = list(ring_stream(duration_s=2.0))
+    second = list(ring_stream(duration_s=0.5, seed=3))
+    channel = f"wake-{random.random()}"
+    with SimModule.on_can(first, channel=channel, rate=20.0) as sim1, \
+            open_driver(sim1.url, wake_s=0.2) as drv:
+        got1 = drain(sim1, drv, quiet_s=0.1)
+        sim1.close()
+        with SimModule.on_can(second, channel=channel, rate=20.0) as sim2:  # waits for Start
+            got2 = drain(sim2, drv, quiet_s=0.1, limit_s=10.0)
+        counters = drv.counters()
+    t1, t2 = _times(got1), _times(got2)
+    assert len(t1) == len(_times(first)) and len(t2) == len(_times(second))
+    assert t1 == sorted(t1) and t2 == sorted(t2) and t1[-1] < t2[0]  # time goes on
+    assert counters["wakeups"] >= 1 and counters["module_restarts"] == 1
+    assert sim2.stats.commands >= 2  # its Start (and RequestRig) came from the wake-up
+
+
+def _commands(master: int, dec: SerialDecoder, until: int | None, wait_s: float) -> list[int]:
+    """Types of the host's packets read from a pty's master side within ``wait_s``, up to
+    and including the first of type ``until`` (None: all that come)."""
+    end = time.monotonic() + wait_s
+    out: list[int] = []
+    while time.monotonic() < end:
+        if select.select([master], [], [], 0.02)[0]:
+            out += [f.type for f in dec.feed_frames(os.read(master, 4096))]
+            if until is not None and until in out:
+                return out
+    return out
+
+
+def test_a_module_reset_behind_an_open_serial_port_is_started_again() -> None:
+    # A USB adapter stays plugged in while the module's processor resets: the host's port
+    # never fails, so it never reconnected and never sent Start again.
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    enc, host = SerialEncoder(), SerialDecoder()
+    try:
+        with open_driver(os.ttyname(slave), wake_s=0.2) as drv:
+            assert START in _commands(master, host, START, 5.0)  # on connect
+            wire = b"".join(enc.encode(m) for r in ring_stream(duration_s=0.05)
+                            for m in messages_from_record(r))
+            os.write(master, wire)  # the module streams, then resets (silence)
+            assert drv.read(2.0) is not None
+            assert START in _commands(master, host, START, 5.0)  # the wake-up
+            assert drv.counters()["wakeups"] >= 1
+            drv.send(Stop())  # the host stops it: silence is wanted now
+            _commands(master, host, STOP, 5.0)  # (a wake-up may come before the Stop)
+            assert _commands(master, host, None, 0.6) == []  # three wake_s: nothing
+            drv.send(Start())
+    finally:
+        os.close(slave)
+        os.close(master)

@@ -65,7 +65,10 @@ def test_an_unplugged_module_is_named_in_the_summary(cli_command, tmp_path) -> N
     finally:
         sim.close()
     assert proc.returncode == 0, err
-    assert "stopped after 0.5 s without data" in err and "disconnects 1" in err
+    # a terminal that hung up is not reopened (its number goes to the next pty opened):
+    # the recording ends there, with the disconnect in the summary
+    assert "disconnects 1" in err and "reconnects" not in err
+    assert "stopped after" not in err
 
 
 def test_a_changed_rig_is_warned_about(record_on_pty, tmp_path) -> None:

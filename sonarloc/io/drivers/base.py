@@ -21,7 +21,7 @@ from typing import ClassVar
 
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.logfile import Record
-from sonarloc.io.protocol.messages import DecoderStats, Message
+from sonarloc.io.protocol.messages import DecoderStats, Message, Start, Stop
 from sonarloc.io.protocol.records import RecordAssembler
 
 RecordCallback = Callable[[Record], None]
@@ -37,6 +37,50 @@ class DriverStats:
     dropped: int = 0  # records lost because the caller did not read them fast enough
     malformed_lines: int = 0  # text logs: lines no reader could parse
     callback_errors: int = 0  # exceptions raised by an on_record callback
+    wakeups: int = 0  # Start sent again to a module silent for wake_s (restarted, waiting)
+
+
+class Wakeup:
+    """When to send Start again to a module of the protocol that fell silent.
+
+    A module waits for a host's Start after power-up and says nothing meanwhile, so a
+    module that restarted mid-recording behind a link that stayed up (a CAN node
+    power-cycled, a processor reset behind a USB adapter) is silent until it is sent
+    Start: silence is the only sign. Start is idempotent ("start or resume"), so it is
+    sent again after every ``wake_s`` seconds without a frame from the module, never
+    while the module is heard and never after the host sent Stop (until it sends Start).
+
+    Pure: the caller gives the time (``now``, seconds on one monotonic clock), so the
+    rule is tested without sleeping. The driver calls :meth:`sent` before writing a
+    command and checks :meth:`due` under the same lock, so a Stop is never followed by
+    a wake-up Start.
+    """
+
+    __slots__ = ("wake_s", "_last", "_stopped")
+
+    def __init__(self, wake_s: float | None, now: float):
+        if wake_s is not None and not (isinstance(wake_s, (int, float)) and wake_s > 0):
+            raise ValueError(f"`wake_s` must be a positive number of seconds or None, "
+                             f"got {wake_s!r}")
+        self.wake_s = wake_s
+        self._last = now  # the module last heard, or Start last sent
+        self._stopped = False
+
+    def heard(self, now: float) -> None:
+        """A good frame came from the module."""
+        self._last = max(self._last, now)
+
+    def sent(self, msg: Message, now: float) -> None:
+        """The host is sending ``msg`` (call before writing it)."""
+        if isinstance(msg, Stop):
+            self._stopped = True
+        elif isinstance(msg, Start):
+            self._stopped = False
+            self._last = max(self._last, now)
+
+    def due(self, now: float) -> bool:
+        """True if Start should be sent again now."""
+        return self.wake_s is not None and not self._stopped and now - self._last >= self.wake_s
 
 
 def sleep_until(due: float, deadline: float | None) -> bool:
@@ -199,7 +243,7 @@ class Driver(ABC):
         restarts = self._module_restarts()
         if restarts:
             extra.append(f"module restarts {restarts}")
-        for name in ("disconnects", "reconnects", "dropped", "malformed_lines"):
+        for name in ("disconnects", "reconnects", "wakeups", "dropped", "malformed_lines"):
             if getattr(s, name):
                 extra.append(f"{name.replace('_', ' ')} {getattr(s, name)}")
         return f"{self.decoder_stats.summary()}; {', '.join(extra)}"

@@ -17,10 +17,12 @@ from typing import Any
 import can
 
 from sonarloc.errors import DeviceError
-from sonarloc.io.drivers.base import Driver, RecordCallback
-from sonarloc.io.protocol.canbus import CanDecoder, CanEncoder
+from sonarloc.io.drivers.base import Driver, RecordCallback, Wakeup
+from sonarloc.io.protocol.canbus import COMMAND, FIRING, SETTINGS, CanDecoder, CanEncoder
 from sonarloc.io.protocol.messages import Ack, DecoderStats, Message, RequestRig, Start
 from sonarloc.io.protocol.records import RecordAssembler
+
+_HOST_IDS = (COMMAND, FIRING, SETTINGS)
 
 
 class _Listener(can.Listener):
@@ -42,6 +44,10 @@ class CanDriver(Driver):
     interface, channel : python-can interface name and channel (``"virtual"``, ``"x"``).
     bus : an already open bus to use instead (the caller keeps ownership).
     start : send Start and RequestRig after opening.
+    wake_s : with ``start``, send them again after every ``wake_s`` seconds without a
+        frame from the module: a restarted module waits for a host's Start, and CAN has
+        no connection to lose and reopen (see :class:`~sonarloc.io.drivers.base.Wakeup`).
+        Not after the host sent Stop. None: never.
     max_bus_errors : consecutive bus errors after which :meth:`read` raises.
     bus_options : passed to :class:`can.Bus` (``bitrate=500000``, ...).
     """
@@ -49,10 +55,15 @@ class CanDriver(Driver):
     scheme = "can"
 
     def __init__(self, interface: str = "virtual", channel: Any = "sonarloc", *,
-                 bus: can.BusABC | None = None, start: bool = True, max_bus_errors: int = 20,
-                 on_record: RecordCallback | None = None, queue_size: int = 100_000,
-                 **bus_options: Any):
+                 bus: can.BusABC | None = None, start: bool = True, wake_s: float | None = 2.0,
+                 max_bus_errors: int = 20, on_record: RecordCallback | None = None,
+                 queue_size: int = 100_000, **bus_options: Any):
         super().__init__(on_record=on_record, queue_size=queue_size)
+        self.wake_s = wake_s
+        self._wake = Wakeup(wake_s, time.monotonic())
+        self._send_lock = threading.RLock()
+        self._watch_stop = threading.Event()
+        self._watcher: threading.Thread | None = None
         self.interface = interface
         self.channel = channel
         self.start_on_open = start
@@ -99,8 +110,30 @@ class CanDriver(Driver):
         if self.start_on_open:
             self.send(Start())
             self.send(RequestRig())
+            if self.wake_s is not None:
+                self._watcher = threading.Thread(target=self._watch, args=(self.wake_s,),
+                                                 daemon=True,
+                                                 name=f"sonarloc {self.source} wake-up")
+                self._watcher.start()
+
+    def _watch(self, wake_s: float) -> None:
+        """Send Start again to a module that fell silent (see :class:`Wakeup`)."""
+        while not self._watch_stop.wait(min(wake_s / 4, 0.25)):
+            with self._send_lock:  # a Stop being sent is seen before the check
+                if not self._wake.due(time.monotonic()):
+                    continue
+                self.stats.wakeups += 1
+                try:
+                    self.send(Start())
+                    self.send(RequestRig())
+                except DeviceError:
+                    pass  # the bus refused it (bus off, queue full): tried after wake_s
 
     def _close(self) -> None:
+        self._watch_stop.set()
+        if self._watcher is not None:
+            self._watcher.join()
+            self._watcher = None
         if self._notifier is not None:
             self._notifier.stop()
             self._notifier = None
@@ -109,18 +142,24 @@ class CanDriver(Driver):
         self._bus = None
 
     def send(self, msg: Message) -> None:
-        with self._lock:
-            frames = self._encoder.encode(msg)
-        try:
-            for f in frames:
-                self.bus.send(f, timeout=1.0)
-        except can.CanError as err:
-            raise DeviceError(f"{self.source}: send failed: {err}") from err
+        with self._send_lock:
+            self._wake.sent(msg, time.monotonic())
+            with self._lock:
+                frames = self._encoder.encode(msg)
+            try:
+                for f in frames:
+                    self.bus.send(f, timeout=1.0)
+            except can.CanError as err:
+                raise DeviceError(f"{self.source}: send failed: {err}") from err
 
     def _on_frame(self, frame: can.Message) -> None:
         self._consecutive_errors = 0
+        good = self.decoder.stats.frames
+        msgs = self.decoder.feed(frame)
+        if self.decoder.stats.frames > good and frame.arbitration_id not in _HOST_IDS:
+            self._wake.heard(time.monotonic())  # the module's frame: not junk, not a host's
         out = []
-        for m in self.decoder.feed(frame):
+        for m in msgs:
             if isinstance(m, Ack):
                 self.acks = (self.acks + [m])[-16:]
             out.extend(self.assembler.push(m, frame.timestamp))

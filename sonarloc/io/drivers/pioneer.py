@@ -40,6 +40,8 @@ CONVERTER_OPTIONS = ("dist_conv", "angle_conv_rad", "range_conv", "max_range_mm"
                      "speed_of_sound_mps")
 """The :class:`SipConverter` settings a PioneerDriver also takes as keyword arguments."""
 
+MAX_SEEN = 4096  # bytes of a handshake step kept for the SIP decoder
+
 
 class PioneerDriver(PortDriver):
     """Reads a Pioneer robot's SIPs.
@@ -99,30 +101,36 @@ class PioneerDriver(PortDriver):
         return self.decoder.stats
 
     def _on_connect(self) -> None:
-        if self.handshake:
-            self._sync()
+        streaming = self._sync() if self.handshake else b""
         self.write(client_command(OPEN))
         self.write(client_command(SONAR, 1))
         self._last_pulse = time.monotonic()
         if not self._rig_sent:
             self._rig_sent = True
             self._deliver([self.rig])
+        if streaming:
+            self._on_bytes(streaming)
 
-    def _sync(self) -> None:
-        port = self._port
-        if port is None:
+    def _sync(self) -> bytes:
+        """The SYNC handshake; the bytes read in the step that found the robot already
+        streaming SIPs (b"" after a full handshake), for the SIP decoder."""
+        if self._port is None:
             raise DeviceError(f"{self.source}: not connected")
         dec = ArcosDecoder()
         for step in (SYNC0, SYNC1, SYNC2):
             self.write(client_command(step))
             deadline = time.monotonic() + self.handshake_timeout_s
+            seen = bytearray()  # this step's bytes (a read may hold several SIPs)
             while True:
                 if time.monotonic() > deadline:
                     raise DeviceError(f"{self.source}: no answer to SYNC{step} "
                                       f"(is it a Pioneer, at {self.baudrate} baud?)")
-                packets = dec.feed(port.read(port.in_waiting or 1))
+                data = self._read()
+                seen += data
+                del seen[:-MAX_SEEN]
+                packets = dec.feed(data)
                 if any(isinstance(p, StandardSip) for p in packets):
-                    return  # already open: the robot streams SIPs
+                    return bytes(seen)  # already open: the robot streams SIPs
                 reply = next((p for p in packets if isinstance(p, ArcosPacket)
                               and p.type == step), None)
                 if reply is not None:
@@ -130,6 +138,7 @@ class PioneerDriver(PortDriver):
                         self.robot_info = tuple(s.decode("ascii", "replace") for s in
                                                 reply.data.split(b"\0") if s)
                     break
+        return b""
 
     def _on_idle(self) -> None:
         now = time.monotonic()

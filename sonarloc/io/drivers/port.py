@@ -4,21 +4,32 @@ Any pyserial port or URL works: device paths (``/dev/ttyUSB0``, a pseudo-termina
 ``socket://HOST:PORT``, ``loop://``, ``rfc2217://``. The reader thread feeds the bytes
 to a pure decoder (subclass); when the port fails (cable pulled, TCP peer gone,
 pty closed) the decoder is flushed so no good packet is lost, the port is closed
-and reopened with exponential back-off until :meth:`close`.
+and reopened with exponential back-off until :meth:`close`; a pty named by its
+``/dev/pts/N`` path is not reopened (its number is reused): the stream ends.
 """
 
 from __future__ import annotations
 
+import select
 import threading
 from abc import abstractmethod
 from typing import Any
 
 import serial
+from serial.urlhandler.protocol_socket import Serial as SocketSerial
 
 from sonarloc.errors import DeviceError
 from sonarloc.io.drivers.base import Driver, RecordCallback
 
 _PORT_ERRORS = (serial.SerialException, OSError, ValueError, TypeError)
+
+PTY_SLAVES = "/dev/pts/"
+"""A pseudo-terminal named by this path is not reopened once it hangs up: its number goes
+to the next terminal opened on the machine (another program's), which the driver would
+read from and send Start to. A stable link to it (``serve-sim --pty --link``) is."""
+
+READ_CHUNK = 4096
+"""Most bytes one read of a ``socket://`` port takes (what the socket holds, up to this)."""
 
 
 class PortDriver(Driver):
@@ -83,10 +94,13 @@ class PortDriver(Driver):
         # port. URL ports (socket://, loop://, ...) have no file to lock.
         options = {"exclusive": "://" not in self.url, **self._port_options}
         try:
-            return serial.serial_for_url(self.url, baudrate=self.baudrate,
+            port = serial.serial_for_url(self.url, baudrate=self.baudrate,
                                          timeout=self.read_timeout_s, **options)
+            if isinstance(port, SocketSerial):
+                port.timeout = 0  # _read waits for the socket itself (select)
         except _PORT_ERRORS as err:
             raise DeviceError(f"cannot open {self.source}: {err}") from err
+        return port
 
     def _open(self) -> None:
         self._port = self._connect()
@@ -129,9 +143,17 @@ class PortDriver(Driver):
                 raise DeviceError(f"{self.source}: write failed: {err}") from err
 
     def _read(self) -> bytes:
+        """The bytes waiting at the port, after waiting at most ``read_timeout_s`` for one."""
         port = self._port
         if port is None:
             raise serial.SerialException("port closed")
+        if isinstance(port, SocketSerial):
+            # pyserial's socket:// in_waiting is only 0 or 1 (readable or not), so the
+            # read below took one byte per call: ~20 us of CPU per byte. Wait for the
+            # socket here; the port's read (timeout 0) then takes all it holds at once.
+            ready, _, _ = select.select([port.fileno()], [], [], self.read_timeout_s)
+            return bytes(port.read(READ_CHUNK)) if ready else b""
+        # a device or pty: in_waiting is the kernel's count; read(1) waits for a first byte
         return bytes(port.read(port.in_waiting or 1))
 
     def _run(self) -> None:
@@ -145,21 +167,34 @@ class PortDriver(Driver):
         while not self._stop.is_set():
             try:
                 data = self._read()
+            except _PORT_ERRORS + (DeviceError,) as err:
+                if not self._lost(err):
+                    return
+                continue
+            if data:  # before the idle hook, which may act on how long the line was quiet
+                self._on_bytes(data)
+            try:
                 self._on_idle()
             except _PORT_ERRORS + (DeviceError,) as err:
-                if self._stop.is_set():
-                    break
-                self.stats.disconnects += 1
-                self._drop_port()
-                self._on_stream_end()
-                if not self.reconnect:
-                    self._fail(err)
-                    self._end()
+                if not self._lost(err):
                     return
-                self._reopen()
-                continue
-            if data:
-                self._on_bytes(data)
+
+    def _lost(self, err: BaseException) -> bool:
+        """The port failed: flush, count, and reopen it; False if the reader must end."""
+        if self._stop.is_set():
+            return False
+        self.stats.disconnects += 1
+        self._drop_port()
+        self._on_stream_end()
+        if not self.reconnect:
+            self._fail(err)
+            self._end()
+            return False
+        if self.url.startswith(PTY_SLAVES):
+            self._end()  # the module's terminal is gone for good: the stream ended
+            return False
+        self._reopen()
+        return True
 
     def _reopen(self) -> None:
         delay = self.backoff_s[0]
