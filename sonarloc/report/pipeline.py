@@ -276,7 +276,9 @@ def run_drive(config: DriveConfig = DriveConfig(),
         if not tee.have_init.wait(config.read_timeout_s) or tee.init is None:
             raise tee.error or DeviceTimeoutError("the simulator produced no init record")
         node.feed(tee.init)  # the prior: an operator's input, not device data
-        with open_driver(module.url) as drv:
+        # (no wake-up Start: this module never restarts, and once it has sent the whole
+        # drive, faster than the Localizer reads it, its silence is the end, not a reset)
+        with open_driver(module.url, wake_s=None) as drv:
             while True:
                 try:
                     rec = drv.read(timeout=0.25)
