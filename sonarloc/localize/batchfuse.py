@@ -615,7 +615,8 @@ class BatchFuser:
         s_ii = hph[:, idx, idx] + r[:, idx, idx]
         with np.errstate(invalid="ignore", divide="ignore"):
             usable = ok & np.isfinite(s_ii) & (s_ii > 0)
-            passed = usable & (nu**2 <= self.screen_gate * np.where(usable, s_ii, 1.0))
+            passed = usable & (nu**2 <= self.screen_gate * np.where(usable, s_ii, 1.0)) \
+                & (pd_a[lo:hi] >= echoes.SCREEN_MIN_DETECT)
         # a candidate's reading is not kept where a rival (another point, another line
         # of the same segment) also passes it, is detected there and predicts the
         # earlier crossing (echoes.ambiguous: the first crossing wins)
