@@ -614,7 +614,10 @@ class BatchFuser:
         hph = np.einsum("cni,cij,cmj->cnm", hx, p[ps], hx)
         s_ii = hph[:, idx, idx] + r[:, idx, idx]
         with np.errstate(invalid="ignore", divide="ignore"):
-            usable = ok & np.isfinite(s_ii) & (s_ii > 0)
+            # (a reading past the edge of the detection arc is not the feature's:
+            # echoes.screen)
+            usable = ok & np.isfinite(s_ii) & (s_ii > 0) \
+                & (pd_a[lo:hi] >= echoes.SCREEN_MIN_DETECT)
             passed = usable & (nu**2 <= self.screen_gate * np.where(usable, s_ii, 1.0))
         # a candidate's reading is not kept where a rival (another point, another line
         # of the same segment) also passes it, is detected there and predicts the
