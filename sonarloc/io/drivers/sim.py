@@ -676,8 +676,11 @@ class SimModule:
             if threading.current_thread() is not self._thread:
                 raise
         finally:
-            if self._writer is not None:
-                self._writer.flush()
+            with self._lock:
+                if self._writer is not None:
+                    for rec in self._sent.flush():  # a reading held back by its time
+                        self._writer.write(rec)
+                    self._writer.flush()
             self.finished.set()
 
 
