@@ -120,6 +120,7 @@ class Driver(ABC):
         self._ended = False
         self._error: BaseException | None = None
         self._opened = False
+        self.end_reason = ""  # why a live stream ended by itself, in words (pty hang-up)
 
     # -- to implement -----------------------------------------------------------------
     @property

@@ -238,8 +238,11 @@ class PortDriver(Driver):
             self._fail(err)
             self._end()
             return False
-        if self.url.startswith(PTY_SLAVES):
-            self._end()  # the module's terminal is gone for good: the stream ended
+        if self.url.startswith(PTY_SLAVES):  # the module's terminal is gone for good
+            self.end_reason = (f"the terminal {self.url} hung up; a {PTY_SLAVES} path is not "
+                               f"reopened (its number goes to the next terminal opened; use "
+                               f"serve-sim --link, or a stable link to the device)")
+            self._end()
             return False
         self._reopen()
         return True
