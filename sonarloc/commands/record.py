@@ -177,6 +177,8 @@ def run(args: argparse.Namespace) -> int:
                         break
                     last_data = time.monotonic()
                     if rec is None:
+                        if driver.end_reason:  # a live source that ended by itself: why
+                            note = f"; {driver.end_reason}"
                         break
                     take(rec)
             except KeyboardInterrupt:

@@ -3,7 +3,8 @@
 Its readings come from the simulator (--map, with the options of `sonarloc simulate`)
 or from a recorded log (--log), paced in real time (--rate for faster or slower).
 Transports: --pty (default; prints the pseudo-terminal's path), --listen HOST:PORT
-(TCP, speaks the serial protocol; port 0 picks a free one), --can INTERFACE:CHANNEL
+(TCP, speaks the serial protocol; port 0 picks a free one; one host at a time, as a
+ser2net bridge: another is told "Port already in use" and closed), --can INTERFACE:CHANNEL
 (python-can; the virtual interface only reaches buses of the same process), or
 --candump FILE.log (writes a candump log as fast as it can). The first line on
 stdout is the source to give `sonarloc record` or a driver. Unless --no-wait, the
@@ -154,5 +155,8 @@ def run(args: argparse.Namespace) -> int:
           f"rig {s.rigs_sent} times, {s.commands} commands"
           + (f", {s.unsendable} unsendable (first: {s.first_unsendable})" if s.unsendable
              else "") + ")"
-          + (f"; log: {log_stats.summary()}" if args.log else ""), file=sys.stderr)
+          + (f"; log: {log_stats.summary()}" if args.log else "")
+          + (f"; refused {transport.refused} host{'s' * (transport.refused > 1)} while "
+             f"another was connected" if isinstance(transport, TcpTransport)
+             and transport.refused else ""), file=sys.stderr)
     return 0

@@ -72,8 +72,12 @@ def test_clock_tells_a_restart_from_readings_out_of_order() -> None:
     assert clk.unwrap(1000, 102.03) == 7_101_000
     assert clk.restarts == 1
     assert clk.unwrap(3_000_000) == 10_100_000  # no host time: the same offset
-    assert clk.unwrap(0) == 10_100_000  # restarted, no host time: continues at the last
-    assert clk.restarts == 2
+    assert clk.pending  # a jump of 2.9 s: held until the next reading follows it
+    assert clk.unwrap(3_001_000) == 10_101_000 and clk.verdict is True
+    assert clk.unwrap(0) == 10_101_000  # restarted, no host time: continues at the last
+    assert clk.pending and clk.restarts == 1  # (a restart counts once the next follows)
+    assert clk.unwrap(1000) == 10_102_000
+    assert clk.restarts == 2 and clk.spikes == 0
     clk = ModuleClock()  # the 32-bit wrap is not a restart
     assert clk.unwrap(0xFFFF_FF00) == 0xFFFF_FF00
     assert clk.unwrap(0x10) == (1 << 32) + 0x10 and clk.restarts == 0

@@ -69,6 +69,11 @@ def test_an_unplugged_module_is_named_in_the_summary(cli_command, tmp_path) -> N
     # the recording ends there, with the disconnect in the summary
     assert "disconnects 1" in err and "reconnects" not in err
     assert "stopped after" not in err
+    # and says so (before: only "disconnects 1" in the summary)
+    recorded = next(line for line in err.splitlines() if line.startswith("recorded "))
+    assert recorded.endswith(f"; the terminal {sim.url} hung up; a /dev/pts/ path is not "
+                             f"reopened (its number goes to the next terminal opened; use "
+                             f"serve-sim --link, or a stable link to the device)")
 
 
 def test_a_changed_rig_is_warned_about(record_on_pty, tmp_path) -> None:

@@ -22,7 +22,9 @@ FAST = settings(max_examples=150, deadline=None)
 
 def through(recs):
     asm = RecordAssembler()
-    return [r for rec in recs for m in messages_from_record(rec) for r in asm.push(m)]
+    # flush: a reading whose time jumped by more than 1 s is held until the stream ends
+    return [r for rec in recs for m in messages_from_record(rec) for r in asm.push(m)] \
+        + asm.flush()
 
 
 def test_quantization_of_a_reading() -> None:

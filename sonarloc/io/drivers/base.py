@@ -22,7 +22,7 @@ from typing import ClassVar
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.logfile import Record
 from sonarloc.io.protocol.messages import DecoderStats, Message, Start, Stop
-from sonarloc.io.protocol.records import RecordAssembler
+from sonarloc.io.protocol.records import ModuleClock, RecordAssembler
 
 RecordCallback = Callable[[Record], None]
 
@@ -120,6 +120,7 @@ class Driver(ABC):
         self._ended = False
         self._error: BaseException | None = None
         self._opened = False
+        self.end_reason = ""  # why a live stream ended by itself, in words (pty hang-up)
 
     # -- to implement -----------------------------------------------------------------
     @property
@@ -231,28 +232,36 @@ class Driver(ABC):
         """Decoder and driver counters in one flat dict."""
         out = self.decoder_stats.as_dict()
         out.update({f.name: getattr(self.stats, f.name) for f in fields(self.stats)})
-        restarts = self._module_restarts()
-        if restarts is not None:
-            out["module_restarts"] = restarts
+        clock = self._module_clock()
+        if clock is not None:
+            out["module_restarts"] = clock.restarts
+            out["clock_spikes"] = clock.spikes
         return out
 
     def summary(self) -> str:
         """One line of counters: good/CRC/skipped/gaps first."""
         s = self.stats
         extra = [f"{s.records} records"]
-        restarts = self._module_restarts()
-        if restarts:
-            extra.append(f"module restarts {restarts}")
+        clock = self._module_clock()
+        if clock is not None and clock.restarts:
+            extra.append(f"module restarts {clock.restarts}")
+        if clock is not None and clock.spikes:
+            extra.append(f"clock spikes {clock.spikes} (readings dropped)")
         for name in ("disconnects", "reconnects", "wakeups", "dropped", "malformed_lines"):
             if getattr(s, name):
                 extra.append(f"{name.replace('_', ' ')} {getattr(s, name)}")
         return f"{self.decoder_stats.summary()}; {', '.join(extra)}"
 
-    def _module_restarts(self) -> int | None:
-        """Restarts of the module seen by a driver of the module protocol (its
-        ``assembler``'s clock); None for other drivers."""
+    def _module_assembler(self) -> RecordAssembler | None:
+        """The record assembler of a driver of the module protocol; None for others."""
         asm = getattr(self, "assembler", None)
-        return asm.clock.restarts if isinstance(asm, RecordAssembler) else None
+        return asm if isinstance(asm, RecordAssembler) else None
+
+    def _module_clock(self) -> ModuleClock | None:
+        """The module's clock as a driver of the module protocol unwraps it (restarts,
+        spikes); None for other drivers."""
+        asm = self._module_assembler()
+        return None if asm is None else asm.clock
 
     # -- for subclasses ---------------------------------------------------------------
     def _deliver(self, recs: list[Record]) -> None:
@@ -277,7 +286,11 @@ class Driver(ABC):
             self._cond.notify_all()
 
     def _end(self) -> None:
-        """No more records will come (end of file, or closed)."""
+        """No more records will come (end of file, or closed): a reading the module
+        protocol held back (its time jumped; no later reading came) is delivered first."""
+        asm = self._module_assembler()
+        if asm is not None:
+            self._deliver(asm.flush())
         with self._cond:
             self._ended = True
             self._cond.notify_all()

@@ -31,6 +31,43 @@ read from and send Start to. A stable link to it (``serve-sim --pty --link``) is
 READ_CHUNK = 4096
 """Most bytes one read of a ``socket://`` port takes (what the socket holds, up to this)."""
 
+NETWORK_PORTS = ("socket://", "rfc2217://")
+"""URLs of a serial line behind a network bridge (ser2net, a terminal server)."""
+
+REFUSAL_MAX = 200
+"""Most bytes of a first connection kept to tell a bridge's refusal (a line of text)."""
+
+
+class SocketPort(SocketSerial):
+    """pyserial's ``socket://`` port, keeping what the other end sent at once.
+
+    pyserial's open throws away the bytes received by then (a "clean start"), and they may
+    be all a network bridge says before it closes a connection it refuses (ser2net: ``Port
+    already in use``): the host would see a bare hang-up, or the line, by chance."""
+
+    _opening = False
+
+    def open(self) -> None:
+        self._opening = True
+        try:
+            super().open()
+        finally:
+            self._opening = False
+
+    def reset_input_buffer(self) -> None:
+        if not self._opening:
+            super().reset_input_buffer()
+
+
+def refusal_text(data: bytes) -> str | None:
+    """The line a network bridge sent before closing a connection it refused (ser2net:
+    ``Port already in use``), or None if ``data`` is not one line of printable text."""
+    text = data.decode("ascii", errors="replace").strip()
+    if not text or len(data) >= REFUSAL_MAX or "\n" in text \
+            or not all(c.isprintable() for c in text):
+        return None
+    return text
+
 
 class PortDriver(Driver):
     """Base of drivers that read bytes from a pyserial port.
@@ -66,6 +103,7 @@ class PortDriver(Driver):
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._first_bytes = bytearray()  # of the first connection (see _refused)
 
     @property
     def source(self) -> str:
@@ -94,10 +132,13 @@ class PortDriver(Driver):
         # port. URL ports (socket://, loop://, ...) have no file to lock.
         options = {"exclusive": "://" not in self.url, **self._port_options}
         try:
-            port = serial.serial_for_url(self.url, baudrate=self.baudrate,
-                                         timeout=self.read_timeout_s, **options)
-            if isinstance(port, SocketSerial):
-                port.timeout = 0  # _read waits for the socket itself (select)
+            if self.url.startswith("socket://"):  # as serial_for_url does, with our class
+                port = SocketPort(None, baudrate=self.baudrate, timeout=0, **options)
+                port.port = self.url  # timeout 0: _read waits for the socket (select)
+                port.open()
+            else:
+                port = serial.serial_for_url(self.url, baudrate=self.baudrate,
+                                             timeout=self.read_timeout_s, **options)
         except _PORT_ERRORS as err:
             raise DeviceError(f"cannot open {self.source}: {err}") from err
         return port
@@ -172,6 +213,8 @@ class PortDriver(Driver):
                     return
                 continue
             if data:  # before the idle hook, which may act on how long the line was quiet
+                if len(self._first_bytes) < REFUSAL_MAX and not self.stats.disconnects:
+                    self._first_bytes += data[:REFUSAL_MAX]
                 self._on_bytes(data)
             try:
                 self._on_idle()
@@ -183,18 +226,38 @@ class PortDriver(Driver):
         """The port failed: flush, count, and reopen it; False if the reader must end."""
         if self._stop.is_set():
             return False
+        refused = self._refused()
         self.stats.disconnects += 1
         self._drop_port()
         self._on_stream_end()
+        if refused is not None:  # not reopened: the other host keeps the line
+            self._fail(DeviceError(refused))
+            self._end()
+            return False
         if not self.reconnect:
             self._fail(err)
             self._end()
             return False
-        if self.url.startswith(PTY_SLAVES):
-            self._end()  # the module's terminal is gone for good: the stream ended
+        if self.url.startswith(PTY_SLAVES):  # the module's terminal is gone for good
+            self.end_reason = (f"the terminal {self.url} hung up; a {PTY_SLAVES} path is not "
+                               f"reopened (its number goes to the next terminal opened; use "
+                               f"serve-sim --link, or a stable link to the device)")
+            self._end()
             return False
         self._reopen()
         return True
+
+    def _refused(self) -> str | None:
+        """Why a network bridge closed the first connection, if it refused it: one line of
+        text and nothing else came (ser2net's answer while another host is connected)."""
+        if self.stats.disconnects or self.stats.records or not self.url.startswith(
+                NETWORK_PORTS):
+            return None
+        text = refusal_text(bytes(self._first_bytes))
+        if text is None:
+            return None
+        return (f"the other end refused the connection: {text!r} (a module is read by one "
+                f"host at a time: another host, such as a second `sonarloc record`, has it)")
 
     def _reopen(self) -> None:
         delay = self.backoff_s[0]

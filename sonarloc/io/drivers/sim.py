@@ -7,9 +7,9 @@ answers commands from the host:
 * :class:`PtyTransport` — a pseudo-terminal; the host opens its path like a serial
   device. ``link=`` keeps a stable symlink (like udev's ``/dev/serial/by-id``), so
   :meth:`PtyTransport.replug` can simulate unplugging and replugging the cable.
-* :class:`TcpTransport` — a TCP server on 127.0.0.1 speaking the serial protocol;
-  the host opens ``socket://127.0.0.1:PORT``. :meth:`TcpTransport.drop_client` pulls
-  the cable.
+* :class:`TcpTransport` — a TCP server on 127.0.0.1 speaking the serial protocol to
+  one host at a time (as ser2net: another is told ``Port already in use``); the host
+  opens ``socket://127.0.0.1:PORT``. :meth:`TcpTransport.drop_client` pulls the cable.
 * :class:`CanBusTransport` — any python-can bus (``virtual`` within one process).
 * :class:`CandumpTransport` — writes a candump log with python-can's writer.
 
@@ -261,7 +261,18 @@ class PtyTransport(_ByteTransport):
 
 
 class TcpTransport(_ByteTransport):
-    """A TCP server speaking the serial protocol to one host at a time."""
+    """A TCP server speaking the serial protocol to one host at a time.
+
+    A module has one host, and so has a serial-to-network bridge in front of it:
+    ser2net (its default ``max-connections: 1``) answers a connection that comes while
+    another host is connected with the line :data:`BUSY` and closes it, and so does
+    this server (counted: ``refused``). The first host keeps its connection and every
+    record; the other learns why at once instead of taking the line over and being
+    taken over in turn (two recorders reconnecting, each losing about half the records).
+    """
+
+    BUSY = b"Port already in use\r\n"
+    """What ser2net sends to a connection it refuses, before closing it."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 0):
         super().__init__()
@@ -271,7 +282,9 @@ class TcpTransport(_ByteTransport):
             raise DeviceError(f"cannot listen on {host}:{port}: {err.strerror}") from err
         self.host, self.port = self._server.getsockname()[:2]
         self._client: socket.socket | None = None
-        self.clients = 0
+        self.clients = 0  # hosts served
+        self.refused = 0  # hosts turned away while another was connected
+        self._refusing: dict[socket.socket, float] = {}  # refused, until (monotonic)
 
     @property
     def url(self) -> str:
@@ -305,21 +318,13 @@ class TcpTransport(_ByteTransport):
     def _reader(self) -> None:
         while not self._stop.is_set():
             client = self._client
-            watch = [self._server] + ([client] if client is not None else [])
+            watch = [self._server, *self._refusing] + ([client] if client is not None else [])
             try:
                 ready, _, _ = select.select(watch, [], [], 0.05)
             except (OSError, ValueError):  # a socket closed under us
                 continue
-            if self._server in ready:
-                conn, _ = self._server.accept()
-                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                conn.settimeout(1.0)
-                with self._lock:
-                    old, self._client = self._client, conn
-                    self._decoder = SerialDecoder()
-                    self.clients += 1
-                if old is not None:
-                    self._drop(old)
+            # the host's hang-up before a new connection: a host that reconnects at
+            # once is served again, not refused by its own dead connection
             if client is not None and client in ready:
                 try:
                     data = client.recv(4096)
@@ -329,12 +334,64 @@ class TcpTransport(_ByteTransport):
                     self._commands(data)
                 else:
                     self._drop(client)
+            self._linger([c for c in self._refusing if c in ready])
+            if self._server in ready:
+                self._accept()
+
+    REFUSE_LINGER_S = 2.0
+    """Longest a refused connection is kept open for its host to read :data:`BUSY`."""
+
+    def _accept(self) -> None:
+        """Serve a new host, or refuse it while another is connected."""
+        try:
+            conn, _ = self._server.accept()
+        except OSError:
+            return
+        with self._lock:
+            busy = self._client is not None
+            if not busy:
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                conn.settimeout(1.0)
+                self._client = conn
+                self._decoder = SerialDecoder()
+                self.clients += 1
+        if not busy:
+            return
+        self.refused += 1
+        try:
+            conn.setblocking(False)
+            conn.send(self.BUSY)
+            conn.shutdown(socket.SHUT_WR)
+        except OSError:
+            conn.close()
+            return
+        # Closed now, a socket holding the host's unread Start would be reset, and the
+        # reset can overtake the line; kept until the host hangs up (it reads the line
+        # and EOF), its bytes discarded.
+        self._refusing[conn] = time.monotonic() + self.REFUSE_LINGER_S
+
+    def _linger(self, ready: list[socket.socket]) -> None:
+        """Discard what refused hosts send; close them when they hang up or time out."""
+        now = time.monotonic()
+        for conn in list(self._refusing):
+            done = self._refusing[conn] <= now
+            if conn in ready:
+                try:
+                    done = done or not conn.recv(4096)
+                except OSError:
+                    done = True
+            if done:
+                del self._refusing[conn]
+                conn.close()
 
     def close(self) -> None:
         self._join()
         client = self._client
         if client is not None:
             self._drop(client)
+        for conn in self._refusing:
+            conn.close()
+        self._refusing.clear()
         self._server.close()
 
 
@@ -676,8 +733,11 @@ class SimModule:
             if threading.current_thread() is not self._thread:
                 raise
         finally:
-            if self._writer is not None:
-                self._writer.flush()
+            with self._lock:
+                if self._writer is not None:
+                    for rec in self._sent.flush():  # a reading held back by its time
+                        self._writer.write(rec)
+                    self._writer.flush()
             self.finished.set()
 
 

@@ -25,6 +25,7 @@ from sonarloc.io.logfile import (
 from sonarloc.io.protocol.messages import Echo, Message, Odom, RigInfo, RigMount
 
 CLOCK_MODULUS = 1 << 32
+_HALF_WRAP = CLOCK_MODULUS // 2
 COUNT_US = 2.0
 MAX_COUNTS = 0xFFFF
 
@@ -90,41 +91,100 @@ class ModuleClock:
     The first reading is taken as is (no offset), so a stream that starts at
     clock 0 gives ``t_s`` equal to the simulator's.
 
-    A step back of more than :attr:`RESTART_US` (1 s) is a restarted module, whose
-    clock began again at zero: it is counted (``restarts``) and the clock re-based so
-    that time goes on from the last reading, by the host's time between the two
-    readings when the caller gives arrival times (``host_s``), else by nothing.
+    A reading more than :attr:`JUMP_US` (1 s) before or after the last one is held
+    (:attr:`pending`) until the next reading says which time is right:
+
+    * the next one follows it (is at most 1 s before it, and nearer to it than to the
+      reading before the jump): the jump was real and is kept. A jump forward: the
+      module's clock moved on (a pause); a jump back: a restarted module, whose clock
+      began again at zero, counted (``restarts``) and re-based so that time goes on
+      from the last reading, by the host's time between the two readings when the
+      caller gives arrival times (``host_s``), else by nothing;
+    * else the held reading alone was wrong (a corrupted or spiked time): it is
+      dropped and counted (``spikes``), and the clock goes on from the reading
+      before it, so one bad time costs that one reading, not the rest of the log.
+
+    After each :meth:`unwrap`, :attr:`pending` says whether that reading is held and
+    :attr:`verdict` what became of the one held before it (True kept, False dropped,
+    None: none was held). :meth:`flush` keeps a reading still held at the end of the
+    stream (nothing contradicts it).
     """
 
-    RESTART_US = 1_000_000
+    JUMP_US = 1_000_000
+    RESTART_US = JUMP_US  # a step back of more than this is a restart (if the next follows)
 
-    __slots__ = ("last", "offset", "restarts", "_host_last")
+    __slots__ = ("last", "offset", "restarts", "spikes", "pending", "verdict", "_host_last",
+                 "_held")
 
     def __init__(self) -> None:
         self.last: int | None = None
         self.offset = 0  # added to readings of a restarted module
         self.restarts = 0
+        self.spikes = 0
+        self.pending = False
+        self.verdict: bool | None = None
         self._host_last: float | None = None
+        self._held: tuple[int, int, bool] | None = None  # (last, offset, restart) if kept
+
+    @staticmethod
+    def _step(raw: int, last: int, offset: int) -> int:
+        """Signed microseconds from ``last`` to ``raw`` (within half a wrap)."""
+        return (raw + offset - last + _HALF_WRAP) % CLOCK_MODULUS - _HALF_WRAP
 
     def unwrap(self, raw: int, host_s: float | None = None) -> int:
         """The unwrapped count of clock reading ``raw``, which arrived at the host's time
-        ``host_s`` (seconds on any clock of the host; None if unknown)."""
+        ``host_s`` (seconds on any clock of the host; None if unknown). With
+        :attr:`pending` set, the count is provisional (see the class docstring)."""
+        self.verdict = None
         if self.last is None:
-            self.last = raw
-        else:
-            d = (raw + self.offset - self.last + CLOCK_MODULUS // 2) % CLOCK_MODULUS \
-                - CLOCK_MODULUS // 2
-            if d < -self.RESTART_US:
-                self.restarts += 1
-                gap = 0
-                if host_s is not None and self._host_last is not None:
-                    gap = max(round((host_s - self._host_last) * 1e6), 0)
-                self.offset += gap - d
-                d = gap
+            self.last, self.pending, self._host_last = raw, False, host_s
+            return raw
+        if self._held is not None:
+            last, offset, _ = self._held
+            d_old = self._step(raw, self.last, self.offset)
+            d_new = self._step(raw, last, offset)
+            self.verdict = d_new >= -self.JUMP_US and (d_old < -self.JUMP_US or d_new < d_old)
+            self._settle(self._held, self.verdict)
+        d = self._step(raw, self.last, self.offset)
+        self.pending = abs(d) > self.JUMP_US
+        if not self.pending:
             self.last += d
-        if host_s is not None:
             self._host_last = host_s
-        return self.last
+            return self.last
+        if d > 0:
+            self._held = (self.last + d, self.offset, False)
+        else:
+            gap = 0
+            if host_s is not None and self._host_last is not None:
+                gap = max(round((host_s - self._host_last) * 1e6), 0)
+            self._held = (self.last + gap, self.offset + gap - d, True)
+        self._host_last = host_s
+        return self._held[0]
+
+    def flush(self) -> bool | None:
+        """End of stream: a reading still held is kept (True); None if none was."""
+        self.verdict = None if self._held is None else True
+        if self._held is not None:
+            self._settle(self._held, True)
+        self.pending = False
+        return self.verdict
+
+    def peek(self, raw: int) -> int:
+        """The count of ``raw`` without moving the clock: that of the last reading if
+        ``raw`` is more than :attr:`JUMP_US` from it (the time of a rig description,
+        which must not be lost to a held time)."""
+        if self.last is None:
+            return raw
+        d = self._step(raw, self.last, self.offset)
+        return self.last + d if abs(d) <= self.JUMP_US else self.last
+
+    def _settle(self, held: tuple[int, int, bool], keep: bool) -> None:
+        if keep:
+            self.last, self.offset, restart = held
+            self.restarts += restart
+        else:
+            self.spikes += 1
+        self._held = None
 
 
 @dataclass
@@ -144,19 +204,25 @@ class RecordAssembler:
         self._info: RigInfo | None = None
         self._mounts: dict[int, RigMount] = {}
         self.rig: RigRecord | None = None
+        self._held: Record | None = None  # a reading whose time jumped (see ModuleClock)
 
     def push(self, msg: Message, host_s: float | None = None) -> list[Record]:
         """The records completed by ``msg``, which arrived at the host's time ``host_s``
         (seconds on any one clock of the host; it times the outage of a restarted
-        module, see :class:`ModuleClock`)."""
+        module, see :class:`ModuleClock`).
+
+        A reading whose time jumped by more than a second is held back until the next
+        reading confirms it (it then comes out first) or shows it was a spike (it is
+        dropped, counted in ``clock.spikes``); :meth:`flush` releases it at the end."""
         if isinstance(msg, Echo):
             t = self.clock.unwrap(msg.ping_time_us, host_s) / 1e6
             tof = None if msg.no_echo else msg.tof_counts * COUNT_US
             pan = None if msg.pan_cdeg is None else msg.pan_cdeg / 100.0
-            return [TofRecord(t, msg.sensor, tof, pan)]
+            return self._reading(TofRecord(t, msg.sensor, tof, pan))
         if isinstance(msg, Odom):
-            return [OdomRecord(self.clock.unwrap(msg.time_us, host_s) / 1e6, msg.x_dmm / 1e4,
-                               msg.y_dmm / 1e4, msg.yaw_mdeg / 1000.0)]
+            t = self.clock.unwrap(msg.time_us, host_s) / 1e6
+            return self._reading(OdomRecord(t, msg.x_dmm / 1e4, msg.y_dmm / 1e4,
+                                            msg.yaw_mdeg / 1000.0))
         if isinstance(msg, RigInfo):
             self._info, self._mounts = msg, {}
             return []
@@ -167,16 +233,33 @@ class RecordAssembler:
             self._mounts[msg.sensor] = msg
             if len(self._mounts) < self._info.n_sensors:
                 return []
-            return self._finish_rig(self._info, host_s)
+            return self._finish_rig(self._info)
         self.stats.other += 1
         return []
 
-    def _finish_rig(self, info: RigInfo, host_s: float | None) -> list[Record]:
+    def flush(self) -> list[Record]:
+        """End of stream: the reading still held back, kept (nothing contradicts its time)."""
+        self.clock.flush()
+        held, self._held = self._held, None
+        return [] if held is None else [held]
+
+    def _reading(self, rec: Record) -> list[Record]:
+        """``rec``, whose time the clock just placed, after the reading held back before it
+        if this one confirmed that one's time; held back itself if its time jumped."""
+        held, self._held = self._held, None
+        out = [held] if held is not None and self.clock.verdict else []
+        if self.clock.pending:
+            self._held = rec
+            return out
+        out.append(rec)
+        return out
+
+    def _finish_rig(self, info: RigInfo) -> list[Record]:
         mounts = tuple(SensorMount(m.sensor, m.x_dmm / 1e4, m.y_dmm / 1e4, m.yaw_cdeg / 100.0)
                        for m in self._mounts.values())
         self._info, self._mounts = None, {}
-        rig = RigRecord(mounts, info.c_cmps / 100.0,
-                        self.clock.unwrap(info.time_us, host_s) / 1e6)
+        # a rig is never held back: its time comes from the clock without moving it
+        rig = RigRecord(mounts, info.c_cmps / 100.0, self.clock.peek(info.time_us) / 1e6)
         if self.rig is not None and (self.rig.sensors, self.rig.speed_of_sound_mps) == (
                 rig.sensors, rig.speed_of_sound_mps):
             self.stats.rig_repeats += 1
