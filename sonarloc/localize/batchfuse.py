@@ -617,7 +617,8 @@ class BatchFuser:
             # (a reading past the edge of the detection arc is not the feature's:
             # echoes.screen)
             usable = ok & np.isfinite(s_ii) & (s_ii > 0) \
-                & (pd_a[lo:hi] >= echoes.SCREEN_MIN_DETECT)
+                & ((pd_a[lo:hi] >= echoes.SCREEN_MIN_DETECT)
+                   | ~echoes.belief_is_tight(p[ps])[:, None])
             passed = usable & (nu**2 <= self.screen_gate * np.where(usable, s_ii, 1.0))
         # a candidate's reading is not kept where a rival (another point, another line
         # of the same segment) also passes it, is detected there and predicts the

@@ -110,6 +110,23 @@ RELINEARIZE_RAD = 5e-4
 #: Detection probability below which :func:`screen` does not take a reading as the
 #: feature's (the belief puts it past the edge of the detection arc).
 SCREEN_MIN_DETECT = 0.01
+#: The detection screen trusts the belief's angle to a feature only while the belief is
+#: this tight (position SD [m], yaw SD [rad]; the beam is ~12 deg to its first null):
+#: a belief of metres or tens of degrees cannot say where its detection arc ends, and a
+#: screen at its mean would drop readings by chance (a prior of 1e150 m then picked the
+#: readings that took it to `tracking` on made-up data).
+SCREEN_BELIEF_SD_M, SCREEN_BELIEF_SD_YAW = 0.5, math.radians(5.0)
+
+
+def belief_is_tight(cov: ArrayLike) -> NDArray[np.bool_]:
+    """(...) whether beliefs of covariance ``cov`` (..., 3, 3) are tight enough for the
+    detection screen (:data:`SCREEN_BELIEF_SD_M`, :data:`SCREEN_BELIEF_SD_YAW`)."""
+    c = np.asarray(cov, dtype=float)
+    with np.errstate(invalid="ignore", over="ignore"):
+        pos = np.linalg.eigvalsh(np.nan_to_num(c[..., :2, :2], nan=np.inf,
+                                               posinf=1e300))[..., -1]
+        return np.asarray((pos <= SCREEN_BELIEF_SD_M**2)
+                          & (c[..., 2, 2] <= SCREEN_BELIEF_SD_YAW**2))
 #: Quadrature nodes of the delay moments.
 _DELAY_NODES = 41
 #: Strength grid of :class:`DelayTable`: log-spaced, ``_KAPPA_PER_DECADE`` rows a
@@ -630,7 +647,7 @@ def screen(state: Gaussian, obs: EchoObservation, probability: float = 0.999,
     nu = obs.z_m - h
     s = np.einsum("ni,ij,nj->n", hx, state.cov, hx) + np.diag(r)
     ok = np.isfinite(nu) & np.isfinite(s) & (s > 0)
-    if min_detect > 0:
+    if min_detect > 0 and bool(belief_is_tight(state.cov)):
         ok &= obs.p_detect(state.mean) >= min_detect
     d2 = np.where(ok, nu**2 / np.where(ok, s, 1.0), np.inf)
     return np.asarray(ok & (d2 <= ekf.chi2_gate(1, probability)))

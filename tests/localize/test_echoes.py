@@ -167,6 +167,14 @@ def test_screen_drops_readings_past_the_edge_of_the_detection_arc() -> None:
         assert echoes.screen(prior, o, min_detect=0.0).all()   # the range alone passes
         assert echoes.screen(prior, o).tolist() == [kept, kept]
         assert np.all((o.p_detect(prior.mean) >= echoes.SCREEN_MIN_DETECT) == kept)
+        # a belief of metres or tens of degrees cannot say where the arc ends: no drop
+        for loose in (np.diag([1.0, 1.0, 1e-4]), np.diag([1e-4, 1e-4, math.radians(10) ** 2]),
+                      np.diag([1e300, 1e300, 1e-4])):
+            wide = Gaussian(prior.mean, loose)
+            assert not echoes.belief_is_tight(loose)
+            assert echoes.screen(wide, o).tolist() == \
+                echoes.screen(wide, o, min_detect=0.0).tolist()
+    assert echoes.belief_is_tight(cov)
 
 
 def test_a_lone_pole_seen_at_the_edge_of_its_beams_does_not_drag_the_online_estimate(
