@@ -124,10 +124,23 @@ def run(args: argparse.Namespace) -> int:
     have_rig = False
     rig_changes: list[float] = []  # times of rigs other than the first
     note = ""
+    # --out is opened at the first reading or odometry, not before: a device that sends
+    # nothing (wrong port, wrong baud, refused) leaves an earlier file of that name as it
+    # was, where it was emptied (or left holding a rig line) and the recording lost
+    writer: LogWriter | None = None
+    head: list[Record] = []  # rig records that came before any reading
 
     def write(rec: Record) -> None:
-        writer.write(rec)
+        nonlocal writer
         counts[rec.type] += 1
+        if writer is None and isinstance(rec, RigRecord):
+            head.append(rec)
+            return
+        if writer is None:
+            writer = LogWriter(args.out)
+            for r in head:
+                writer.write(r)
+        writer.write(rec)
 
     def release() -> None:
         """Write the readings held back, in the order they came."""
@@ -156,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
 
     t_end = None if args.duration is None else time.monotonic() + args.duration
     try:
-        with driver, LogWriter(args.out) as writer:
+        with driver:
             last_data = flushed = time.monotonic()
             try:
                 while not stop:
@@ -164,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
                     if t_end is not None and now >= t_end:
                         break
                     if now - flushed >= FLUSH_S:
-                        writer.flush()
+                        if writer is not None:
+                            writer.flush()
                         flushed = now
                     try:  # short reads, so SIGTERM and --duration are noticed quickly
                         rec = driver.read(timeout=0.2)
@@ -189,8 +203,14 @@ def run(args: argparse.Namespace) -> int:
             while (rec := driver.read(timeout=0)) is not None:
                 take(rec)
             release()  # no rig ever came
+            if writer is None:  # the source ended without a reading: a log of what came
+                writer = LogWriter(args.out)
+                for r in head:
+                    writer.write(r)
     finally:
         signal.signal(signal.SIGTERM, old)
+        if writer is not None:
+            writer.close()
     if counts["odom"] + counts["tof"] == 0 and driver.stats.malformed_lines:
         hint = " (candump logs are written by `candump -L`)" if driver.scheme == "candump" else ""
         raise LogFormatError(f"{driver.source}: no readings in it{hint}: {driver.summary()}")

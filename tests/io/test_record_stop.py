@@ -134,3 +134,27 @@ def test_a_source_without_rig_keeps_time_order_past_the_hold_limit(tmp_path, mon
     recs = list(iter_log(out, stats))
     assert len(recs) > 100 and stats.time_backwards_count == 0
     assert "no rig description" in capsys.readouterr().err
+
+
+def test_a_device_that_sends_nothing_leaves_an_earlier_log_as_it_was(record_on_pty,
+                                                                        tmp_path) -> None:
+    # `record /dev/ttyUSB0 --out run1.jsonl` on the wrong port (or a module that answers
+    # nothing) used to empty run1.jsonl before saying "no data": the earlier recording
+    # was lost. --out is now opened at the first reading or odometry.
+    out = tmp_path / "run1.jsonl"
+    out.write_text('{"type":"odom","t_s":0.0,"x_m":0.0,"y_m":0.0,"yaw_deg":0.0}\n')
+    before = out.read_bytes()
+    with record_on_pty("--out", str(out), "--timeout", "0.3") as (proc, master):
+        os.read(master, 100)  # its Start: the port is open
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2 and "no data within 0.3 s" in err, err
+    assert out.read_bytes() == before
+    # a rig alone is not a recording either
+    enc = SerialEncoder()
+    rig = next(r for r in ring_stream(duration_s=0.1) if r.type == "rig")
+    with record_on_pty("--out", str(out), "--timeout", "0.3") as (proc, master):
+        os.read(master, 100)
+        os.write(master, b"".join(enc.encode(m) for m in messages_from_record(rig)))
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2, err
+    assert out.read_bytes() == before
