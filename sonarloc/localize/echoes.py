@@ -122,9 +122,11 @@ def belief_is_tight(cov: ArrayLike) -> NDArray[np.bool_]:
     """(...) whether beliefs of covariance ``cov`` (..., 3, 3) are tight enough for the
     detection screen (:data:`SCREEN_BELIEF_SD_M`, :data:`SCREEN_BELIEF_SD_YAW`)."""
     c = np.asarray(cov, dtype=float)
+    a, b, d = c[..., 0, 0], c[..., 0, 1], c[..., 1, 1]
     with np.errstate(invalid="ignore", over="ignore"):
-        pos = np.linalg.eigvalsh(np.nan_to_num(c[..., :2, :2], nan=np.inf,
-                                               posinf=1e300))[..., -1]
+        # the larger eigenvalue of the position block, in closed form (NaN or inf: not
+        # tight, every comparison below being False)
+        pos = 0.5 * (a + d) + np.sqrt((0.5 * (a - d)) ** 2 + b * b)
         return np.asarray((pos <= SCREEN_BELIEF_SD_M**2)
                           & (c[..., 2, 2] <= SCREEN_BELIEF_SD_YAW**2))
 #: Quadrature nodes of the delay moments.

@@ -21,7 +21,7 @@ from typing import ClassVar
 
 from sonarloc.errors import DeviceError, DeviceTimeoutError
 from sonarloc.io.logfile import Record
-from sonarloc.io.protocol.messages import DecoderStats, Message, Start, Stop
+from sonarloc.io.protocol.messages import DecoderStats, Message, RequestRig, Start, Stop
 from sonarloc.io.protocol.records import ModuleClock, RecordAssembler
 
 RecordCallback = Callable[[Record], None]
@@ -173,6 +173,17 @@ class Driver(ABC):
     def send(self, msg: Message) -> None:
         """Send a command to the device (Start, Stop, RequestRig, Firing, Settings)."""
         raise DeviceError(f"{self.source}: this source does not take commands")
+
+    def _wake_if_silent(self, wake: Wakeup, send_lock: threading.RLock) -> None:
+        """Send Start and RequestRig again if ``wake`` says the module fell silent
+        (counted: ``stats.wakeups``). Checked under ``send_lock``, the lock :meth:`send`
+        holds while it tells ``wake`` what it sends, so a Stop being sent is seen first."""
+        with send_lock:
+            if not wake.due(time.monotonic()):
+                return
+            self.stats.wakeups += 1
+            self.send(Start())
+            self.send(RequestRig())
 
     def read(self, timeout: float | None = 1.0) -> Record | None:
         """The next record; None once the stream has ended (end of file, closed).

@@ -119,15 +119,10 @@ class CanDriver(Driver):
     def _watch(self, wake_s: float) -> None:
         """Send Start again to a module that fell silent (see :class:`Wakeup`)."""
         while not self._watch_stop.wait(min(wake_s / 4, 0.25)):
-            with self._send_lock:  # a Stop being sent is seen before the check
-                if not self._wake.due(time.monotonic()):
-                    continue
-                self.stats.wakeups += 1
-                try:
-                    self.send(Start())
-                    self.send(RequestRig())
-                except DeviceError:
-                    pass  # the bus refused it (bus off, queue full): tried after wake_s
+            try:
+                self._wake_if_silent(self._wake, self._send_lock)
+            except DeviceError:
+                pass  # the bus refused it (bus off, queue full): tried after wake_s
 
     def _close(self) -> None:
         self._watch_stop.set()

@@ -76,14 +76,8 @@ class SerialDriver(PortDriver):
         self._handle(frames)
 
     def _on_idle(self) -> None:
-        if not self.start_on_connect:
-            return
-        with self._send_lock:  # a Stop being sent is seen before the check
-            if not self._wake.due(time.monotonic()):
-                return
-            self.stats.wakeups += 1
-            self.send(Start())
-            self.send(RequestRig())
+        if self.start_on_connect:
+            self._wake_if_silent(self._wake, self._send_lock)
 
     def _on_stream_end(self) -> None:
         self._handle(self.decoder.flush())
