@@ -128,19 +128,23 @@ def run(args: argparse.Namespace) -> int:
     # nothing (wrong port, wrong baud, refused) leaves an earlier file of that name as it
     # was, where it was emptied (or left holding a rig line) and the recording lost
     writer: LogWriter | None = None
-    head: list[Record] = []  # rig records that came before any reading
+    head: list[Record] = []  # the rig, if it came before any reading
 
-    def write(rec: Record) -> None:
+    def opened() -> LogWriter:
+        """--out, opened (with the records waiting for it) if it was not yet."""
         nonlocal writer
-        counts[rec.type] += 1
-        if writer is None and isinstance(rec, RigRecord):
-            head.append(rec)
-            return
         if writer is None:
             writer = LogWriter(args.out)
             for r in head:
                 writer.write(r)
-        writer.write(rec)
+        return writer
+
+    def write(rec: Record) -> None:
+        counts[rec.type] += 1
+        if writer is None and isinstance(rec, RigRecord):
+            head.append(rec)
+        else:
+            opened().write(rec)
 
     def release() -> None:
         """Write the readings held back, in the order they came."""
@@ -203,10 +207,7 @@ def run(args: argparse.Namespace) -> int:
             while (rec := driver.read(timeout=0)) is not None:
                 take(rec)
             release()  # no rig ever came
-            if writer is None:  # the source ended without a reading: a log of what came
-                writer = LogWriter(args.out)
-                for r in head:
-                    writer.write(r)
+            opened()  # (the source ended without a reading: a log of what came)
     finally:
         signal.signal(signal.SIGTERM, old)
         if writer is not None:
