@@ -44,15 +44,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="driver option, e.g. unit=cm or mount=0.1,0,90 (maxbotix: "
                              "X_M,Y_M,YAW_DEG in base_link), rig=RIG.json or range_conv=0.268 "
-                             "(pioneer), rate=1 (candump); repeatable")
+                             "(pioneer), rate=1 (candump), wake_s=none (no wake-up: serial, "
+                             "can); none sets an option to None; repeatable")
 
 
 def _value(text: str) -> Any:
-    """An --option value: a bool, an int, a float, numbers separated by commas as a tuple
+    """An --option value: a bool, ``none`` (None: an option's "off", e.g. ``wake_s=none``
+    for no wake-up), an int, a float, numbers separated by commas as a tuple
     (``mount=0.1,0,90``), else the text."""
     low = text.lower()
     if low in ("true", "false"):
         return low == "true"
+    if low in ("none", "null"):
+        return None
     for kind in (int, float):
         try:
             return kind(text)

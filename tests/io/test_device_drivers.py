@@ -240,6 +240,24 @@ def test_maxbotix_mount_from_the_record_command_line() -> None:
         open_driver("maxbotix:loop://", mount=(0.1, 0.0))
 
 
+def test_record_option_none_turns_an_option_off() -> None:
+    # PROTOCOL.md: `wake_s=None` turns the wake-up off; from `sonarloc record` the value
+    # came through as the text 'none' and the driver refused it ("`wake_s` must be a
+    # positive number of seconds or None, got 'none'").
+    import argparse
+
+    from sonarloc.commands.record import add_arguments, driver_options
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["loop://", "--out", "x.jsonl", "--option", "wake_s=none",
+                              "--option", "start=False"])
+    opts = driver_options(args)
+    assert opts == {"wake_s": None, "start": False}
+    with open_driver(args.source, **opts) as drv:
+        assert drv.wake_s is None
+
+
 def test_pioneer_rig_and_converter_from_the_record_command_line(tmp_path) -> None:
     # `--option rig=RIG.json` crashed `sonarloc record` with a traceback (the path went
     # through as the rig), and the converter's settings (RangeConvFactor of a P2, ...)
