@@ -17,6 +17,7 @@ batches (landmarks fused at their reference readings, as if fitting took no time
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
 from sonarloc.commands._args import accept_negative_values, parse_pose, refuse_overwrite
@@ -56,6 +57,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "readings inside it, while the robot moved, are skipped and "
                              "counted (default 1 s; raise it for odometry slower than 3 Hz; "
                              "inf: no gaps)")
+    parser.add_argument("--map-sd", type=float, metavar="M", default=None,
+                        help="SD of the map's feature positions in metres (a map measured "
+                             "with a tape: 0.01), the map error shared by the readings of "
+                             "an update; a feature's own sd_m (written by `map build`) is "
+                             "used where larger (default 0: the map taken as exact unless "
+                             "it says otherwise)")
     parser.add_argument("--quiet", action="store_true", help="no summary on stderr")
 
 
@@ -63,11 +70,15 @@ def run(args: argparse.Namespace) -> int:
     refuse_overwrite({"--out": args.out}, {"LOG": args.log, "--map": args.map})
     init = parse_pose(args.init, "--init") if args.init is not None else None
     fmap = FeatureMap.from_map(load_map(args.map))
-    gap = {} if args.odom_gap is None else {"odom_gap_s": args.odom_gap}
-    try:
-        config = LocalizerConfig(method=args.method, relocalize=args.relocalize, **gap)
-    except ValueError as exc:  # the config's own check, named by the option
-        raise ValueError(f"--odom-gap: {exc}") from None
+    config = LocalizerConfig(method=args.method, relocalize=args.relocalize)
+    for option, name, value in (("--odom-gap", "odom_gap_s", args.odom_gap),
+                                ("--map-sd", "map_sd_m", args.map_sd)):
+        if value is None:
+            continue
+        try:
+            config = dataclasses.replace(config, **{name: value})
+        except ValueError as exc:  # the config's own check, named by the option
+            raise ValueError(f"{option}: {exc}") from None
     mode: Mode = "online" if args.online else "auto"
     if args.out:
         with open(args.out, "w", encoding="utf-8", newline="") as handle:

@@ -43,7 +43,7 @@ def still_log():
     return _still_log(10.0)
 
 
-def _shifted_map(sd_m=None):
+def _shifted_geojson(sd_m=None):
     with open(ROOM, encoding="utf-8") as f:
         d = json.load(f)
 
@@ -57,7 +57,11 @@ def _shifted_map(sd_m=None):
             feat["geometry"]["coordinates"] = move(feat["geometry"]["coordinates"], s)
             if sd_m is not None:
                 feat["properties"]["sd_m"] = sd_m
-    return FeatureMap.from_map(map_from_geojson(d))
+    return d
+
+
+def _shifted_map(sd_m=None):
+    return FeatureMap.from_map(map_from_geojson(_shifted_geojson(sd_m)))
 
 
 def _replay(text, fmap, mode, **cfg):
@@ -231,3 +235,31 @@ def test_the_node_reports_skipped_landmarks_as_matched_not_fused():
     assert skipped and not any(r.fused for r in skipped)
     assert len(skipped) == node.stats.skipped["no_motion_since_fused"]
     assert any(r.fused for r in reports)
+
+
+def test_localize_map_sd_flag(run_cli, still_log, tmp_path):
+    """`sonarloc localize --map-sd M`: a map measured to 5 mm, its file without ``sd_m``
+    (a hand-made map): taken as exact, the still robot's belief is sure of itself to a
+    fraction of a millimetre and inconsistent with the truth; with ``--map-sd 0.005`` it
+    is consistent. A bad value names the flag."""
+    from sonarloc.io.posescsv import read_poses_csv
+
+    log, map_path = tmp_path / "still.jsonl", tmp_path / "off.geojson"
+    log.write_text(still_log)
+    map_path.write_text(json.dumps(_shifted_geojson()))
+    truth = [r for r in iter_log(io.StringIO(still_log)) if isinstance(r, TruthRecord)][-1]
+    truth_pose = np.array([truth.x_m, truth.y_m, math.radians(truth.yaw_deg)])
+
+    def final_nees(*flags):
+        out = tmp_path / f"poses{len(flags)}.csv"
+        run_cli("localize", str(log), "--map", str(map_path), "--out", str(out), *flags,
+                check=True)
+        track = read_poses_csv(out)
+        last = ekf.Gaussian(np.array([track.x_m[-1], track.y_m[-1], track.yaw_rad[-1]]),
+                            track.cov[-1])
+        return float(ekf.nees(last, truth_pose))
+
+    assert final_nees() > 3 * NEES_999
+    assert final_nees("--map-sd", "0.005") < NEES_999
+    proc = run_cli("localize", str(log), "--map", str(map_path), "--map-sd", "-1")
+    assert proc.returncode == 2 and "--map-sd" in proc.stderr and "map_sd_m" in proc.stderr
