@@ -342,6 +342,33 @@ def test_pty_close_without_a_reading_host_gives_up() -> None:
         host.close()
 
 
+def test_pty_close_does_not_wait_for_a_host_that_closed() -> None:
+    """A host that read part of the stream and closed the port (``record --duration``)
+    reads nothing more: close() does not wait for it (it waited the whole
+    DRAIN_WAIT_S, 5 s, at the end of every such run), nor for a host that never came."""
+    tr = PtyTransport()
+    tr.DRAIN_WAIT_S = 3600.0   # were it waited for, the join below would time out
+    host = serial.Serial(tr.url, timeout=0.5)
+    try:
+        assert tr._host_attached()
+        assert tr._write(b"x" * 100)
+        assert host.read(10) == b"x" * 10
+    finally:
+        host.close()
+    assert not tr._host_attached()
+    closer = threading.Thread(target=tr.close, daemon=True)
+    closer.start()
+    closer.join(30.0)
+    assert not closer.is_alive()
+    never = PtyTransport()
+    never.DRAIN_WAIT_S = 3600.0
+    assert not never._host_attached()
+    closer = threading.Thread(target=never.close, daemon=True)
+    closer.start()
+    closer.join(30.0)
+    assert not closer.is_alive()
+
+
 def test_pty_link_never_replaces_a_file(tmp_path, run_cli) -> None:
     # `serve-sim --pty --link notes.txt` replaced the user's file by a symlink to the
     # terminal, and deleted it when the module stopped.

@@ -87,13 +87,30 @@ def test_a_socket_port_keeps_what_the_other_end_sent_at_once() -> None:
     finally:
         thread.join(5.0)
         server.close()
-        # pyserial's socket close sleeps 0.3 s: all at once
-        closers = [threading.Thread(target=p.close) for p in ports]
-        for t in closers:
-            t.start()
-        for t in closers:
-            t.join()
+        for p in ports:
+            p.close()
     assert got == [TcpTransport.BUSY] * n
+
+
+def test_socket_port_closes_without_pyserial_s_sleep(monkeypatch) -> None:
+    """pyserial's socket:// close sleeps 0.3 s "in case of quick reconnects"; the driver
+    reconnects with its own back-off, so SocketPort closes at once (each host's stop,
+    each test's teardown) and still closes the connection: the server sees EOF."""
+    import serial.urlhandler.protocol_socket as pyserial_socket
+
+    slept: list[float] = []
+    monkeypatch.setattr(pyserial_socket.time, "sleep", slept.append)
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = SocketPort(None, timeout=0)
+        port.port = f"socket://127.0.0.1:{server.getsockname()[1]}"
+        port.open()
+        conn, _ = server.accept()
+        with conn:
+            port.close()
+            assert not port.is_open and slept == []
+            conn.settimeout(2.0)
+            assert conn.recv(10) == b""   # the connection is closed, not just forgotten
+        port.close()   # twice: nothing happens
 
 
 def test_refusal_text() -> None:

@@ -247,11 +247,20 @@ class PtyTransport(_ByteTransport):
         finally:
             os.close(fd)
 
+    def _host_attached(self) -> bool:
+        """Whether a host has the slave open: the master reports a hang-up (POLLHUP)
+        while no descriptor of the slave is open. A host gone (closed, or never came)
+        reads nothing more, so :meth:`close` need not wait for it to drain the line."""
+        poller = select.poll()
+        poller.register(self._master, select.POLLIN)
+        return not any(ev & select.POLLHUP for _, ev in poller.poll(0))
+
     def close(self) -> None:
         self._join()
         with self._lock:
             if self._master >= 0:
-                self._drain(self.DRAIN_WAIT_S)
+                if self._host_attached():
+                    self._drain(self.DRAIN_WAIT_S)
                 os.close(self._master)
                 self._master = -1
         if self.link is not None:
