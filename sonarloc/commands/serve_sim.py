@@ -154,7 +154,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"sent {s.records} records ({s.messages} messages, {s.lost} lost, "
           f"rig {s.rigs_sent} times, {s.commands} commands"
           + (f", {s.unsendable} unsendable (first: {s.first_unsendable})" if s.unsendable
-             else "") + ")"
+             else "")
+          + (f", {sim.pacer.jumps} time jumps not waited for" if sim.pacer.jumps
+             and sim.rate is not None else "") + ")"
           + (f"; log: {log_stats.summary()}" if args.log else "")
           + (f"; refused {transport.refused} host{'s' * (transport.refused > 1)} while "
              f"another was connected" if isinstance(transport, TcpTransport)

@@ -10,9 +10,10 @@ import random
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from io_streams import ring_stream
+from io_streams import drain, ring_stream
 
 from sonarloc.io.drivers import open_driver
+from sonarloc.io.drivers.base import Pacer
 from sonarloc.io.drivers.candump import CandumpDriver
 from sonarloc.io.drivers.sim import SimModule
 from sonarloc.io.logfile import LogWriter, TofRecord, iter_log
@@ -180,6 +181,69 @@ def test_paced_replay_across_a_time_jump_keeps_to_the_read_timeout(tmp_path, kin
         got += list(drv.records(timeout=1.0))  # nothing lost: the rest comes when due
     assert [r.t_s for r in got if r.type != "rig"] == \
         pytest.approx([r.t_s for r in stream + late if r.type in ("odom", "tof")], abs=1e-6)
+
+
+def _spiked(jump_s: float) -> list:
+    """0.2 s of a ring stream, its clock jumping ``jump_s`` ahead, 0.2 s more."""
+    stream = list(ring_stream(duration_s=0.2))
+    return stream + [dataclasses.replace(r, t_s=r.t_s + jump_s)
+                     for r in ring_stream(duration_s=0.2) if r.type in ("odom", "tof")]
+
+
+@pytest.mark.parametrize("kind", ["candump", "sim"])
+def test_paced_replay_does_not_wait_for_a_long_jump(tmp_path, kind) -> None:
+    # A recording whose clock jumps 10 min ahead (a spike, a recorder paused): replayed at
+    # rate 1, the rest of the file came 10 min later. Steps over MAX_PACED_STEP_S (5 s)
+    # are not waited for; they are counted, and the times are passed on unchanged. (The
+    # module protocol's 32-bit microsecond clock carries jumps up to 35 min.)
+    recs = _spiked(600.0)
+    path = tmp_path / ("sonar.log" if kind == "candump" else "sonar.jsonl")
+    if kind == "candump":
+        sim = SimModule.to_candump(recs, path)
+        sim.run()
+        sim.close()
+    else:
+        with LogWriter(path) as w:
+            w.write_all(recs)
+    with open_driver(f"{kind}:{path}", rate=1.0) as drv:
+        got = list(drv.records(timeout=3.0))
+        assert drv.counters()["time_jumps"] == 1
+        assert "time jumps 1 (not waited for)" in drv.summary()
+    assert [r.t_s for r in got if r.type != "rig"] == \
+        pytest.approx([r.t_s for r in recs if r.type in ("odom", "tof")], abs=1e-6)
+
+
+def test_serve_sim_does_not_wait_for_a_long_jump() -> None:
+    # The module side (`serve-sim --log`) paces the same way; its --duration counts the
+    # time it paced, so the readings after the jump are still sent.
+    recs = _spiked(600.0)
+    with SimModule.on_tcp(recs, rate=1.0, duration_s=1.0) as sim, \
+            open_driver(sim.url) as drv:
+        got = drain(sim, drv, quiet_s=0.5, limit_s=20.0)
+    assert sim.pacer.jumps == 1 and sim.wait(0)
+    assert len([r for r in got if r.type in ("odom", "tof")]) == \
+        len([r for r in recs if r.type in ("odom", "tof")])
+
+
+def test_pacer_steps() -> None:
+    p = Pacer(rate=10.0, max_step_s=5.0)
+    assert p.due(50.0, now=100.0) == 100.0
+    assert p.due(51.0, now=0.0) == pytest.approx(100.1)
+    assert p.due(51.0, now=0.0) == pytest.approx(100.1)   # asked again: the same
+    assert p.due(50.999, now=0.0) == pytest.approx(100.1)  # slightly back: at once
+    assert p.jumps == 0
+    assert p.due(900.0, now=0.0) == pytest.approx(100.1) and p.jumps == 1   # ahead
+    assert p.due(53.0, now=0.0) == pytest.approx(100.1) and p.jumps == 2    # and back
+    assert p.due(float("nan"), now=0.0) == pytest.approx(100.1) and p.jumps == 3
+    assert p.due(54.0, now=0.0) == pytest.approx(100.1) and p.jumps == 4    # after NaN
+    assert p.due(55.0, now=0.0) == pytest.approx(100.2)
+    p.shift(2.0)
+    assert p.due(55.0, now=0.0) == pytest.approx(102.2)
+    assert p.elapsed_s == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="`rate` must be positive"):
+        Pacer(rate=0.0)
+    with pytest.raises(ValueError, match="`max_step_s` must be positive"):
+        Pacer(rate=1.0, max_step_s=0.0)
 
 
 def test_a_file_of_no_candump_lines_is_an_error(tmp_path, run_cli) -> None:

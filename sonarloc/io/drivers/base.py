@@ -96,6 +96,64 @@ def sleep_until(due: float, deadline: float | None) -> bool:
     return True
 
 
+MAX_PACED_STEP_S = 5.0
+"""Longest step forward in a replayed file's time that a paced replay waits for."""
+
+
+class Pacer:
+    """Wall-clock pacing of a replay against the records' (or frames') own time.
+
+    Each step of the file's time is waited for, divided by ``rate``; a step backwards
+    or one longer than ``max_step_s`` (a clock spike in the recording, a recorder
+    paused for an hour) is not: counted in :attr:`jumps`, the replay goes on at once
+    and paces the steps after it as before. Without this, one reading stamped an hour
+    late held a paced replay up for that hour. The times sent are never changed.
+    :attr:`elapsed_s` is the file time paced so far (the jumps left out).
+
+    >>> p = Pacer(rate=2.0)
+    >>> p.due(100.0, now=0.0), p.due(101.0, now=0.0), p.due(4000.0, now=0.0)
+    (0.0, 0.5, 0.5)
+    >>> p.jumps, p.elapsed_s
+    (1, 1.0)
+    """
+
+    __slots__ = ("rate", "max_step_s", "jumps", "elapsed_s", "_wall", "_t")
+
+    def __init__(self, rate: float | None, max_step_s: float = MAX_PACED_STEP_S):
+        if rate is not None and not rate > 0:
+            raise ValueError(f"`rate` must be positive or None, got {rate!r}")
+        if not max_step_s > 0:
+            raise ValueError(f"`max_step_s` must be positive, got {max_step_s!r}")
+        self.rate, self.max_step_s = rate, max_step_s
+        self.jumps = 0
+        self.elapsed_s = 0.0
+        self._wall: float | None = None  # when the last record was due (monotonic s)
+        self._t = 0.0                    # and its file time
+
+    def due(self, t_s: float, now: float) -> float:
+        """When (``time.monotonic()`` seconds) the record at file time ``t_s`` is due;
+        the first is due at ``now``. Asking again for the same ``t_s`` gives the same
+        answer (a record read before its time and kept)."""
+        if self._wall is None:
+            self._wall, self._t = now, t_s
+            return now
+        step = t_s - self._t
+        if not step <= self.max_step_s or step < -self.max_step_s:
+            self.jumps += 1  # NaN lands here too
+        if not 0.0 < step <= self.max_step_s:
+            step = 0.0
+        self.elapsed_s += step
+        if self.rate is not None:
+            self._wall += step / self.rate
+        self._t = t_s
+        return self._wall
+
+    def shift(self, seconds: float) -> None:
+        """Move what is due later by ``seconds`` (the replay was paused)."""
+        if self._wall is not None:
+            self._wall += seconds
+
+
 class Driver(ABC):
     """Base of all drivers. Use as a context manager, or call :meth:`open`/:meth:`close`.
 
@@ -108,6 +166,8 @@ class Driver(ABC):
     """
 
     scheme: ClassVar[str] = ""
+    #: a replay's pacing (file drivers with a ``rate``); None for live devices
+    pacer: Pacer | None = None
 
     def __init__(self, *, on_record: RecordCallback | None = None, queue_size: int = 100_000):
         if queue_size < 1:
@@ -247,6 +307,8 @@ class Driver(ABC):
         if clock is not None:
             out["module_restarts"] = clock.restarts
             out["clock_spikes"] = clock.spikes
+        if self.pacer is not None and self.pacer.rate is not None:
+            out["time_jumps"] = self.pacer.jumps
         return out
 
     def summary(self) -> str:
@@ -261,6 +323,8 @@ class Driver(ABC):
         for name in ("disconnects", "reconnects", "wakeups", "dropped", "malformed_lines"):
             if getattr(s, name):
                 extra.append(f"{name.replace('_', ' ')} {getattr(s, name)}")
+        if self.pacer is not None and self.pacer.rate is not None and self.pacer.jumps:
+            extra.append(f"time jumps {self.pacer.jumps} (not waited for)")
         return f"{self.decoder_stats.summary()}; {', '.join(extra)}"
 
     def _module_assembler(self) -> RecordAssembler | None:

@@ -19,7 +19,7 @@ from typing import IO
 import can
 
 from sonarloc.errors import DeviceError
-from sonarloc.io.drivers.base import Driver, RecordCallback, sleep_until
+from sonarloc.io.drivers.base import Driver, Pacer, RecordCallback, sleep_until
 from sonarloc.io.protocol.canbus import CanDecoder
 from sonarloc.io.protocol.messages import DecoderStats
 from sonarloc.io.protocol.records import RecordAssembler
@@ -65,8 +65,7 @@ class CandumpDriver(Driver):
     def __init__(self, path: str | Path, *, rate: float | None = None,
                  on_record: RecordCallback | None = None, queue_size: int = 100_000):
         super().__init__(on_record=on_record, queue_size=queue_size)
-        if rate is not None and not rate > 0:
-            raise ValueError(f"`rate` must be positive or None, got {rate!r}")
+        self.pacer: Pacer = Pacer(rate)  # checks `rate`
         self.path = Path(path)
         self.rate = rate
         self.decoder = CanDecoder()
@@ -74,7 +73,6 @@ class CandumpDriver(Driver):
         self.malformed: list[tuple[int, str]] = []
         self._frames: Iterator[can.Message] | None = None
         self._lines: _NumberedLines | None = None
-        self._t0: tuple[float, float] | None = None  # (wall, frame timestamp)
         self._due: can.Message | None = None  # a frame read before its time (rate)
 
     @property
@@ -145,8 +143,8 @@ class CandumpDriver(Driver):
                     self._fail(err)
                     self._end()
                     return
-            if self.rate is not None and frame.timestamp is not None and \
-                    not self._pace(frame.timestamp, self.rate, deadline):
+            if self.rate is not None and frame.timestamp is not None and not sleep_until(
+                    self.pacer.due(frame.timestamp, time.monotonic()), deadline):
                 self._due = frame  # the timeout comes first: read() says so
                 return
             recs = [r for m in self.decoder.feed(frame)
@@ -157,11 +155,3 @@ class CandumpDriver(Driver):
             if deadline is not None and time.monotonic() >= deadline:
                 return
 
-    def _pace(self, stamp: float, rate: float, deadline: float | None) -> bool:
-        """Wait until a frame stamped ``stamp`` is due; False (after waiting until
-        ``deadline``) if it is due later."""
-        now = time.monotonic()
-        if self._t0 is None:
-            self._t0 = (now, stamp)
-            return True
-        return sleep_until(self._t0[0] + (stamp - self._t0[1]) / rate, deadline)

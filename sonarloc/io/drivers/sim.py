@@ -52,7 +52,7 @@ from typing import IO, Any, ClassVar
 import can
 
 from sonarloc.errors import DeviceError, LogFormatError
-from sonarloc.io.drivers.base import Driver, RecordCallback, sleep_until
+from sonarloc.io.drivers.base import Driver, Pacer, RecordCallback, sleep_until
 from sonarloc.io.logfile import LogStats, LogWriter, Record, RigRecord, iter_log
 from sonarloc.io.protocol.canbus import CanDecoder, CanEncoder
 from sonarloc.io.protocol.framing import SerialDecoder, SerialEncoder, type_code
@@ -524,7 +524,8 @@ class SimModule:
     transport : where to (see the module docstring), or use the ``on_*`` constructors.
     rate : pacing against ``t_s`` (1.0 real time, 10.0 ten times faster); None sends as
         fast as the transport takes it.
-    duration_s : stop after this much stream time.
+    duration_s : stop after this much stream time (the time jumps that pacing does
+        not wait for, :class:`~sonarloc.io.drivers.base.Pacer`, left out).
     sent_log : path, text stream or LogWriter receiving what was sent.
     wait_for_start : hold the stream until the host sends Start (default: if the
         transport carries commands).
@@ -537,8 +538,7 @@ class SimModule:
                  rate: float | None = 1.0, duration_s: float | None = None,
                  sent_log: str | Path | IO[str] | LogWriter | None = None,
                  wait_for_start: bool | None = None, rig_every_s: float = 1.0):
-        if rate is not None and not rate > 0:
-            raise ValueError(f"`rate` must be positive or None, got {rate!r}")
+        self.pacer = Pacer(rate)  # checks `rate`
         if duration_s is not None and not duration_s >= 0:
             raise ValueError(f"`duration_s` must be non-negative, got {duration_s!r}")
         if not rig_every_s > 0:
@@ -694,8 +694,7 @@ class SimModule:
         return time.monotonic() - t
 
     def _stream(self) -> None:
-        t0: tuple[float, float] | None = None  # (wall, stream) at the first record sent
-        paused = 0.0
+        pacer = self.pacer
         try:
             for rec in self._records:
                 if self._stop.is_set():
@@ -710,19 +709,14 @@ class SimModule:
                     continue
                 if not msgs:
                     continue
-                if t0 is not None and self.duration_s is not None \
-                        and rec.t_s - t0[1] > self.duration_s:
-                    break
-                paused += self._wait_running()
+                pacer.shift(self._wait_running())
                 if self._stop.is_set():
                     break
-                if t0 is None:
-                    t0 = (time.monotonic(), rec.t_s)
-                    paused = 0.0
-                elif self.rate is not None:
-                    wait = t0[0] + paused + (rec.t_s - t0[1]) / self.rate - time.monotonic()
-                    if wait > 0 and self._stop.wait(wait):
-                        break
+                wait = pacer.due(rec.t_s, time.monotonic()) - time.monotonic()
+                if self.duration_s is not None and pacer.elapsed_s > self.duration_s:
+                    break
+                if self.rate is not None and wait > 0 and self._stop.wait(wait):
+                    break
                 self._t_now = rec.t_s
                 if self._rig is not None and (
                         self._rig_due or rec.t_s - self._last_rig_t >= self.rig_every_s):
@@ -766,8 +760,7 @@ class SimDriver(Driver):
     def __init__(self, source: str | Path | Iterable[Record], *, rate: float | None = None,
                  on_record: RecordCallback | None = None, queue_size: int = 100_000):
         super().__init__(on_record=on_record, queue_size=queue_size)
-        if rate is not None and not rate > 0:
-            raise ValueError(f"`rate` must be positive or None, got {rate!r}")
+        self.pacer: Pacer = Pacer(rate)  # checks `rate`
         self._source = source
         self.rate = rate
         self.log_stats = LogStats()
@@ -775,7 +768,6 @@ class SimDriver(Driver):
         self.assembler = RecordAssembler()
         self._encoder = SerialEncoder()
         self._iter: Iterator[Record] | None = None
-        self._t0: tuple[float, float] | None = None
         self._due: tuple[Record, list[Message]] | None = None  # read before its time (rate)
         self.unsendable = 0  # records the wire cannot carry (skipped, counted)
         self.first_unsendable = ""
@@ -834,11 +826,7 @@ class SimDriver(Driver):
                 if not msgs:
                     continue
             if self.rate is not None:
-                now = time.monotonic()
-                if self._t0 is None:
-                    self._t0 = (now, rec.t_s)
-                if not sleep_until(self._t0[0] + (rec.t_s - self._t0[1]) / self.rate,
-                                   deadline):
+                if not sleep_until(self.pacer.due(rec.t_s, time.monotonic()), deadline):
                     self._due = (rec, msgs)  # the timeout comes first: read() says so
                     return
             wire = b"".join(self._encoder.encode(m) for m in msgs)
