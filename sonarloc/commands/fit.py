@@ -23,7 +23,7 @@ from sonarloc.fit.landmarks import OnlineFitter
 from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.result import Landmark
 from sonarloc.fit.segment import SegmenterConfig, SegmenterStats
-from sonarloc.io.scancsv import BLOCK_ROWS, ScanReadings, iter_scan_csv
+from sonarloc.io.scancsv import BLOCK_ROWS, ScanReadings, TimeoutWatch, iter_scan_csv
 from sonarloc.physics.sound import check_air_speed_of_sound, speed_of_sound_mps
 from sonarloc.physics.tof import ModuleParams
 
@@ -53,6 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="close a segment once its transducer is this far from where "
                              "its first echo was taken (odometry drift makes longer passes "
                              "unfittable; default 1.0; 0: whole passes, for exact poses)")
+    parser.add_argument("--max-tof", type=float, metavar="US", default=None,
+                        help="a TOF at or above this is no echo (a module that reports "
+                             "its timeout as a reading, e.g. 62000); counted as `timeouts`")
     parser.add_argument("--block-rows", type=int, metavar="N", default=BLOCK_ROWS,
                         help="lines of the CSV read and fitted at a time: memory is bounded "
                              f"by a block whatever the file's size (default {BLOCK_ROWS})")
@@ -114,7 +117,11 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--max-travel: {exc}") from None
     if args.block_rows < 1:
         raise ValueError(f"--block-rows must be a positive integer, got {args.block_rows}")
+    max_tof = args.max_tof
+    if max_tof is not None and not (math.isfinite(max_tof) and max_tof > 0.0):
+        raise ValueError(f"--max-tof must be a positive number of microseconds, got {max_tof}")
     fitter = OnlineFitter(config, segmenter, odometry_sd_deg_per_m=sd)
+    watch, timeouts = TimeoutWatch(), 0
     out = _JsonOut() if args.json else _JsonLinesOut() if args.jsonl else _TableOut()
     keep = (lambda lm: lm.ok) if args.only_ok else (lambda lm: True)
     # one block behind the reader (memory bounded by two blocks), so the last one is
@@ -124,6 +131,10 @@ def run(args: argparse.Namespace) -> int:
     error: LogFormatError | None = None
     try:
         for block in iter_scan_csv(args.scan, args.block_rows):
+            if max_tof is not None:
+                block, n = block.timeouts_as_no_echo(max_tof)
+                timeouts += n
+            watch.push(block.tof_us)
             if pending is not None:
                 out.write([lm for lm in fitter.push_block(pending) if keep(lm)])
             pending = block
@@ -133,7 +144,13 @@ def run(args: argparse.Namespace) -> int:
         error = err           # later: what was read before its block, then the error
     assert pending is not None   # (iter_scan_csv yields at least one block)
     out.write([lm for lm in fitter.push_block(pending, flush=True) if keep(lm)])
-    out.close(fitter.stats, error=None if error is None else str(error))
+    out.close(fitter.stats, error=None if error is None else str(error),
+              extra={} if max_tof is None else {"timeouts": timeouts})
+    suspect = watch.suspect(fitter.stats.echoes)
+    if suspect is not None:
+        print(f"sonarloc fit: note: {suspect[1]} of {fitter.stats.echoes} echoes have exactly "
+              f"the largest TOF, {suspect[0]:g} us: a module's timeout reported as an echo? "
+              f"If so, --max-tof {suspect[0]:g} takes them as no echo", file=sys.stderr)
     if error is not None:
         print(f"sonarloc fit: error: {error}", file=sys.stderr)
         return 2
@@ -153,17 +170,21 @@ class _JsonOut:
                              + json.dumps(landmark_to_json(lm), allow_nan=False))
             self.started = True
 
-    def close(self, st: SegmenterStats, error: str | None = None) -> None:
+    def close(self, st: SegmenterStats, error: str | None = None,
+              extra: dict[str, int] | None = None) -> None:
         if not self.started:
             sys.stdout.write('{"landmarks": [')
-        sys.stdout.write("], " + json.dumps(self._tail(st, error), allow_nan=False)[1:] + "\n")
+        sys.stdout.write("], " + json.dumps(self._tail(st, error, extra),
+                                            allow_nan=False)[1:] + "\n")
 
     @staticmethod
-    def _tail(st: SegmenterStats, error: str | None) -> dict[str, Any]:
-        """What follows the landmarks: the readings' counts, and the error if any."""
+    def _tail(st: SegmenterStats, error: str | None, extra: dict[str, int] | None
+              ) -> dict[str, Any]:
+        """What follows the landmarks: the readings' counts (and ``extra`` ones: the
+        ``timeouts`` of --max-tof), and the error if any."""
         tail: dict[str, Any] = {"readings": {
             "total": st.readings, "echoes": st.echoes, "no_echo": st.no_echo, "bad": st.bad,
-            "spikes": st.spikes, "segments": st.segments}}
+            "spikes": st.spikes, "segments": st.segments, **(extra or {})}}
         if error is not None:
             tail["error"] = error
         return tail
@@ -177,8 +198,9 @@ class _JsonLinesOut(_JsonOut):
         for lm in landmarks:
             sys.stdout.write(json.dumps(landmark_to_json(lm), allow_nan=False) + "\n")
 
-    def close(self, st: SegmenterStats, error: str | None = None) -> None:
-        sys.stdout.write(json.dumps(self._tail(st, error), allow_nan=False) + "\n")
+    def close(self, st: SegmenterStats, error: str | None = None,
+              extra: dict[str, int] | None = None) -> None:
+        sys.stdout.write(json.dumps(self._tail(st, error, extra), allow_nan=False) + "\n")
 
 
 class _TableOut:
@@ -201,7 +223,9 @@ class _TableOut:
                   f"{lm.status.value}" + (f" ({lm.reason})" if lm.reason else ""))
         self.n += len(landmarks)
 
-    def close(self, st: SegmenterStats, error: str | None = None) -> None:
+    def close(self, st: SegmenterStats, error: str | None = None,
+              extra: dict[str, int] | None = None) -> None:
         print(f"{self.n} landmark(s) from {st.readings} readings ({st.echoes} echoes, "
-              f"{st.spikes} spike echoes dropped)"
+              f"{st.spikes} spike echoes dropped"
+              + "".join(f", {v} {k}" for k, v in (extra or {}).items()) + ")"
               + (f"; stopped at a bad line: {error}" if error else ""))

@@ -11,7 +11,7 @@ import csv
 import itertools
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO
 
@@ -57,10 +57,58 @@ class ScanReadings:
         return cls(*[np.concatenate([getattr(p, f) for p in parts] + [np.empty(0, dtype=d)])
                      for f, d in cls.FIELDS])
 
+    def timeouts_as_no_echo(self, max_tof_us: float) -> tuple[ScanReadings, int]:
+        """These readings with every TOF at or above ``max_tof_us`` [us] made a no-echo
+        reading (NaN), and how many were: for a module that reports its timeout (the
+        end of its listening window) as a reading instead of as no echo."""
+        late = self.tof_us >= max_tof_us  # NaN compares False: stays no echo
+        n = int(np.count_nonzero(late))
+        if n == 0:
+            return self, 0
+        return replace(self, tof_us=np.where(late, np.nan, self.tof_us)), n
+
     def select(self, mask: NDArray[np.bool_] | slice) -> ScanReadings:
         """The readings at ``mask`` (boolean array, index array or slice)."""
         return ScanReadings(self.t_s[mask], self.x_m[mask], self.y_m[mask],
                             self.yaw_rad[mask], self.tof_us[mask], self.sensor[mask])
+
+
+class TimeoutWatch:
+    """Watches a scan's readings, block by block, for a module's timeout reported as an
+    echo: many readings at exactly the largest TOF of the scan. Echoes of a real
+    reflector scatter by the module's jitter, so a value repeated exactly at the top of
+    the range is the end of the listening window. Fitted, those readings make "walls"
+    at that range (10.6 m for 62,000 us), some ``flat``, and their no-echo information
+    (which bounds the arcs of real reflectors) is lost.
+
+    >>> w = TimeoutWatch()
+    >>> w.push(np.array([5000.0, 62000.0, np.nan, 62000.0, 9000.0] * 4))
+    >>> w.suspect(echoes=16)
+    (62000.0, 8)
+    """
+
+    MIN_COUNT = 5
+    MIN_FRACTION = 0.05  # of the echoes
+
+    def __init__(self) -> None:
+        self.largest = -math.inf
+        self.count = 0
+
+    def push(self, tof_us: NDArray[np.float64]) -> None:
+        finite = tof_us[np.isfinite(tof_us)]
+        if finite.size == 0:
+            return
+        top = float(finite.max())
+        if top > self.largest:
+            self.largest, self.count = top, 0
+        if top == self.largest:
+            self.count += int(np.count_nonzero(finite == top))
+
+    def suspect(self, echoes: int) -> tuple[float, int] | None:
+        """(the TOF [us], how many readings) when they look like timeouts, else None."""
+        if self.count >= max(self.MIN_COUNT, self.MIN_FRACTION * echoes):
+            return self.largest, self.count
+        return None
 
 
 def _column(rows: list[list[str]], index: int, name: str, line_of: list[int],

@@ -267,3 +267,42 @@ def test_fit_refuses_a_speed_of_sound_that_is_not_air(tmp_path, capsys):
     for value in ("250", "343", "450"):
         assert main(["fit", str(scan), "--speed-of-sound", value, "--json"]) == 0, value
         assert json.loads(capsys.readouterr().out)["readings"]["total"] == 1
+
+
+def test_fit_max_tof_takes_a_module_s_timeouts_as_no_echo(tmp_path, rng, run_cli):
+    """A module that reports its timeout as a reading (62,000 us, 10.6 m) instead of as
+    no echo: fitted as echoes, those readings gave `flat` "walls" at 10.6 m and lost
+    their no-echo information. `fit` says so on stderr (once, whatever the block size)
+    and names the fix; `--max-tof 62000` gives the landmarks of the clean scan, and counts
+    the timeouts. A clean scan gets no note."""
+    import csv
+
+    clean = _fig5_csv(tmp_path, rng)
+    rows = list(csv.DictReader(clean.open()))
+    assert sum(not r["tof_us"] for r in rows) >= 20
+    for r in rows:
+        r["tof_us"] = r["tof_us"] or "62000"
+    sat = tmp_path / "timeouts.csv"
+    with sat.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    n_timeouts = sum(r["tof_us"] == "62000" for r in rows)
+
+    want = json.loads(run_cli("fit", str(clean), "--json", check=True).stdout)
+    for block in ("100000", "50"):
+        proc = run_cli("fit", str(sat), "--json", "--block-rows", block, check=True)
+        assert proc.stderr.count("note:") == 1
+        assert f"{n_timeouts} of " in proc.stderr and "--max-tof 62000" in proc.stderr
+        got = json.loads(proc.stdout)
+        assert any(lm["range_m"] > 10 for lm in got["landmarks"])
+    fixed = run_cli("fit", str(sat), "--json", "--max-tof", "62000", check=True)
+    assert "note:" not in fixed.stderr
+    out = json.loads(fixed.stdout)
+    assert out["landmarks"] == want["landmarks"]
+    assert out["readings"] == {**want["readings"], "timeouts": n_timeouts}
+    assert "note:" not in run_cli("fit", str(clean), "--json", check=True).stderr
+    table = run_cli("fit", str(sat), "--max-tof", "61000", check=True).stdout
+    assert f", {n_timeouts} timeouts)" in table
+    bad = run_cli("fit", str(sat), "--max-tof", "-1")
+    assert bad.returncode == 2 and "--max-tof" in bad.stderr
