@@ -95,7 +95,7 @@ class TimeoutWatch:
         self.count = 0
 
     def push(self, tof_us: NDArray[np.float64]) -> None:
-        finite = tof_us[np.isfinite(tof_us)]
+        finite = tof_us[np.isfinite(tof_us) & (tof_us > 0.0)]  # echoes (not bad readings)
         if finite.size == 0:
             return
         top = float(finite.max())

@@ -104,3 +104,18 @@ def test_round_trip(rows):
         np.testing.assert_allclose(getattr(back, name), getattr(scan, name), rtol=1e-12,
                                    atol=1e-12)
     np.testing.assert_array_equal(back.sensor, scan.sensor)
+
+
+def test_timeout_watch_counts_echoes_only_and_the_largest_across_blocks():
+    from sonarloc.io.scancsv import TimeoutWatch
+
+    w = TimeoutWatch()
+    w.push(np.array([-5.0] * 50 + [np.nan] * 10 + [np.inf] * 3))  # bad readings, no echo
+    assert w.suspect(echoes=0) is None
+    w.push(np.array([9000.0] * 6 + [8000.0]))
+    assert w.suspect(echoes=7) == (9000.0, 6)
+    w.push(np.array([62000.0] * 4))   # a larger value starts the count again
+    assert w.suspect(echoes=11) is None
+    w.push(np.array([62000.0, 5000.0]))
+    assert w.suspect(echoes=13) == (62000.0, 5)
+    assert w.suspect(echoes=101) is None   # under 5 % of the echoes
