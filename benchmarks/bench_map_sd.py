@@ -1,0 +1,140 @@
+"""How honest are the ``sd_m`` of built maps? Normalized errors against the true map.
+
+Simulates drives of ``maps/room.geojson`` (ring16, the map-building drive of
+``bench_localize.py``), builds maps with ``sonarloc map build`` from odometry alone and
+from the poses of ``sonarloc localize`` (kuc, against the true map), and compares every
+built feature with the nearest true one of its geometry:
+
+* point (pole, rod, corner, edge, point): distance between centres (a pole's or rod's
+  centre; a true point within ``--gate`` metres);
+* wall: the larger distance of its two ends from the nearest true wall's line (within
+  ``--gate`` of it and 10 deg of its direction).
+
+Each error divided by the feature's ``sd_m`` is its normalized error ``z``. Reported per
+build: features matched, NEES = mean ``z^2`` (points and walls apart), median and
+largest ``z``, the share with ``z > 3``, and the median error and ``sd_m`` (mm). A point's
+``sd_m`` is its larger position SD and its error is 2-D: an honest point has mean ``z^2``
+between 1 and 2 (2 when isotropic); a wall's end error is 1-D (about 1 when honest).
+
+Run: ``python benchmarks/bench_map_sd.py [--seeds 200 201] [--duration 60]`` (a 60 s
+drive builds in ~20 s per seed and pose source).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from sonarloc.io.logfile import LogWriter, TruthRecord, iter_log  # noqa: E402
+from sonarloc.io.posescsv import PoseTrack  # noqa: E402
+from sonarloc.localize.features import FeatureMap  # noqa: E402
+from sonarloc.localize.replay import replay_log  # noqa: E402
+from sonarloc.maps.build import BuiltFeature, build_from_log  # noqa: E402
+from sonarloc.maps.geojson import Map, load_map  # noqa: E402
+from sonarloc.world.rig import ring16  # noqa: E402
+from sonarloc.world.simulate import simulate_records  # noqa: E402
+
+
+def simulate(world: Map, seed: int, duration_s: float) -> str:
+    buf = io.StringIO()
+    with LogWriter(buf) as w:
+        w.write_all(simulate_records(world, ring16(), duration_s=duration_s, seed=seed))
+    return buf.getvalue()
+
+
+def truth_track(text: str) -> PoseTrack:
+    tr = [r for r in iter_log(io.StringIO(text)) if isinstance(r, TruthRecord)]
+    n = len(tr)
+    return PoseTrack(np.array([r.t_s for r in tr]), np.array([r.x_m for r in tr]),
+                     np.array([r.y_m for r in tr]), np.radians([r.yaw_deg for r in tr]),
+                     np.zeros((n, 3, 3)))
+
+
+def localized_track(text: str, world: Map) -> PoseTrack:
+    rows: list[tuple[float, np.ndarray, np.ndarray]] = []
+    replay_log(io.StringIO(text), FeatureMap.from_map(world),
+               on_estimate=lambda r, e: rows.append((r.t_s, e.state.mean, e.state.cov)))
+    return PoseTrack(np.array([r[0] for r in rows]), np.array([r[1][0] for r in rows]),
+                     np.array([r[1][1] for r in rows]), np.array([r[1][2] for r in rows]),
+                     np.array([r[2] for r in rows]))
+
+
+def feature_errors(feats: list[BuiltFeature], world: Map, gate_m: float
+                   ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+    """(error, sd_m) of the built points and of the built walls matched to true ones."""
+    t = FeatureMap.from_map(world)
+    points, walls = [], []
+    for f in feats:
+        if f.kind == "wall":
+            d = f.coords[1] - f.coords[0]
+            best = math.inf
+            for a, b in t.wall_ends:
+                e = b - a
+                nrm = np.array([-e[1], e[0]]) / np.hypot(*e)
+                cos = abs(float(d @ e)) / (np.hypot(*d) * np.hypot(*e))
+                if cos < math.cos(math.radians(10)):
+                    continue
+                best = min(best, max(abs(float((p - a) @ nrm)) for p in f.coords))
+            if best <= gate_m:
+                walls.append((best, f.sd_m))
+        else:
+            dist = float(np.min(np.hypot(*(t.point_xy - f.coords).T)))
+            if dist <= gate_m:
+                points.append((dist, f.sd_m))
+    return points, walls
+
+
+def row(label: str, errs: list[tuple[float, float]]) -> str:
+    if not errs:
+        return f"| {label} | 0 | - | - | - | - | - | - |"
+    e = np.array([x[0] for x in errs])
+    sd = np.array([x[1] for x in errs])
+    z = e / np.maximum(sd, 1e-12)
+    return (f"| {label} | {len(e)} | {np.mean(z**2):.2f} | {np.median(z):.2f} | "
+            f"{np.max(z):.2f} | {100 * np.mean(z > 3):.0f} % | {1000 * np.median(e):.1f} | "
+            f"{1000 * np.median(sd):.1f} |")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[200])
+    ap.add_argument("--duration", type=float, default=60.0, help="drive length [s]")
+    ap.add_argument("--gate", type=float, default=0.5,
+                    help="largest error [m] of a built feature matched to a true one")
+    ap.add_argument("--sources", nargs="+", default=["odometry", "localize"],
+                    choices=["odometry", "localize", "truth"])
+    args = ap.parse_args()
+    world = load_map(ROOT / "maps" / "room.geojson")
+    acc: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
+        s: ([], []) for s in args.sources}
+    for seed in args.seeds:
+        text = simulate(world, seed, args.duration)
+        for src in args.sources:
+            poses = None if src == "odometry" else truth_track(text) if src == "truth" else \
+                localized_track(text, world)
+            res = build_from_log(io.StringIO(text), poses)
+            p, w = feature_errors(res.builder.features(), world, args.gate)
+            acc[src][0].extend(p)
+            acc[src][1].extend(w)
+    print(f"room, ring16, {args.duration:.0f} s, seeds {' '.join(map(str, args.seeds))}, "
+          f"gate {args.gate} m\n")
+    print("| build | n | NEES (mean z^2) | median z | max z | z > 3 | median error (mm) | "
+          "median sd_m (mm) |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for src, (p, w) in acc.items():
+        print(row(f"{src}: points", p))
+        print(row(f"{src}: walls", w))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
