@@ -132,6 +132,14 @@ class LandmarkSource(Protocol):
     def flush(self) -> list[Landmark]: ...
 
 
+DEFAULT_ODOM_NOISE = OdomNoise(
+    along_var_per_m=0.005**2, cross_var_per_m=0.003**2, xy_var_per_rad=0.002**2,
+    yaw_var_per_m=math.radians(1.0) ** 2, yaw_var_per_rad=math.radians(1.0) ** 2)
+"""Odometry increment noise of :class:`LocalizerConfig` and of the map builder
+(:class:`~sonarloc.maps.build.BuildConfig`): 5 mm along and 3 mm across per sqrt(m),
+1 deg per sqrt(m) and per sqrt(rad) of yaw."""
+
+
 @dataclass(frozen=True)
 class LocalizerConfig:
     """Settings of the :class:`Localizer`.
@@ -228,9 +236,7 @@ class LocalizerConfig:
     """
 
     method: Method = "kuc"
-    odom_noise: OdomNoise = field(default_factory=lambda: OdomNoise(
-        along_var_per_m=0.005**2, cross_var_per_m=0.003**2, xy_var_per_rad=0.002**2,
-        yaw_var_per_m=math.radians(1.0) ** 2, yaw_var_per_rad=math.radians(1.0) ** 2))
+    odom_noise: OdomNoise = field(default_factory=lambda: DEFAULT_ODOM_NOISE)
     association: AssociationConfig = field(default_factory=AssociationConfig)
     history_s: float = 10.0
     fit_sd_floor_m: float = 0.002

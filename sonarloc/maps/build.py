@@ -60,7 +60,8 @@ from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, TofRecord, iter_log
 from sonarloc.io.posescsv import PoseTrack
-from sonarloc.localize.localizer import in_odom_gap
+from sonarloc.localize.ekf import OdomNoise, predict_lists
+from sonarloc.localize.localizer import DEFAULT_ODOM_NOISE, in_odom_gap
 from sonarloc.maps.geojson import Map, map_from_geojson
 from sonarloc.physics import constants
 
@@ -98,6 +99,9 @@ class BuildConfig:
     min_visits: int = 1
     speed_of_sound_mps: float | None = None
     odom_gap_s: float = 1.0  # readings inside a longer gap of a moving robot's poses: skipped
+    #: odometry increment noise of a build without poses (dead reckoning): its drift's
+    #: covariance, propagated along the log, goes into the features' ``sd_m``
+    odom_noise: OdomNoise = field(default_factory=lambda: DEFAULT_ODOM_NOISE)
 
     def __post_init__(self) -> None:
         for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "pole_radius_m", "shadow_m",
@@ -145,6 +149,32 @@ class _Visits:
 
 
 @dataclass
+class _Drift:
+    """Weighted mean of the sightings' dead-reckoning covariances (2, 2), each mapped
+    into the landmark's parameters (x, y or rho, alpha).
+
+    The odometry's drift is an error the sightings share (every later pose carries all
+    of the drift before it), so it does not average down over sightings: the weighted
+    mean of their covariances, not the covariance divided by their number, bounds the
+    error the drift leaves in a weighted mean of them (for any correlation between them).
+    """
+
+    total: Array = field(default_factory=lambda: np.zeros((2, 2)))
+    weight: float = 0.0
+
+    def add(self, cov: Array, weight: float) -> None:
+        self.total += weight * cov
+        self.weight += weight
+
+    def merged(self, other: _Drift, flip: bool = False) -> _Drift:
+        j = np.diag([-1.0, 1.0]) if flip else np.eye(2)
+        return _Drift(self.total + j @ other.total @ j, self.weight + other.weight)
+
+    def cov(self) -> Array:
+        return self.total / self.weight if self.weight > 0 else np.zeros((2, 2))
+
+
+@dataclass
 class _PointCluster:
     """Normal equations of q_i = c + R u_i (unknowns c_x, c_y, R), plus strength."""
 
@@ -156,6 +186,9 @@ class _PointCluster:
     _cov: Array | None = None
     u_sum: Array = field(default_factory=lambda: np.zeros(2))
     visits: _Visits = field(default_factory=_Visits)
+    #: sum of q_i' C_i⁻¹ q_i (for the fit's chi-square)
+    zwz: float = 0.0
+    drift: _Drift = field(default_factory=lambda: _Drift())
 
     def mean_view(self) -> Array:
         """(2,) mean unit direction from the reflector towards the transducers."""
@@ -171,6 +204,7 @@ class _PointCluster:
         w = np.linalg.solve(cov, a)  # C⁻¹ A
         self.normal += a.T @ w
         self.rhs += w.T @ q
+        self.zwz += float(q @ np.linalg.solve(cov, q))
         self.n += 1
         self.log_kappas.append(log_kappa)
         self.u_sum += u
@@ -181,6 +215,8 @@ class _PointCluster:
         self.normal += other.normal
         self.normal[2, 2] -= prior_info
         self.rhs += other.rhs
+        self.zwz += other.zwz
+        self.drift = self.drift.merged(other.drift)
         self.n += other.n
         self.log_kappas.extend(other.log_kappas)
         self.u_sum += other.u_sum
@@ -201,6 +237,17 @@ class _PointCluster:
             self._cov = cov
         assert self._cov is not None
         return self._solution, self._cov
+
+    def chi2_per_dof(self, radius: bool) -> float:
+        """Reduced chi-square of the sightings about the solution (with the radius
+        ``radius``, else the point with R = 0); NaN without degrees of freedom."""
+        if radius:
+            sol, _ = self.solve()
+            chi2, dof = self.zwz - float(sol @ self.rhs), 2 * self.n - 3
+        else:
+            centre, _ = self.solve_point()
+            chi2, dof = self.zwz - float(centre @ self.rhs[:2]), 2 * self.n - 2
+        return max(chi2, 0.0) / dof if dof > 0 else math.nan
 
     @property
     def log_kappa(self) -> float:
@@ -229,6 +276,8 @@ class _WallCluster:
     feet: deque[tuple[float, float, float]] = field(
         default_factory=lambda: deque(maxlen=_MAX_FEET))
     visits: _Visits = field(default_factory=_Visits)
+    #: dead-reckoning covariance of (rho, alpha), in this cluster's branch
+    drift: _Drift = field(default_factory=lambda: _Drift())
 
     def scatter(self) -> float:
         """Chi-square per degree of freedom of the member fits about the merged line."""
@@ -268,6 +317,19 @@ class BuiltFeature:
     radius_m: float = 0.0
     sd_alpha_deg: float = math.nan
     n_visits: int = 0
+    #: a wall's across-line variance [m²] at along-line coordinate t [m] (t = p · d,
+    #: d = (-sin alpha, cos alpha)): ``c0 + c1 t + c2 t²``
+    offset_var: tuple[float, float, float] | None = None
+
+    def end_sd(self, ends: Array) -> float:
+        """A wall's SD [m] across its line at the worse of its ends ``ends`` (2, 2)."""
+        if self.offset_var is None:
+            return self.sd_m
+        c0, c1, c2 = self.offset_var
+        a, b = ends
+        d = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
+        t = np.asarray(ends, dtype=float) @ d
+        return float(np.sqrt(np.max(np.maximum(c0 + c1 * t + c2 * t**2, 0.0))))
 
     def geojson(self, fid: str) -> dict[str, Any]:
         geom: dict[str, Any]
@@ -299,14 +361,19 @@ class MapBuilder:
         self.stats: Counter[str] = Counter()
 
     def add(self, lm: Landmark, view_xy: Array, pose: Array | None = None,
-            pose_cov: Array | None = None, feet: Array | None = None) -> str:
+            pose_cov: Array | None = None, feet: Array | None = None,
+            drift_cov: Array | None = None) -> str:
         """Add one landmark in ``map``.
 
         ``view_xy``: (2,) where the transducer saw it from (mean echo position);
         ``pose`` / ``pose_cov``: base_link pose at the reference time and its covariance
-        (carried into the landmark's covariance); ``feet``: (k, 2) normal-incidence points
-        of a wall's echoes (its extent). Returns what happened: ``point``, ``wall`` (joined
-        or new) or the reason it was skipped.
+        (carried into the landmark's covariance, an error of this sighting alone);
+        ``feet``: (k, 2) normal-incidence points of a wall's echoes (its extent);
+        ``drift_cov``: (3, 3) covariance of the pose's dead-reckoning drift (with
+        ``pose``), an error shared with the other sightings of the feature: it weights
+        this sighting and is kept whole in the feature's ``sd_m`` (:class:`_Drift`).
+        Returns what happened: ``point``, ``wall`` (joined or new) or the reason it was
+        skipped.
         """
         cfg = self.config
         if lm.status.value not in cfg.statuses:
@@ -321,14 +388,20 @@ class MapBuilder:
             cov = cov + _pose_jacobian(lm.kind, p, pose) @ pose_cov @ \
                 _pose_jacobian(lm.kind, p, pose).T
         cov = cov + np.eye(2) * 1e-8
-        if self._vague(lm.kind, cov):
+        if self._vague(lm.kind, cov):  # (the drift does not make a fit vague)
             self.stats["skipped_vague"] += 1
             return "skipped_vague"
+        drift = np.zeros((2, 2))
+        if pose is not None and drift_cov is not None and np.all(np.isfinite(drift_cov)):
+            jac = _pose_jacobian(lm.kind, p, pose)
+            drift = jac @ np.asarray(drift_cov, dtype=float) @ jac.T
+            cov = cov + drift
         log_k = math.log(p[2])
         if lm.kind == "point":
-            self._add_point(p[:2], cov, np.asarray(view_xy, dtype=float), log_k, lm.ref_t_s)
+            self._add_point(p[:2], cov, np.asarray(view_xy, dtype=float), log_k, lm.ref_t_s,
+                            drift)
             return "point"
-        self._add_wall(p[0], p[1], cov, feet, log_k, lm.ref_t_s)
+        self._add_wall(p[0], p[1], cov, feet, log_k, lm.ref_t_s, drift)
         return "wall"
 
     VAGUE_GATES = 10.0
@@ -351,7 +424,7 @@ class MapBuilder:
         return bool(var.max() > 1.0 or np.linalg.eigvalsh(cov)[0] <= 0.0)
 
     def _add_point(self, q: Array, cov: Array, view: Array, log_k: float,
-                   t_s: float) -> None:
+                   t_s: float, drift: Array) -> None:
         cfg = self.config
         v = view - q
         u = v / max(float(np.hypot(*v)), 1e-9)
@@ -367,11 +440,13 @@ class MapBuilder:
             self.points.append(best)
             self.stats["point_clusters"] += 1
         best.add(q, cov, u, log_k)
+        # weighted as the fit weights it (its information, as a scalar)
+        best.drift.add(drift, 2.0 / float(np.trace(cov)))
         best.visits.add(t_s, cfg.visit_gap_s)
         self.stats["points"] += 1
 
     def _add_wall(self, rho: float, alpha: float, cov: Array, feet: Array | None,
-                  log_k: float, t_s: float) -> None:
+                  log_k: float, t_s: float, drift: Array) -> None:
         cfg = self.config
         f = np.zeros((0, 2)) if feet is None else np.asarray(feet, dtype=float).reshape(-1, 2)
         best, best_score = None, math.inf
@@ -397,6 +472,10 @@ class MapBuilder:
             self.walls.append(best)
             self.stats["wall_clusters"] += 1
         z = best.aligned(rho, alpha)
+        # the line goes through the feet, each fit weighted by its echoes
+        flip = np.diag([-1.0, 1.0]) if abs(float(se2.wrap_angle(alpha - best.alpha_ref))) > \
+            math.pi / 2 else np.eye(2)
+        best.drift.add(flip @ drift @ flip, float(max(len(f), 1)))
         w = np.linalg.inv(cov)
         best.info += w
         best.rhs += w @ z
@@ -430,7 +509,7 @@ class MapBuilder:
             line = _robust_line(c)
             if line is None:
                 continue
-            rho, alpha, t_min, t_max, sd_rho, sd_alpha = line
+            rho, alpha, t_min, t_max, sd_rho, sd_alpha, t_c = line
             n = np.array([math.cos(alpha), math.sin(alpha)])
             d = np.array([-n[1], n[0]])
             ends = np.array([rho * n + t_min * d, rho * n + t_max * d])
@@ -438,9 +517,18 @@ class MapBuilder:
                                         c.n < 2 * cfg.min_observations):
                 self.stats["dropped_short_wall"] += 1
                 continue  # short and rarely seen: corner/edge echoes fitted as a line
-            walls.append(BuiltFeature("wall", ends, math.exp(float(np.median(c.log_kappas))),
-                                      sd_rho, c.n, sd_alpha_deg=math.degrees(sd_alpha),
-                                      n_visits=len(c.visits)))
+            # across-line variance at t: the fit's (sd_rho at the feet's centroid t_c, the
+            # direction's sd_alpha about it) plus the drift's (rho, alpha) at the origin:
+            # offset(t) = d_rho - t d_alpha
+            dr = c.drift.cov()
+            offset_var = (sd_rho**2 + t_c**2 * sd_alpha**2 + float(dr[0, 0]),
+                          -2.0 * t_c * sd_alpha**2 - 2.0 * float(dr[0, 1]),
+                          sd_alpha**2 + float(dr[1, 1]))
+            proto = BuiltFeature("wall", ends, math.exp(float(np.median(c.log_kappas))),
+                                 sd_rho, c.n, n_visits=len(c.visits), offset_var=offset_var,
+                                 sd_alpha_deg=math.degrees(math.sqrt(sd_alpha**2 +
+                                                                     float(dr[1, 1]))))
+            walls.append(_with_ends(proto, ends))
         walls = _join_walls(_drop_shadowed(walls, cfg), cfg.join_m)
         vertices = _wall_vertices(walls, cfg.corner_gate_m)
         points: list[BuiltFeature] = []
@@ -476,7 +564,12 @@ class MapBuilder:
                 centre, cov2 = pc.solve_point()
                 cov = np.zeros((3, 3))
                 cov[:2, :2] = cov2
-            sd = math.sqrt(float(np.max(np.linalg.eigvalsh(cov[:2, :2]))))
+            # the sightings' scatter beyond their stated SDs widens the fit's covariance;
+            # the drift they share is kept whole on top
+            chi2 = pc.chi2_per_dof(radius > 0.0)
+            scale = chi2 if math.isfinite(chi2) and chi2 > 1.0 else 1.0
+            cov_xy = scale * cov[:2, :2] + pc.drift.cov()
+            sd = math.sqrt(float(np.max(np.linalg.eigvalsh(cov_xy))))
             points.append(BuiltFeature(kind, centre, kappa, sd, pc.n, radius,
                                        n_visits=len(pc.visits)))
         return walls + points
@@ -494,10 +587,13 @@ class MapBuilder:
         return map_from_geojson(self.geojson())
 
 
-def _robust_line(c: _WallCluster) -> tuple[float, float, float, float, float, float] | None:
-    """(rho, alpha, t_min, t_max, sd_rho, sd_alpha) of a wall cluster's line, fitted
-    through its member fits' feet (total least squares, outliers beyond 3 robust SDs
-    dropped), extent from the inlier feet; None if nothing is left.
+def _robust_line(c: _WallCluster
+                 ) -> tuple[float, float, float, float, float, float, float] | None:
+    """(rho, alpha, t_min, t_max, sd_rho, sd_alpha, t_c) of a wall cluster's line,
+    fitted through its member fits' feet (total least squares, outliers beyond 3 robust
+    SDs dropped), extent from the inlier feet; None if nothing is left. ``sd_rho`` is the
+    line's SD across itself at ``t_c``, where the inlier feet's centroid lies along it
+    (t = p · d, d = (-sin alpha, cos alpha)).
 
     A fit's feet are where the transducer's perpendicular met its line: a yaw error of
     the pose slides them along the wall but hardly moves them across it, so a line
@@ -545,7 +641,7 @@ def _robust_line(c: _WallCluster) -> tuple[float, float, float, float, float, fl
     sd_rho = sigma / math.sqrt(n_fits)
     sd_alpha = sigma / (math.sqrt(n_fits) * spread) if spread >= 0.2 else \
         math.sqrt(float(cov_info[1, 1]))
-    return rho, alpha, float(t.min()), float(t.max()), sd_rho, sd_alpha
+    return rho, alpha, float(t.min()), float(t.max()), sd_rho, sd_alpha, float(mean @ d)
 
 
 def _wall_vertices(walls: list[BuiltFeature], gate_m: float) -> list[tuple[Array, Array, Array]]:
@@ -670,6 +766,7 @@ def _merge_walls(clusters: list[_WallCluster], cfg: BuildConfig) -> list[_WallCl
             o.info += j @ c.info @ j
             o.rhs += j @ c.info @ z
             o.zwz += c.zwz
+            o.drift = o.drift.merged(c.drift, flip)
             o.n += c.n
             o.log_kappas.extend(c.log_kappas)
             o.feet.extend(c.feet)
@@ -681,7 +778,8 @@ def _merge_walls(clusters: list[_WallCluster], cfg: BuildConfig) -> list[_WallCl
             out.append(_WallCluster(c.alpha_ref, c.info.copy(), c.rhs.copy(), c.t_min, c.t_max,
                                     c.n, deque(c.log_kappas, maxlen=255), c.zwz,
                                     deque(c.feet, maxlen=_MAX_FEET),
-                                    _Visits([list(v) for v in c.visits.spans])))
+                                    _Visits([list(v) for v in c.visits.spans]),
+                                    c.drift.merged(_Drift())))
     return out
 
 
@@ -700,6 +798,8 @@ def _merge_points(clusters: list[_PointCluster], gate_m: float, prior_info: floa
                                                                              maxlen=255))
             merged.u_sum = c.u_sum.copy()
             merged.visits = _Visits([list(v) for v in c.visits.spans])
+            merged.zwz = c.zwz
+            merged.drift = c.drift.merged(_Drift())
             out.append(merged)
     return out
 
@@ -738,8 +838,14 @@ def _join_walls(walls: list[BuiltFeature], join_m: float) -> list[BuiltFeature]:
                     and np.hypot(*(ends[j][ib] - x)) <= join_m:
                 ends[i][ia] = x
                 ends[j][ib] = x
-    return [BuiltFeature(w.kind, e, w.kappa_us, w.sd_m, w.n_obs, w.radius_m, w.sd_alpha_deg,
-                         w.n_visits) for w, e in zip(walls, ends, strict=True)]
+    return [_with_ends(w, e) for w, e in zip(walls, ends, strict=True)]
+
+
+def _with_ends(wall: BuiltFeature, ends: Array) -> BuiltFeature:
+    """``wall`` with its ends moved to ``ends`` (2, 2) and its ``sd_m`` the SD across
+    its line at the worse of them (a yaw error moves a long wall's far end most)."""
+    return BuiltFeature(wall.kind, ends, wall.kappa_us, wall.end_sd(ends), wall.n_obs,
+                        wall.radius_m, wall.sd_alpha_deg, wall.n_visits, wall.offset_var)
 
 
 # --------------------------------------------------------------------------- from a log
@@ -815,9 +921,15 @@ def _in_gap(times: Sequence[float] | Array, poses: Sequence[Array] | Array, t_s:
 
 
 def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult,
-              gap_s: float = math.inf
+              gap_s: float = math.inf, odom_noise: OdomNoise = DEFAULT_ODOM_NOISE
               ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float]]:
     """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c).
+
+    The base pose's covariance is the pose track's (None if it has none), or without a
+    track the dead reckoning's: the ``init`` record's prior (none without one: the map
+    frame is the first odometry pose) carried along the odometry, each increment adding
+    ``odom_noise`` (:func:`~sonarloc.localize.ekf.predict`), interpolated between
+    odometry records.
 
     A reading without a pose is counted in ``result.skipped``, never given a made-up
     one: outside the pose track (``tof_outside_poses``; pose rows whose time went
@@ -848,6 +960,10 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
                        None if np.any(np.isnan(cov)) else cov)
     odo_t: list[float] = []
     odo_p: list[Array] = []
+    odo_c: list[Array] = []  # covariance of the pose relative to the first odometry
+    rel_mean: list[float] = [0.0, 0.0, 0.0]
+    rel_cov: list[list[float]] = [[0.0] * 3 for _ in range(3)]
+    init_cov = np.zeros((3, 3))
     pending: list[TofRecord] = []
 
     def odom_at(t: float) -> Array:
@@ -859,6 +975,16 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
         span = odo_t[i] - odo_t[i - 1]
         return se2.interpolate(odo_p[i - 1], odo_p[i], 0.0 if span <= 0 else
                                (t - odo_t[i - 1]) / span)
+
+    def odom_cov_at(t: float) -> Array:
+        i = bisect.bisect_right(odo_t, t)
+        if i <= 0:
+            return odo_c[0]
+        if i >= len(odo_t):
+            return odo_c[-1]
+        span = odo_t[i] - odo_t[i - 1]
+        f = 0.0 if span <= 0 else (t - odo_t[i - 1]) / span
+        return (1 - f) * odo_c[i - 1] + f * odo_c[i]
 
     def emit(r: TofRecord) -> Iterator[tuple[float, int, float, Array, Array | None, Array,
                                               float]]:
@@ -879,6 +1005,10 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
             anchored = True
             first = odom_first if odom_first is not None else odo_p[0]
             rel = se2.between(first, odom_at(r.t_s))
+            cov = odom_cov_at(r.t_s)
+            if init is not None:
+                j_init, j_rel = se2.compose_jacobians(init, rel)
+                cov = j_init @ init_cov @ j_init.T + j_rel @ cov @ j_rel.T
             base = se2.compose(init, rel) if init is not None else rel
         tof = math.nan if r.tof_us is None else float(r.tof_us)
         yield r.t_s, r.sensor, tof, se2.compose(base, mount), cov, base, c_mps
@@ -893,6 +1023,8 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
                 skipped["init_after_readings"] += 1
             elif init is None:
                 init = np.array([rec.x_m, rec.y_m, math.radians(rec.yaw_deg)])
+                init_cov = np.diag([rec.sd_xy_m**2, rec.sd_xy_m**2,
+                                    math.radians(rec.sd_yaw_deg) ** 2])
         elif isinstance(rec, OdomRecord):
             p = np.array([rec.x_m, rec.y_m, math.radians(rec.yaw_deg)])
             if odom_first is None:
@@ -904,11 +1036,14 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
                 step = se2.between(odo_p[-1], p)
                 result.odom_travel_m += math.hypot(step[0], step[1])
                 result.odom_turn_deg += abs(math.degrees(step[2]))
+                rel_mean, rel_cov = predict_lists(rel_mean, rel_cov, step.tolist(), odom_noise)
             odo_t.append(rec.t_s)
             odo_p.append(p)
+            odo_c.append(np.array(rel_cov))
             if len(odo_t) > 4096:  # only recent odometry is needed: keep memory flat
                 del odo_t[:2048]
                 del odo_p[:2048]
+                del odo_c[:2048]
             ready = [r for r in pending if r.t_s <= rec.t_s]
             pending = [r for r in pending if r.t_s > rec.t_s]
             for r in ready:
@@ -968,7 +1103,9 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     seg: Segmenter | None = None
     fit_cfg: FitConfig | None = None
     ref_cov: dict[float, tuple[Array, Array | None]] = {}
-    for t, sensor, tof, pose, cov, base, c_mps in _readings(source, poses, result, cfg.odom_gap_s):
+    drift = poses is None  # dead reckoning: an error the sightings share
+    for t, sensor, tof, pose, cov, base, c_mps in _readings(source, poses, result,
+                                                            cfg.odom_gap_s, cfg.odom_noise):
         if seg is None or fit_cfg is None:
             fit_cfg = FitConfig(module=ModuleParams(c_mps=cfg.speed_of_sound_mps or c_mps))
             seg = Segmenter(SegmenterConfig(max_readings=cfg.segment_max_readings),
@@ -981,16 +1118,18 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
                     del ref_cov[k]
         closed = seg.push(t, float(pose[0]), float(pose[1]), float(pose[2]), tof, sensor)
         if closed:
-            _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov)
+            _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov, drift)
     if seg is not None and fit_cfg is not None:
         closed = seg.flush()
         if closed:
-            _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov)
+            _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov, drift)
     return result
 
 
 def _add_segments(result: BuildResult, segments: list[Any], landmarks: list[Landmark],
-                  ref_cov: dict[float, tuple[Array, Array | None]]) -> None:
+                  ref_cov: dict[float, tuple[Array, Array | None]], drift: bool) -> None:
+    """Add the fitted landmarks; the poses' covariance in ``ref_cov`` is the dead
+    reckoning's drift if ``drift`` (shared by the sightings), else each pose's own."""
     if len(segments) != len(landmarks):  # pragma: no cover - fit_segments is one per segment
         raise RuntimeError("fit_segments returned a different number of landmarks")
     for s, lm in zip(segments, landmarks, strict=True):
@@ -1005,4 +1144,7 @@ def _add_segments(result: BuildResult, segments: list[Any], landmarks: list[Land
             n = np.array([math.cos(lm.params[1]), math.sin(lm.params[1])])
             xy = np.stack([r.x_m[echo], r.y_m[echo]], axis=-1)
             feet = xy + (lm.params[0] - xy @ n)[:, None] * n
-        result.builder.add(lm, view, base, cov, feet)
+        if drift:
+            result.builder.add(lm, view, base, None, feet, drift_cov=cov)
+        else:
+            result.builder.add(lm, view, base, cov, feet)
