@@ -189,6 +189,13 @@ class _PointCluster:
     #: sum of q_i' C_i⁻¹ q_i (for the fit's chi-square)
     zwz: float = 0.0
     drift: _Drift = field(default_factory=lambda: _Drift())
+    #: Σ Aᵢᵀ Cᵢ⁻¹ Fᵢ Cᵢ⁻¹ Aᵢ (+ the prior), Fᵢ the fit's own covariance (Cᵢ less the
+    #: drift): the middle of the sandwich covariance of the fit's own error
+    middle: Array | None = None
+
+    def __post_init__(self) -> None:
+        if self.middle is None:
+            self.middle = self.normal.copy()
 
     def mean_view(self) -> Array:
         """(2,) mean unit direction from the reflector towards the transducers."""
@@ -199,10 +206,15 @@ class _PointCluster:
         cov = np.asarray(np.linalg.inv(self.normal[:2, :2]), dtype=float)
         return cov @ self.rhs[:2], cov
 
-    def add(self, q: Array, cov: Array, u: Array, log_kappa: float) -> None:
+    def add(self, q: Array, cov: Array, u: Array, log_kappa: float,
+            fit_cov: Array | None = None) -> None:
+        """One sighting ``q`` (2,) of covariance ``cov`` (its weight), of which
+        ``fit_cov`` (default: all) is its own error, the rest shared drift."""
         a = np.array([[1.0, 0.0, u[0]], [0.0, 1.0, u[1]]])
         w = np.linalg.solve(cov, a)  # C⁻¹ A
         self.normal += a.T @ w
+        assert self.middle is not None
+        self.middle += a.T @ w if fit_cov is None else w.T @ fit_cov @ w
         self.rhs += w.T @ q
         self.zwz += float(q @ np.linalg.solve(cov, q))
         self.n += 1
@@ -214,6 +226,9 @@ class _PointCluster:
         """Merge another cluster's observations (its radius prior is not counted twice)."""
         self.normal += other.normal
         self.normal[2, 2] -= prior_info
+        assert self.middle is not None and other.middle is not None
+        self.middle += other.middle
+        self.middle[2, 2] -= prior_info
         self.rhs += other.rhs
         self.zwz += other.zwz
         self.drift = self.drift.merged(other.drift)
@@ -237,6 +252,17 @@ class _PointCluster:
             self._cov = cov
         assert self._cov is not None
         return self._solution, self._cov
+
+    def fit_cov(self, radius: bool) -> Array:
+        """(2, 2) covariance of the centre from the sightings' own errors (the drift
+        they share left out): of the solution with the radius ``radius``, else of the
+        point with R = 0."""
+        assert self.middle is not None
+        if radius:
+            n_inv = np.linalg.inv(self.normal)
+            return np.asarray((n_inv @ self.middle @ n_inv)[:2, :2], dtype=float)
+        n_inv = np.linalg.inv(self.normal[:2, :2])
+        return np.asarray(n_inv @ self.middle[:2, :2] @ n_inv, dtype=float)
 
     def chi2_per_dof(self, radius: bool) -> float:
         """Reduced chi-square of the sightings about the solution (with the radius
@@ -439,7 +465,7 @@ class MapBuilder:
             best = _PointCluster(prior, np.zeros(3))
             self.points.append(best)
             self.stats["point_clusters"] += 1
-        best.add(q, cov, u, log_k)
+        best.add(q, cov, u, log_k, cov - drift)
         # weighted as the fit weights it (its information, as a scalar)
         best.drift.add(drift, 2.0 / float(np.trace(cov)))
         best.visits.add(t_s, cfg.visit_gap_s)
@@ -538,7 +564,7 @@ class MapBuilder:
                                    cfg.visit_gap_s):
             if pc.n < cfg.min_observations or len(pc.visits) < cfg.min_visits:
                 continue
-            sol, cov = pc.solve()
+            sol, _ = pc.solve()
             kappa = math.exp(pc.log_kappa)
             radius = float(sol[2])
             centre = sol[:2]
@@ -561,14 +587,12 @@ class MapBuilder:
             if kind in ("corner", "edge"):
                 # a vertex reflects at one point, whatever the direction: no radius
                 radius = 0.0
-                centre, cov2 = pc.solve_point()
-                cov = np.zeros((3, 3))
-                cov[:2, :2] = cov2
+                centre, _ = pc.solve_point()
             # the sightings' scatter beyond their stated SDs widens the fit's covariance;
             # the drift they share is kept whole on top
             chi2 = pc.chi2_per_dof(radius > 0.0)
             scale = chi2 if math.isfinite(chi2) and chi2 > 1.0 else 1.0
-            cov_xy = scale * cov[:2, :2] + pc.drift.cov()
+            cov_xy = scale * pc.fit_cov(radius > 0.0) + pc.drift.cov()
             sd = math.sqrt(float(np.max(np.linalg.eigvalsh(cov_xy))))
             points.append(BuiltFeature(kind, centre, kappa, sd, pc.n, radius,
                                        n_visits=len(pc.visits)))
@@ -799,6 +823,7 @@ def _merge_points(clusters: list[_PointCluster], gate_m: float, prior_info: floa
             merged.u_sum = c.u_sum.copy()
             merged.visits = _Visits([list(v) for v in c.visits.spans])
             merged.zwz = c.zwz
+            merged.middle = None if c.middle is None else c.middle.copy()
             merged.drift = c.drift.merged(_Drift())
             out.append(merged)
     return out

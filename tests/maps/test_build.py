@@ -276,3 +276,98 @@ def test_a_landmark_its_fit_cannot_place_is_skipped_not_fatal():
     assert b.add(wide, np.array([0.0, 1.0])) == "skipped_vague"
     assert b.add(point_lm([1.0, 1.0], sd=0.2), np.array([0.0, 1.0])) == "point"   # 2 gates
     assert b.stats["skipped_vague"] == 2 and len(b.features()) == 1
+
+
+def _normalized_errors(feats, world, gate_m=0.5):
+    """error / sd_m of every built feature against the nearest true one (walls: the
+    worse end's distance from a true wall's line within 10 deg), and the errors."""
+    true = FeatureMap.from_map(world)
+    z, errs = [], []
+    for f in feats:
+        if f.kind == "wall":
+            d = f.coords[1] - f.coords[0]
+            err = math.inf
+            for a, b in true.wall_ends:
+                e = b - a
+                if abs(d @ e) < math.cos(math.radians(10)) * np.hypot(*d) * np.hypot(*e):
+                    continue
+                nrm = np.array([-e[1], e[0]]) / np.hypot(*e)
+                err = min(err, max(abs(float((p - a) @ nrm)) for p in f.coords))
+        else:
+            err = float(np.min(np.hypot(*(true.point_xy - f.coords).T)))
+        if err <= gate_m:
+            z.append(err / f.sd_m)
+            errs.append(err)
+    return np.array(z), np.array(errs)
+
+
+def test_odometry_only_build_states_its_drift(rng):
+    # a 40 s drive of the room from odometry alone: the drift (and the init prior's
+    # error) moves the features by centimetres; each one's sd_m covers its error
+    world = load_map(ROOM)
+    text = io.StringIO()
+    with LogWriter(text) as w:
+        w.write_all(simulate_records(world, ring16(), duration_s=40.0, seed=3))
+    feats = build_from_log(io.StringIO(text.getvalue())).builder.features()
+    z, errs = _normalized_errors(feats, world)
+    assert len(z) >= 8 and errs.max() > 0.02   # matched, and the drift is there
+    assert z.max() < 3.0, np.round(z, 1)
+    assert 0.05 < np.mean(z**2) < 3.0          # not made honest by being vast either
+
+
+def _drifting_point_sightings(b, n, drift_sd, fit_sd, q, rng):
+    cov = np.diag([drift_sd**2, drift_sd**2, 0.0])
+    for k in range(n):
+        view = q + np.array([-1.0, 0.2 * (k % 5 - 2)])
+        b.add(point_lm(q + rng.normal(0, fit_sd, 2), sd=fit_sd), view,
+              pose=np.array([*view, 0.0]), drift_cov=cov)
+
+
+def test_shared_drift_is_kept_whole_over_sightings(rng):
+    # 5 cm of drift shared by every sighting: 100 sightings do not make it 5 mm
+    for n in (5, 100):
+        b = MapBuilder(BuildConfig(min_observations=3))
+        _drifting_point_sightings(b, n, 0.05, 0.002, np.array([2.0, 1.0]), rng)
+        (f,) = b.features()
+        assert f.sd_m == pytest.approx(0.05, rel=0.05), n
+    # as a pose's own covariance (localized poses) it does average down
+    b = MapBuilder(BuildConfig(min_observations=3))
+    for k in range(100):
+        view = np.array([1.0, 1.0 + 0.02 * k])
+        b.add(point_lm(np.array([2.0, 1.0]) + rng.normal(0, 0.002, 2)), view,
+              pose=np.array([*view, 0.0]), pose_cov=np.diag([0.05**2, 0.05**2, 0.0]))
+    (f,) = b.features()
+    assert f.sd_m < 0.01
+
+
+def test_point_sd_grows_with_scatter_beyond_the_stated_sds(rng):
+    # fits stating 1 mm that scatter by 5 mm: the SD of their mean is 5 mm / sqrt(n)
+    b = MapBuilder(BuildConfig(min_observations=3))
+    n = 50
+    for _ in range(n):
+        b.add(point_lm(np.array([1.0, 1.0]) + rng.normal(0, 0.005, 2), sd=0.001,
+                       kappa=0.15), np.array([0.0, 1.0]))
+    (f,) = b.features()
+    assert f.sd_m == pytest.approx(0.005 / math.sqrt(n), rel=0.3)
+    b = MapBuilder(BuildConfig(min_observations=3))   # scatter within the SDs: unchanged
+    for _ in range(n):
+        b.add(point_lm(np.array([1.0, 1.0]) + rng.normal(0, 0.0005, 2), sd=0.001,
+                       kappa=0.15), np.array([0.0, 1.0]))
+    (f,) = b.features()
+    assert f.sd_m == pytest.approx(0.001 / math.sqrt(n), rel=0.05)
+
+
+def test_wall_sd_is_stated_at_its_far_end(rng):
+    # a 6 m wall y = 3 seen from x = 0.5 with 1 deg of yaw drift: the far end (5.5 m
+    # from the pose) can be off by 5.5 m x 1 deg = 96 mm, the near one by 9 mm
+    b = MapBuilder(BuildConfig(min_observations=3))
+    drift = np.diag([0.0, 0.0, math.radians(1.0) ** 2])
+    for k in range(12):
+        x0 = 0.5 * k
+        b.add(line_lm(3.0, math.pi / 2), np.array([x0 + 0.25, 2.0]),
+              pose=np.array([0.5, 2.0, 0.0]), drift_cov=drift,
+              feet=np.array([[x0, 3.0], [x0 + 0.5, 3.0]]))
+    (w,) = b.features()
+    far = 5.5 * math.radians(1.0)
+    assert w.sd_m == pytest.approx(far, rel=0.05)
+    assert w.sd_alpha_deg == pytest.approx(1.0, rel=0.05)
