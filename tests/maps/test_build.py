@@ -319,7 +319,7 @@ def _drifting_point_sightings(b, n, drift_sd, fit_sd, q, rng):
     cov = np.diag([drift_sd**2, drift_sd**2, 0.0])
     for k in range(n):
         view = q + np.array([-1.0, 0.2 * (k % 5 - 2)])
-        b.add(point_lm(q + rng.normal(0, fit_sd, 2), sd=fit_sd), view,
+        b.add(point_lm(q + rng.normal(0, fit_sd, 2), sd=fit_sd, kappa=0.15), view,
               pose=np.array([*view, 0.0]), drift_cov=cov)
 
 
