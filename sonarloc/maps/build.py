@@ -38,9 +38,14 @@ landmarks in ``map``; the builder merges them across passes:
 
 Clusters seen fewer than ``min_observations`` times, or in fewer than ``min_visits``
 separate passes (observations more than ``visit_gap_s`` apart), are dropped (spikes,
-ghosts). Every feature carries its uncertainty: ``sd_m`` (largest position SD; for
-walls the SD of rho from the feet's scatter), walls also ``sd_alpha_deg``, plus
-``n_obs``, ``n_visits`` and the merged ``kappa_us``.
+ghosts). Every feature carries its uncertainty: ``sd_m`` (a point's largest position
+SD; a wall's SD across its line at the worse of its ends, from the feet's scatter and
+its direction's SD), walls also ``sd_alpha_deg``, plus ``n_obs``, ``n_visits`` and the
+merged ``kappa_us``. A point's own part is scaled by the fit's reduced chi-square when
+above 1 (sightings scattering beyond their stated SDs). The poses' errors are in it:
+a pose track's covariance as each sighting's own error; without a track, the dead
+reckoning's covariance (the ``init`` prior carried along the odometry with
+``odom_noise``), an error the sightings share, kept whole (:class:`_Drift`).
 """
 
 from __future__ import annotations
