@@ -301,16 +301,17 @@ def _normalized_errors(feats, world, gate_m=0.5):
     return np.array(z), np.array(errs)
 
 
-def test_odometry_only_build_states_its_drift(rng):
-    # a 40 s drive of the room from odometry alone: the drift (and the init prior's
-    # error) moves the features by centimetres; each one's sd_m covers its error
+def test_odometry_only_build_states_its_drift():
+    # 25 s of the room from odometry alone, from an exact init: the drift moves the
+    # features by up to 12 cm; each one's sd_m covers its error (stated 1-3 mm before)
     world = load_map(ROOM)
     text = io.StringIO()
     with LogWriter(text) as w:
-        w.write_all(simulate_records(world, ring16(), duration_s=40.0, seed=3))
+        w.write_all(simulate_records(world, ring16(), duration_s=25.0, seed=7,
+                                     init_sd_xy_m=0.0, init_sd_yaw_deg=0.0))
     feats = build_from_log(io.StringIO(text.getvalue())).builder.features()
     z, errs = _normalized_errors(feats, world)
-    assert len(z) >= 8 and errs.max() > 0.02   # matched, and the drift is there
+    assert len(z) >= 8 and errs.max() > 0.05   # matched, and the drift is there
     assert z.max() < 3.0, np.round(z, 1)
     assert 0.05 < np.mean(z**2) < 3.0          # not made honest by being vast either
 
