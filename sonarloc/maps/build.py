@@ -348,18 +348,16 @@ class BuiltFeature:
     radius_m: float = 0.0
     sd_alpha_deg: float = math.nan
     n_visits: int = 0
-    #: a wall's across-line variance [m²] at along-line coordinate t [m] (t = p · d,
-    #: d = (-sin alpha, cos alpha)): ``c0 + c1 t + c2 t²``
-    offset_var: tuple[float, float, float] | None = None
+    #: a wall's across-line variance [m²] at a point p on it: ``c0 + c1 t + c2 t²`` with
+    #: t = p · d [m] along the unit direction d = (dx, dy): (c0, c1, c2, dx, dy)
+    offset_var: tuple[float, float, float, float, float] | None = None
 
     def end_sd(self, ends: Array) -> float:
         """A wall's SD [m] across its line at the worse of its ends ``ends`` (2, 2)."""
         if self.offset_var is None:
             return self.sd_m
-        c0, c1, c2 = self.offset_var
-        a, b = ends
-        d = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
-        t = np.asarray(ends, dtype=float) @ d
+        c0, c1, c2, dx, dy = self.offset_var
+        t = np.asarray(ends, dtype=float) @ np.array([dx, dy])
         return float(np.sqrt(np.max(np.maximum(c0 + c1 * t + c2 * t**2, 0.0))))
 
     def geojson(self, fid: str) -> dict[str, Any]:
@@ -554,7 +552,7 @@ class MapBuilder:
             dr = c.drift.cov()
             offset_var = (sd_rho**2 + t_c**2 * sd_alpha**2 + float(dr[0, 0]),
                           -2.0 * t_c * sd_alpha**2 - 2.0 * float(dr[0, 1]),
-                          sd_alpha**2 + float(dr[1, 1]))
+                          sd_alpha**2 + float(dr[1, 1]), float(d[0]), float(d[1]))
             proto = BuiltFeature("wall", ends, math.exp(float(np.median(c.log_kappas))),
                                  sd_rho, c.n, n_visits=len(c.visits), offset_var=offset_var,
                                  sd_alpha_deg=math.degrees(math.sqrt(sd_alpha**2 +
