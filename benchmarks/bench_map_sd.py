@@ -16,16 +16,21 @@ largest ``z``, the share with ``z > 3``, and the median error and ``sd_m`` (mm).
 ``sd_m`` is its larger position SD and its error is 2-D: an honest point has mean ``z^2``
 between 1 and 2 (2 when isotropic); a wall's end error is 1-D (about 1 when honest).
 
-Run: ``python benchmarks/bench_map_sd.py [--seeds 200 201] [--duration 60]`` (a 60 s
-drive builds in ~20 s per seed and pose source).
+Run: ``python benchmarks/bench_map_sd.py [--seeds 200 201] [--duration 174] [--quick]``
+(writes ``benchmarks/results/map_sd.md``; a 60 s drive builds in ~20 s per seed and
+pose source).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import io
 import math
+import os
+import platform
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -104,17 +109,22 @@ def row(label: str, errs: list[tuple[float, float]]) -> str:
             f"{1000 * np.median(sd):.1f} |")
 
 
-def main() -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[200])
-    ap.add_argument("--duration", type=float, default=60.0, help="drive length [s]")
+    ap.add_argument("--quick", action="store_true", help="one 30 s drive (smoke run)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[200, 201])
+    ap.add_argument("--duration", type=float, default=174.0,
+                    help="drive length [s] (default 174: three laps)")
     ap.add_argument("--gate", type=float, default=1.5,
                     help="largest error [m] of a built feature matched to a true one "
                          "(odometry-only maps are off by decimetres: a smaller gate "
                          "leaves out their worst features)")
     ap.add_argument("--sources", nargs="+", default=["odometry", "localize"],
                     choices=["odometry", "localize", "truth"])
-    args = ap.parse_args()
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "map_sd.md"))
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.seeds, args.duration = args.seeds[:1], 30.0
     world = load_map(ROOT / "maps" / "room.geojson")
     acc: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
         s: ([], []) for s in args.sources}
@@ -127,14 +137,32 @@ def main() -> int:
             p, w = feature_errors(res.builder.features(), world, args.gate)
             acc[src][0].extend(p)
             acc[src][1].extend(w)
-    print(f"room, ring16, {args.duration:.0f} s, seeds {' '.join(map(str, args.seeds))}, "
-          f"gate {args.gate} m\n")
-    print("| build | n | NEES (mean z^2) | median z | max z | z > 3 | median error (mm) | "
-          "median sd_m (mm) |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    lines = [
+        "# Built maps: is their `sd_m` honest?",
+        "",
+        f"Room, ring16, {args.duration:.0f} s drives, seeds "
+        f"{' '.join(map(str, args.seeds))}; each built feature against the nearest true "
+        f"one within {args.gate} m (`benchmarks/bench_map_sd.py`). z = error / `sd_m`: an "
+        "honest point (2-D error, `sd_m` its larger SD) has NEES (mean z^2) between 1 and 2, "
+        "an honest wall end about 1.",
+        "",
+        "| build | n | NEES (mean z^2) | median z | max z | z > 3 | median error (mm) | "
+        "median sd_m (mm) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for src, (p, w) in acc.items():
-        print(row(f"{src}: points", p))
-        print(row(f"{src}: walls", w))
+        lines += [row(f"{src}: points", p), row(f"{src}: walls", w)]
+    lines += [
+        "",
+        f"Machine: {platform.machine()}, Python {platform.python_version()}, "
+        f"{os.cpu_count()} CPUs; {datetime.date.today().isoformat()}; "
+        f"{'--quick' if args.quick else 'full run'}.",
+    ]
+    text = "\n".join(lines) + "\n"
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text, encoding="utf-8")
+    print(text)
     return 0
 
 
