@@ -58,6 +58,7 @@ from sonarloc.io.logfile import (
 )
 from sonarloc.localize import echoes, ekf
 from sonarloc.localize.associate import Association, AssociationConfig, associate
+from sonarloc.localize.confirmed import POSE, ConfirmedFeatures, missing_dof
 from sonarloc.localize.echoes import EchoObservation
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
@@ -598,6 +599,9 @@ class Localizer:
         self._last_pushed_t = -math.inf  # the latest reading given to the segmenter
         self._consecutive_rejected = 0
         self._last_accept_t = -math.inf
+        # map features that confirmed the pose lately (confirm(); the status)
+        self._confirmed = ConfirmedFeatures()
+        self._dof_memo: tuple[list[tuple[str, int]], str] = ([], "")
         self._start_t = math.nan
         self._estimate: PoseEstimate | None = None
         self._reloc = Relocalizer(fmap, self.config.relocalization) \
@@ -648,6 +652,7 @@ class Localizer:
         self._last_odom_t = -math.inf
         self._consecutive_rejected = 0
         self._last_accept_t = -math.inf
+        self._confirmed.clear()
         self._start_t = t_s
 
     # -- message routing ------------------------------------------------------------
@@ -1180,7 +1185,7 @@ class Localizer:
         self._replay(i + 1)
         self.stats.accepted += 1
         self._consecutive_rejected = 0
-        self._last_accept_t = max(self._last_accept_t, t_ref)
+        self.confirm(t_ref, str(assoc.kind), assoc.index)
         if self._estimate is not None:
             self._estimate = self._make_estimate(self._estimate.t_s)
         return FusionOutcome(t_ref, assoc, True, "fused")
@@ -1242,8 +1247,19 @@ class Localizer:
             return True
         self.stats.skipped["no_motion_since_fused"] += 1
         self._consecutive_rejected = 0
-        self._last_accept_t = max(self._last_accept_t, t_ref)
+        self.confirm(t_ref, str(kind), index)
         return False
+
+    def confirm(self, t_s: float, kind: str, index: int) -> None:
+        """Record that map feature (``kind`` ``"point"`` or ``"wall"``, ``index`` into
+        the map's points or walls) confirmed the pose at ``t_s`` [s]: it was fused, or
+        would have been (:meth:`may_fuse_again`); ``kind``
+        :data:`~sonarloc.localize.confirmed.POSE` (index -1): a fix of the whole pose (a
+        relocalization). The status is ``tracking`` only while the features confirmed in
+        the last ``dead_reckoning_after_s`` pin all three degrees of freedom
+        (:func:`~sonarloc.localize.confirmed.missing_dof`)."""
+        self._confirmed.add(t_s, kind, index)
+        self._last_accept_t = max(self._last_accept_t, t_s)
 
     def map_var_m2(self, kind: str | None, index: int) -> float:
         """Variance [m²] of map feature (``kind``, ``index``)'s position: the larger of its
@@ -1295,6 +1311,8 @@ class Localizer:
         self._consecutive_rejected = 0
         self._reject_start_t = math.nan
         self._last_accept_t = t
+        self._confirmed.clear()
+        self.confirm(t, POSE, -1)
 
     def _append(self, e: _Entry) -> None:
         if not math.isfinite(self._odom_start_t):
@@ -1476,10 +1494,22 @@ class Localizer:
                     not self._reloc.last.found:
                 reason += f"; relocalization: {self._reloc.last.reason}"
             return "lost", reason
-        since = t - (self._last_accept_t if math.isfinite(self._last_accept_t)
-                     else self._start_t)
-        if since > c.dead_reckoning_after_s:
+        window = c.dead_reckoning_after_s
+        if not math.isfinite(self._last_accept_t):
+            since = t - self._start_t
+            if since <= window:     # a prior is no confirmation: its error is the issue
+                return "dead_reckoning", f"no landmark fused yet ({since:.1f} s since " \
+                    f"the prior)"
             return "dead_reckoning", f"no landmark fused for {since:.1f} s"
+        since = t - self._last_accept_t
+        if since > window:
+            return "dead_reckoning", f"no landmark fused for {since:.1f} s"
+        recent = self._confirmed.recent(t - window)
+        if recent != self._dof_memo[0]:  # (the same few features for many odom records)
+            self._dof_memo = (recent, missing_dof(self.fmap, recent, window))
+        missing = self._dof_memo[1]
+        if missing:
+            return "dead_reckoning", missing
         return "tracking", "ok"
 
     def _make_estimate(self, t_s: float) -> PoseEstimate:
