@@ -184,7 +184,10 @@ class LocalizerConfig:
     lost_after_rejections : this many observations in a row rejected (no candidate,
         outside the gate, ambiguous) make the status ``lost``.
     lost_sd_m : a position SD above this makes the status ``lost``.
-    dead_reckoning_after_s : no accepted observation for this long: ``dead_reckoning``.
+    dead_reckoning_after_s : the window [s] of the status: ``tracking`` needs the map
+        features confirmed within it (:meth:`Localizer.confirm`) to pin x, y and yaw
+        (:func:`~sonarloc.localize.confirmed.missing_dof`); otherwise, or with nothing
+        confirmed for this long, ``dead_reckoning``.
     odom_gap_s : consecutive odometry messages further apart than this are a gap
         (counted in ``stats.odom_gaps``). Readings taken inside a gap during which the
         odometry moved (:func:`odom_moved`) are skipped and counted
