@@ -604,7 +604,7 @@ class Localizer:
         self._last_accept_t = -math.inf
         # map features that confirmed the pose lately (confirm(); the status)
         self._confirmed = ConfirmedFeatures()
-        self._dof_memo: tuple[list[tuple[str, int]], str] = ([], "")
+        self._dof_memo: tuple[list[tuple[str, int]] | None, str] = (None, "")
         self._start_t = math.nan
         self._estimate: PoseEstimate | None = None
         self._reloc = Relocalizer(fmap, self.config.relocalization) \
@@ -1500,7 +1500,7 @@ class Localizer:
         window = c.dead_reckoning_after_s
         if not math.isfinite(self._last_accept_t):
             since = t - self._start_t
-            if since <= window:     # a prior is no confirmation: its error is the issue
+            if since <= window:     # the prior is what the landmarks have to confirm
                 return "dead_reckoning", f"no landmark fused yet ({since:.1f} s since " \
                     f"the prior)"
             return "dead_reckoning", f"no landmark fused for {since:.1f} s"
