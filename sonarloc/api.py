@@ -10,8 +10,9 @@ radians, frames per REP-105 (``map``, ``odom``, ``base_link``). See docs/API.md.
 >>> node = LocalizerNode.from_map_file("maps/room.geojson",
 ...                                    sensors=[(0, 0.2, 0.0, 0.0), (1, 0.0, 0.2, 90.0)])
 >>> node.set_pose(1.0, 1.0, 0.0, sd_xy_m=0.05, sd_yaw_rad=0.03)
->>> node.odometry(0.00, 0.0, 0.0, 0.0).status
-'tracking'
+>>> est = node.odometry(0.00, 0.0, 0.0, 0.0)
+>>> est.status, est.reason    # `tracking` once landmarks pin x, y and yaw
+('dead_reckoning', 'no landmark fused yet (0.0 s since the prior)')
 >>> node.reading(0.01, sensor=0, tof_us=40_000.0)   # an echo 6.9 m ahead
 >>> node.reading(0.04, sensor=1, tof_us=None)       # no echo
 >>> round(node.pose[0], 3), node.covariance.shape

@@ -58,6 +58,7 @@ from sonarloc.io.logfile import (
 )
 from sonarloc.localize import echoes, ekf
 from sonarloc.localize.associate import Association, AssociationConfig, associate
+from sonarloc.localize.confirmed import POSE, ConfirmedFeatures, missing_dof
 from sonarloc.localize.echoes import EchoObservation
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
@@ -191,7 +192,10 @@ class LocalizerConfig:
     lost_after_rejections : this many observations in a row rejected (no candidate,
         outside the gate, ambiguous) make the status ``lost``.
     lost_sd_m : a position SD above this makes the status ``lost``.
-    dead_reckoning_after_s : no accepted observation for this long: ``dead_reckoning``.
+    dead_reckoning_after_s : the window [s] of the status: ``tracking`` needs the map
+        features confirmed within it (:meth:`Localizer.confirm`) to pin x, y and yaw
+        (:func:`~sonarloc.localize.confirmed.missing_dof`); otherwise, or with nothing
+        confirmed for this long, ``dead_reckoning``.
     odom_gap_s : consecutive odometry messages further apart than this are a gap
         (counted in ``stats.odom_gaps``). Readings taken inside a gap during which the
         odometry moved (:func:`odom_moved`) are skipped and counted
@@ -604,6 +608,9 @@ class Localizer:
         self._last_pushed_t = -math.inf  # the latest reading given to the segmenter
         self._consecutive_rejected = 0
         self._last_accept_t = -math.inf
+        # map features that confirmed the pose lately (confirm(); the status)
+        self._confirmed = ConfirmedFeatures()
+        self._dof_memo: tuple[list[tuple[str, int]] | None, str] = (None, "")
         self._start_t = math.nan
         self._estimate: PoseEstimate | None = None
         self._reloc = Relocalizer(fmap, self.config.relocalization) \
@@ -654,6 +661,7 @@ class Localizer:
         self._last_odom_t = -math.inf
         self._consecutive_rejected = 0
         self._last_accept_t = -math.inf
+        self._confirmed.clear()
         self._start_t = t_s
 
     # -- message routing ------------------------------------------------------------
@@ -1186,7 +1194,7 @@ class Localizer:
         self._replay(i + 1)
         self.stats.accepted += 1
         self._consecutive_rejected = 0
-        self._last_accept_t = max(self._last_accept_t, t_ref)
+        self.confirm(t_ref, str(assoc.kind), assoc.index)
         if self._estimate is not None:
             self._estimate = self._make_estimate(self._estimate.t_s)
         return FusionOutcome(t_ref, assoc, True, "fused")
@@ -1248,8 +1256,19 @@ class Localizer:
             return True
         self.stats.skipped["no_motion_since_fused"] += 1
         self._consecutive_rejected = 0
-        self._last_accept_t = max(self._last_accept_t, t_ref)
+        self.confirm(t_ref, str(kind), index)
         return False
+
+    def confirm(self, t_s: float, kind: str, index: int) -> None:
+        """Record that map feature (``kind`` ``"point"`` or ``"wall"``, ``index`` into
+        the map's points or walls) confirmed the pose at ``t_s`` [s]: it was fused, or
+        would have been (:meth:`may_fuse_again`); ``kind``
+        :data:`~sonarloc.localize.confirmed.POSE` (index -1): a fix of the whole pose (a
+        relocalization). The status is ``tracking`` only while the features confirmed in
+        the last ``dead_reckoning_after_s`` pin all three degrees of freedom
+        (:func:`~sonarloc.localize.confirmed.missing_dof`)."""
+        self._confirmed.add(t_s, kind, index)
+        self._last_accept_t = max(self._last_accept_t, t_s)
 
     def map_var_m2(self, kind: str | None, index: int) -> float:
         """Variance [m²] of map feature (``kind``, ``index``)'s position: the larger of its
@@ -1301,6 +1320,8 @@ class Localizer:
         self._consecutive_rejected = 0
         self._reject_start_t = math.nan
         self._last_accept_t = t
+        self._confirmed.clear()
+        self.confirm(t, POSE, -1)
 
     def _append(self, e: _Entry) -> None:
         if not math.isfinite(self._odom_start_t):
@@ -1482,10 +1503,22 @@ class Localizer:
                     not self._reloc.last.found:
                 reason += f"; relocalization: {self._reloc.last.reason}"
             return "lost", reason
-        since = t - (self._last_accept_t if math.isfinite(self._last_accept_t)
-                     else self._start_t)
-        if since > c.dead_reckoning_after_s:
+        window = c.dead_reckoning_after_s
+        if not math.isfinite(self._last_accept_t):
+            since = t - self._start_t
+            if since <= window:     # the prior is what the landmarks have to confirm
+                return "dead_reckoning", f"no landmark fused yet ({since:.1f} s since " \
+                    f"the prior)"
             return "dead_reckoning", f"no landmark fused for {since:.1f} s"
+        since = t - self._last_accept_t
+        if since > window:
+            return "dead_reckoning", f"no landmark fused for {since:.1f} s"
+        recent = self._confirmed.recent(t - window)
+        if recent != self._dof_memo[0]:  # (the same few features for many odom records)
+            self._dof_memo = (recent, missing_dof(self.fmap, recent, window))
+        missing = self._dof_memo[1]
+        if missing:
+            return "dead_reckoning", missing
         return "tracking", "ok"
 
     def _make_estimate(self, t_s: float) -> PoseEstimate:

@@ -603,7 +603,7 @@ class OfflinePipeline:
         st.echoes_fused += n
         st.accepted += 1
         loc._consecutive_rejected = 0
-        loc._last_accept_t = max(loc._last_accept_t, p.t_ref)
+        loc.confirm(p.t_ref, str(kind), index)
 
 
 def _sensor_odom(p: Prepared) -> list[float]:

@@ -63,7 +63,9 @@ def test_localize_odometry_only_to_stdout_with_status(run_cli, room_log):
                    "--status", check=True)
     lines = proc.stdout.splitlines()
     assert lines[0] == ",".join(COLUMNS) + ",status"
-    assert lines[1].endswith(",tracking")
+    # odometry alone confirms nothing: dead reckoning from the first row (the prior is
+    # no confirmation of the pose) to the last
+    assert lines[1].endswith(",dead_reckoning") and lines[-1].endswith(",dead_reckoning")
 
 
 def test_bad_log_is_reported_not_fatal(run_cli, room_log, tmp_path):

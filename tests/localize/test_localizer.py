@@ -96,8 +96,11 @@ def test_lost_when_updates_keep_being_rejected():
 def test_dead_reckoning_without_landmarks():
     drive = make_drive(n=200)
     ests = feed(loc(dead_reckoning_after_s=2.0), drive, deliver=lambda i, lm: 10**9)
-    assert ests[10].status == "tracking"
-    assert ests[-1].status == "dead_reckoning"
+    # a prior is no confirmation of the pose: dead reckoning from the start
+    assert (ests[10].status, ests[10].reason) == \
+        ("dead_reckoning", "no landmark fused yet (0.5 s since the prior)")
+    assert (ests[-1].status, ests[-1].reason) == \
+        ("dead_reckoning", "no landmark fused for 10.0 s")
     # covariance grows without updates
     assert np.trace(ests[-1].state.cov) > np.trace(ests[10].state.cov)
 
