@@ -61,6 +61,7 @@ from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, TofRecord, iter_log
 from sonarloc.io.posescsv import PoseTrack
 from sonarloc.localize.localizer import in_odom_gap
+from sonarloc.localize.odomframe import OdomJoiner, check_odom_reset_settings
 from sonarloc.maps.geojson import Map, map_from_geojson
 from sonarloc.physics import constants
 
@@ -98,6 +99,10 @@ class BuildConfig:
     min_visits: int = 1
     speed_of_sound_mps: float | None = None
     odom_gap_s: float = 1.0  # readings inside a longer gap of a moving robot's poses: skipped
+    # an odometry increment implying more is a jump, taken as a reset (as the Localizer's
+    # LocalizerConfig.odom_max_speed_mps / odom_max_yaw_rate_rad_s; math.inf: never)
+    odom_max_speed_mps: float = 5.0
+    odom_max_yaw_rate_rad_s: float = 10.0
 
     def __post_init__(self) -> None:
         for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "pole_radius_m", "shadow_m",
@@ -109,6 +114,7 @@ class BuildConfig:
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
         if not self.odom_gap_s > 0:  # math.inf allowed: no gaps
             raise ValueError(f"`odom_gap_s` must be positive, got {self.odom_gap_s!r}")
+        check_odom_reset_settings(self.odom_max_speed_mps, self.odom_max_yaw_rate_rad_s)
         if not (isinstance(self.min_observations, int) and self.min_observations >= 1):
             raise ValueError(f"`min_observations` must be a positive integer, got "
                              f"{self.min_observations!r}")
@@ -786,6 +792,11 @@ class BuildResult:
     """Distance the odometry travelled over the log (its drift grows with it)."""
     odom_turn_deg: float = 0.0
     """Heading change the odometry summed over the log, degrees."""
+    odom_resets: int = 0
+    """Odom records flagged ``reset`` (the odometry restarted): not taken as motion."""
+    odom_jumps: int = 0
+    """Odometry increments faster than ``BuildConfig.odom_max_speed_mps`` /
+    ``odom_max_yaw_rate_rad_s``: taken as resets."""
 
     def geojson(self) -> dict[str, Any]:
         return self.builder.geojson()
@@ -796,6 +807,10 @@ class BuildResult:
         parts = [f"log: {self.log.summary()}", f"{self.readings} readings",
                  f"{self.landmarks} landmarks fitted",
                  "map: " + (", ".join(f"{v} {k}" for k, v in sorted(kinds.items())) or "empty")]
+        for n, what in ((self.odom_resets, "odometry resets"),
+                        (self.odom_jumps, "odometry jumps")):
+            if n:
+                parts.append(f"{n} {what}")
         return "; ".join(parts + self.skipped_summary() + self.notes)
 
     def skipped_summary(self) -> list[str]:
@@ -815,9 +830,15 @@ def _in_gap(times: Sequence[float] | Array, poses: Sequence[Array] | Array, t_s:
 
 
 def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult,
-              gap_s: float = math.inf
-              ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float]]:
-    """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c).
+              gap_s: float = math.inf, joiner: OdomJoiner | None = None
+              ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float] | None]:
+    """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c),
+    and None where the odometry restarted (the segments open then are to be closed).
+
+    Odometry is joined across resets and jumps (``joiner``, default limits:
+    :class:`~sonarloc.localize.odomframe.OdomJoiner`), counted in ``result``: the
+    increment across one is not taken as motion, and readings placed by odometry between
+    the record before it and it are skipped (``tof_across_odom_reset``).
 
     A reading without a pose is counted in ``result.skipped``, never given a made-up
     one: outside the pose track (``tof_outside_poses``; pose rows whose time went
@@ -848,7 +869,9 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
                        None if np.any(np.isnan(cov)) else cov)
     odo_t: list[float] = []
     odo_p: list[Array] = []
+    odo_reset: list[bool] = []
     pending: list[TofRecord] = []
+    joiner = joiner if joiner is not None else OdomJoiner()
 
     def odom_at(t: float) -> Array:
         i = bisect.bisect_right(odo_t, t)
@@ -866,6 +889,11 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
         the robot moved across (counted: a pose interpolated over it is a guess)."""
         nonlocal anchored
         times, track_poses = (track.t, track.poses) if track is not None else (odo_t, odo_p)
+        if track is None:
+            i = bisect.bisect_right(odo_t, r.t_s)
+            if 0 < i < len(odo_t) and odo_reset[i] and r.t_s > odo_t[i - 1]:
+                skipped["tof_across_odom_reset"] += 1   # no pose between the two records
+                return
         if _in_gap(times, track_poses, r.t_s, gap_s):
             skipped["tof_in_odom_gap"] += 1
             return
@@ -894,21 +922,31 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
             elif init is None:
                 init = np.array([rec.x_m, rec.y_m, math.radians(rec.yaw_deg)])
         elif isinstance(rec, OdomRecord):
-            p = np.array([rec.x_m, rec.y_m, math.radians(rec.yaw_deg)])
-            if odom_first is None:
-                odom_first = p
+            raw = (rec.x_m, rec.y_m, math.radians(rec.yaw_deg))
             if odo_t and rec.t_s < odo_t[-1]:
                 skipped["odom_time_backwards"] += 1
                 continue
+            restart = joiner.restart(rec.t_s, raw, rec.reset)
+            p = np.array(joiner.join(rec.t_s, raw, restart))
+            if odom_first is None:
+                odom_first = p
+            if restart is not None:
+                if restart == "reset":
+                    result.odom_resets += 1
+                else:
+                    result.odom_jumps += 1
+                yield None
             if odo_p:
                 step = se2.between(odo_p[-1], p)
                 result.odom_travel_m += math.hypot(step[0], step[1])
                 result.odom_turn_deg += abs(math.degrees(step[2]))
             odo_t.append(rec.t_s)
             odo_p.append(p)
+            odo_reset.append(restart is not None)
             if len(odo_t) > 4096:  # only recent odometry is needed: keep memory flat
                 del odo_t[:2048]
                 del odo_p[:2048]
+                del odo_reset[:2048]
             ready = [r for r in pending if r.t_s <= rec.t_s]
             pending = [r for r in pending if r.t_s > rec.t_s]
             for r in ready:
@@ -968,7 +1006,15 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     seg: Segmenter | None = None
     fit_cfg: FitConfig | None = None
     ref_cov: dict[float, tuple[Array, Array | None]] = {}
-    for t, sensor, tof, pose, cov, base, c_mps in _readings(source, poses, result, cfg.odom_gap_s):
+    joiner = OdomJoiner(cfg.odom_max_speed_mps, cfg.odom_max_yaw_rate_rad_s)
+    for item in _readings(source, poses, result, cfg.odom_gap_s, joiner):
+        if item is None:  # the odometry restarted: close the segments open across it
+            if seg is not None and fit_cfg is not None and poses is None:
+                closed = seg.flush()
+                if closed:
+                    _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov)
+            continue
+        t, sensor, tof, pose, cov, base, c_mps = item
         if seg is None or fit_cfg is None:
             fit_cfg = FitConfig(module=ModuleParams(c_mps=cfg.speed_of_sound_mps or c_mps))
             seg = Segmenter(SegmenterConfig(max_readings=cfg.segment_max_readings),
