@@ -655,7 +655,8 @@ class OfflinePipeline:
         loc = self.loc
         last = loc._entries[-1]
         loc.note_fused(kind, index, sensor_odom)
-        loc._append(_Entry(max(p.t_ref, last.t), p.odom_ref, state, obs, obs.feature))
+        loc._append(_Entry(max(p.t_ref, last.t), p.odom_ref, state, obs, obs.feature,
+                           frame=last.frame))
         st = loc.stats
         st.echoes_fused += n
         st.accepted += 1
