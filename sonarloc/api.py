@@ -169,17 +169,25 @@ class LocalizerNode:
             raise ValueError(f"`t_s` must be finite (or NaN: unknown), got {t_s!r}")
         self.localizer.set_prior(t_s, x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
 
-    def odometry(self, t_s: float, x_m: float, y_m: float, yaw_rad: float
-                 ) -> PoseEstimate | None:
+    def odometry(self, t_s: float, x_m: float, y_m: float, yaw_rad: float,
+                 reset: bool = False) -> PoseEstimate | None:
         """Wheel odometry: pose of ``base_link`` in ``odom`` at ``t_s`` (integrated).
 
         Returns the new estimate (None before :meth:`set_pose`). A message older than
         the last one, or with a NaN or infinite value, is skipped (counted in
         ``stats.skipped``: ``odom_time_backwards``, ``bad_odom``) and the current
-        estimate returned. ValueError if an argument is not a real number.
+        estimate returned. ``reset=True``: the odometry restarted (the base controller
+        rebooted; this pose begins a new odometry frame): the pose estimate is kept
+        across it, not moved by the difference (``stats.odom_resets``; an unflagged
+        jump faster than ``LocalizerConfig.odom_max_speed_mps`` or
+        ``odom_max_yaw_rate_rad_s`` is taken as one too, ``stats.odom_jumps``), and
+        ``map_to_odom`` follows the new frame. ValueError if an argument is not a real
+        number, or ``reset`` not a bool.
         """
+        if not isinstance(reset, (bool, np.bool_)):
+            raise ValueError(f"`reset` must be a bool, got {reset!r}")
         return self.localizer.on_odom(_real("t_s", t_s), _real("x_m", x_m), _real("y_m", y_m),
-                                      _real("yaw_rad", yaw_rad))
+                                      _real("yaw_rad", yaw_rad), bool(reset))
 
     def reading(self, t_s: float, sensor: int, tof_us: float | None,
                 pan_rad: float | None = None) -> None:

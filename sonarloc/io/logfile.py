@@ -52,12 +52,18 @@ class InitRecord:
 
 @dataclass(frozen=True)
 class OdomRecord:
-    """Wheel-odometry pose of ``base_link`` in ``odom`` (integrated, drifting)."""
+    """Wheel-odometry pose of ``base_link`` in ``odom`` (integrated, drifting).
+
+    ``reset``: this pose starts a new odometry frame (the base controller restarted and
+    its odometry began again, e.g. at (0, 0, 0)): it is not differenced against the
+    pose before it. Written only when true (``"reset": true``); absent means false.
+    """
 
     t_s: float
     x_m: float
     y_m: float
     yaw_deg: float
+    reset: bool = False
     type: ClassVar[str] = "odom"
 
 
@@ -100,7 +106,7 @@ def record_to_dict(rec: Record) -> dict[str, Any]:
         if name == "type":
             continue
         value = getattr(rec, name)
-        if value is None and name == "pan_deg":
+        if (value is None and name == "pan_deg") or (name == "reset" and not value):
             continue
         out[name] = value
     return out
@@ -134,7 +140,8 @@ def record_from_dict(obj: dict[str, Any]) -> Record | None:
             return TofRecord(t, sensor, tof, None)
     elif kind == "odom" or kind == "truth":
         t, x, y, yaw = obj.get("t_s"), obj.get("x_m"), obj.get("y_m"), obj.get("yaw_deg")
-        if _finite(t) and _finite(x) and _finite(y) and _finite(yaw):
+        if _finite(t) and _finite(x) and _finite(y) and _finite(yaw) and \
+                (kind == "truth" or "reset" not in obj):
             return OdomRecord(t, x, y, yaw) if kind == "odom" else TruthRecord(t, x, y, yaw)
     return _record_checked(obj, kind)
 
@@ -152,7 +159,12 @@ def _record_checked(obj: dict[str, Any], kind: object) -> Record | None:
         return TofRecord(_num(obj, "t_s"), sensor, tof, pan)
     if kind in ("odom", "truth"):
         pose = {n: _num(obj, n) for n in ("t_s", "x_m", "y_m", "yaw_deg")}
-        return OdomRecord(**pose) if kind == "odom" else TruthRecord(**pose)
+        if kind == "truth":
+            return TruthRecord(**pose)
+        reset = obj.get("reset", False)
+        if not isinstance(reset, bool):
+            raise ValueError(f"field `reset` must be true or false, got {reset!r}")
+        return OdomRecord(**pose, reset=reset)
     if kind == "init":
         return InitRecord(**{n: _num(obj, n) for n in
                              ("t_s", "x_m", "y_m", "yaw_deg", "sd_xy_m", "sd_yaw_deg")})

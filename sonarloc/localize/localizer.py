@@ -62,6 +62,13 @@ from sonarloc.localize.confirmed import POSE, ConfirmedFeatures, missing_dof
 from sonarloc.localize.echoes import EchoObservation
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.odomframe import (
+    Frame,
+    OdomJoiner,
+    Restart,
+    check_odom_reset_settings,
+    raw_pose,
+)
 from sonarloc.localize.relocalize import Relocalization, RelocalizeConfig, Relocalizer
 from sonarloc.physics.sound import check_air_speed_of_sound
 
@@ -206,6 +213,20 @@ class LocalizerConfig:
         ``math.inf``: no gaps. The default, 1 s, is ten periods of a 10 Hz odometry (a
         Pioneer's SIPs; ROS bases publish at 10-50 Hz): set it to a few periods of a
         slower one, whose every reading would otherwise fall in a gap.
+    odom_max_speed_mps, odom_max_yaw_rate_rad_s : an increment between consecutive
+        odometry records implying a faster motion [m/s] or turn [rad/s] (over their
+        time apart, at least 0.02 s) is a *jump*, taken as a reset (below) and counted
+        in ``stats.odom_jumps``. ``math.inf``: no jump detection (a log that teleports
+        the robot's odometry on purpose, e.g. a kidnap test).
+    odom_reset_sd_m, odom_reset_sd_deg : across an odometry reset (an odom record
+        flagged ``reset``: the base controller restarted its odometry; counted in
+        ``stats.odom_resets``) or jump, the increment is not applied: the belief of
+        ``base_link`` in ``map`` is kept, its position and yaw SDs grown by these in
+        quadrature (the robot's motion between the two records is unknown), and
+        ``map_to_odom`` then follows from the new odometry pose
+        (:mod:`~sonarloc.localize.odomframe`). Readings taken between the two records
+        have no pose: skipped and counted (``skipped["tof_across_odom_reset"]``).
+        Segments the fitter holds open are closed at a reset.
     map_sd_m : SD [m] of a map feature's position: an error shared by the readings of
         one update (added to every element of their covariance; to the range, rho or
         position variance of a conventional reading or fitted landmark). The larger of
@@ -260,6 +281,10 @@ class LocalizerConfig:
     lost_sd_m: float = 0.5
     dead_reckoning_after_s: float = 5.0
     odom_gap_s: float = 1.0
+    odom_max_speed_mps: float = 5.0
+    odom_max_yaw_rate_rad_s: float = 10.0
+    odom_reset_sd_m: float = 0.1
+    odom_reset_sd_deg: float = 5.0
     map_sd_m: float = 0.0
     update_min_d: float = 0.02
     update_min_a: float = math.radians(1.0)
@@ -283,6 +308,8 @@ class LocalizerConfig:
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
         if not self.odom_gap_s > 0:  # math.inf allowed: no gaps
             raise ValueError(f"`odom_gap_s` must be positive, got {self.odom_gap_s!r}")
+        check_odom_reset_settings(self.odom_max_speed_mps, self.odom_max_yaw_rate_rad_s,
+                                  self.odom_reset_sd_m, self.odom_reset_sd_deg)
         for name in ("fit_sd_floor_m", "fit_sd_floor_deg", "update_min_d", "update_min_a",
                      "map_sd_m"):
             v = getattr(self, name)
@@ -354,6 +381,10 @@ class LocalizerStats:
     relocalization: Counter[str] = field(default_factory=Counter)
     #: consecutive odometry messages more than ``LocalizerConfig.odom_gap_s`` apart
     odom_gaps: int = 0
+    #: odom records flagged ``reset`` (a restarted odometry), and increments taken as
+    #: jumps (``LocalizerConfig.odom_max_speed_mps`` / ``odom_max_yaw_rate_rad_s``)
+    odom_resets: int = 0
+    odom_jumps: int = 0
 
     def summary(self) -> str:
         parts = [f"{self.odom} odom", f"{self.tof} tof", f"{self.observations} observations",
@@ -371,6 +402,10 @@ class LocalizerStats:
             parts.append("rejected: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())))
         if self.odom_gaps:
             parts.append(f"{self.odom_gaps} odometry gaps")
+        if self.odom_resets:
+            parts.append(f"{self.odom_resets} odometry resets")
+        if self.odom_jumps:
+            parts.append(f"{self.odom_jumps} odometry jumps")
         if self.skipped:
             parts.append("skipped: " + ", ".join(f"{k} {v}" for k, v in
                                                  sorted(self.skipped.items())))
@@ -409,13 +444,18 @@ class _FusedPoses:
 
 @dataclass
 class _Entry:
-    """One step of the history: the belief right after it."""
+    """One step of the history: the belief right after it. ``odom``: the odometry pose
+    in the joined frame (:mod:`~sonarloc.localize.odomframe`); ``frame``: the raw
+    odometry frame's pose in it (None: the same); ``reset``: the odometry restarted
+    here (no increment from the entry before; the reset noise added)."""
 
     t: float
     odom: Array
     state: Gaussian
     obs: Observation | EchoObservation | None = None
     feature: Feature | None = None
+    reset: bool = False
+    frame: Frame | None = None
 
 
 @dataclass(frozen=True)
@@ -623,6 +663,10 @@ class Localizer:
         c = self.config
         self._conv_cov = np.diag([c.conventional_range_sd_m**2,
                                   math.radians(c.conventional_bearing_sd_deg) ** 2])
+        # odometry joined across resets and jumps (LocalizerConfig.odom_max_speed_mps)
+        self.odom_joiner = OdomJoiner(c.odom_max_speed_mps, c.odom_max_yaw_rate_rad_s)
+        self._reset_cov = np.diag([c.odom_reset_sd_m**2, c.odom_reset_sd_m**2,
+                                   math.radians(c.odom_reset_sd_deg) ** 2])
 
     # -- configuration messages -----------------------------------------------------
 
@@ -652,6 +696,7 @@ class Localizer:
             self._source = None
             self._last_pushed_t = -math.inf
         self._odom_start_t = math.nan
+        self.odom_joiner.forget()
         self._prior = Gaussian.from_pose(x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
         self._unknown = False
         self._entries.clear()
@@ -669,7 +714,8 @@ class Localizer:
     def handle(self, rec: Record) -> PoseEstimate | None:
         """Route one log record; returns the new estimate after an ``odom`` record."""
         if isinstance(rec, OdomRecord):
-            return self.on_odom(rec.t_s, rec.x_m, rec.y_m, math.radians(rec.yaw_deg))
+            return self.on_odom(rec.t_s, rec.x_m, rec.y_m, math.radians(rec.yaw_deg),
+                                rec.reset)
         if isinstance(rec, TofRecord):
             self.on_tof(rec.t_s, rec.sensor, rec.tof_us,
                         None if rec.pan_deg is None else math.radians(rec.pan_deg))
@@ -690,10 +736,11 @@ class Localizer:
                 yield est
         self.finish()
 
-    def on_odom(self, t_s: float, x_m: float, y_m: float, yaw_rad: float
-                ) -> PoseEstimate | None:
+    def on_odom(self, t_s: float, x_m: float, y_m: float, yaw_rad: float,
+                reset: bool = False) -> PoseEstimate | None:
         """An odometry pose of ``base_link`` in ``odom``; returns the new estimate
-        (None before any prior).
+        (None before any prior). ``reset``: the odometry restarted (a new odometry
+        frame begins with this pose; see ``LocalizerConfig.odom_reset_sd_m``).
 
         A pose with a non-finite value, or so far from the last one that the predicted
         belief would not be finite (``skipped["bad_odom"]``: a corrupted message), or
@@ -720,12 +767,17 @@ class Localizer:
             self._unknown = True
         t = t_s
         gap = t - self._last_odom_t > self.config.odom_gap_s and bool(self._entries)
+        joiner = self.odom_joiner
+        raw = (float(odom[0]), float(odom[1]), float(odom[2]))
         if not self._entries:
-            self._append(_Entry(t, odom, self._prior))
+            joiner.forget()
+            odom = np.array(joiner.join(t, raw))
+            self._append(_Entry(t, odom, self._prior, frame=joiner.frame))
             if not math.isfinite(self._start_t):
                 self._start_t = t
         else:
             last = self._entries[-1]
+            odom = np.array(joiner.peek(raw))
             with np.errstate(over="ignore", invalid="ignore"):
                 state = ekf.predict(last.state, se2.between(last.odom, odom),
                                     self.config.odom_noise)
@@ -734,7 +786,12 @@ class Localizer:
                 # a corrupted pose (1e200 m): the belief would never be finite again
                 self.stats.skipped["bad_odom"] += 1
                 return self._estimate
-            self._append(_Entry(t, odom, state))
+            restart = joiner.restart(t, raw, reset)
+            if restart is not None:
+                state = self._odom_restart(restart)
+            odom = np.array(joiner.join(t, raw, restart))
+            self._append(_Entry(t, odom, state, reset=restart is not None,
+                                frame=joiner.frame))
         self.stats.odom_gaps += gap
         self._last_odom_t = t
         self._trim()
@@ -748,7 +805,9 @@ class Localizer:
         self._estimate = self._make_estimate(t_s)
         return self._estimate
 
-    def extend_odometry(self, t_s: ArrayLike, odom: ArrayLike) -> None:
+    def extend_odometry(self, t_s: ArrayLike, odom: ArrayLike,
+                        resets: Sequence[bool] | None = None,
+                        frames: Sequence[Frame | None] | None = None) -> None:
         """Many odometry poses at once (offline replay): :meth:`on_odom` without the
         per-record estimate, the predictions chained in closed form
         (:func:`~sonarloc.localize.ekf.predict_chain`).
@@ -757,7 +816,16 @@ class Localizer:
         finite, after a prior. Pending readings are not processed (the caller routes
         readings itself) and the history is not trimmed (call :meth:`trim_history`);
         read estimates with :meth:`estimate_at`.
+
+        Odometry joined across resets (:attr:`odom_joiner`, as the batch replay does):
+        ``odom`` the joined poses, ``resets`` (n,) which records restarted the odometry
+        (no increment there: :meth:`reset_state`; not counted here), ``frames`` (n,)
+        each record's raw odometry frame in the joined one (None: the same), for the
+        reported ``odom_pose`` and ``map_to_odom``. None: no resets, no frames.
         """
+        if resets is not None or frames is not None:
+            self._extend_restarted(t_s, odom, resets, frames)
+            return
         if isinstance(t_s, list) and isinstance(odom, list) and 0 < len(t_s) <= 4 and \
                 len(odom) == len(t_s) and self._entries:
             self._extend_few(t_s, odom)
@@ -797,6 +865,38 @@ class Localizer:
                 self._append(_Entry(tk, pose[k], state))
         self._last_odom_t = float(self._times[-1])
 
+    def _extend_restarted(self, t_s: ArrayLike, odom: ArrayLike,
+                          resets: Sequence[bool] | None,
+                          frames: Sequence[Frame | None] | None) -> None:
+        """:meth:`extend_odometry` with resets and frames: runs between resets as
+        without, each reset an entry of its own."""
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        pose = np.asarray(odom, dtype=float).reshape(-1, 3)
+        n = len(t)
+        rs = [False] * n if resets is None else [bool(v) for v in resets]
+        fr = [None] * n if frames is None else list(frames)
+        if not len(pose) == len(rs) == len(fr) == n:
+            raise ValueError(f"`t_s`, `odom`, `resets` and `frames` must have the same "
+                             f"length, got {n}, {len(pose)}, {len(rs)} and {len(fr)}")
+        start = 0
+        for k in [*(k for k in range(n) if rs[k] and (self._entries or k > 0)), n]:
+            if k > start:
+                first = len(self._entries)
+                self.extend_odometry(t[start:k], pose[start:k])
+                for e, f in zip(self._entries[first:], fr[start:k], strict=True):
+                    e.frame = f
+            if k < n:
+                if not (np.isfinite(t[k]) and np.all(np.isfinite(pose[k]))):
+                    raise ValueError("`t_s` and `odom` must be finite")
+                self.stats.odom += 1
+                tk = max(float(t[k]), self._last_odom_t)
+                p = pose[k].copy()
+                p[2] = se2.wrap_angle(p[2])
+                self._append(_Entry(tk, p, self.reset_state(self._entries[-1].state),
+                                    reset=True, frame=fr[k]))
+                self._last_odom_t = tk
+            start = k + 1
+
     def _extend_few(self, t_s: list[float], odom: list[Any]) -> None:
         """:meth:`extend_odometry` of a few records after the first (lists, no arrays)."""
         noise = self.config.odom_noise
@@ -834,13 +934,14 @@ class Localizer:
         status, reason = self._status(e.t, e.state)
         # map→odom = mean ⊕ odom⁻¹ (scalar arithmetic: this runs once per odom record)
         mx, my, mth = e.state.mean.tolist()
-        ox, oy, oth = e.odom.tolist()
+        ox, oy, oth = e.odom.tolist() if e.frame is None else raw_pose(e.odom.tolist(), e.frame)
         c, s = math.cos(oth), math.sin(oth)
         ix, iy = -c * ox - s * oy, s * ox - c * oy
         cm, sm = math.cos(mth), math.sin(mth)
         yaw = (mth - oth + math.pi) % (2.0 * math.pi) - math.pi
         m2o = np.array([mx + cm * ix - sm * iy, my + sm * ix + cm * iy, yaw])
-        return PoseEstimate._of(t_s, e.state, e.odom, m2o, status, reason)
+        odom = e.odom if e.frame is None else np.array([ox, oy, oth])
+        return PoseEstimate._of(t_s, e.state, odom, m2o, status, reason)
 
     def on_tof(self, t_s: float, sensor: int, tof_us: float | None,
                pan_rad: float | None = None) -> None:
@@ -1187,7 +1288,8 @@ class Localizer:
                       ) -> FusionOutcome:
         """Insert a fused belief into the history at ``i`` and replay what follows
         (``sensor_odom``: the transducer pose in ``odom`` it was seen from)."""
-        entry = _Entry(max(t_ref, base.t), odom_ref, new_state, obs, feature)
+        entry = _Entry(max(t_ref, base.t), odom_ref, new_state, obs, feature,
+                       frame=base.frame)
         self.note_fused(assoc.kind, assoc.index, sensor_odom)
         self._entries.insert(i, entry)
         self._times.insert(i, entry.t)
@@ -1313,7 +1415,7 @@ class Localizer:
             return
         pose, cov = r.pose_in_map(odom)
         cov = ekf.symmetrize(cov + np.diag([0.01**2, 0.01**2, math.radians(0.5) ** 2]))
-        self._entries[:] = [_Entry(t, odom, Gaussian(pose, cov))]
+        self._entries[:] = [_Entry(t, odom, Gaussian(pose, cov), frame=self.odom_joiner.frame)]
         self._times[:] = [t]
         self._fused_at.clear()
         self._unknown = False
@@ -1357,7 +1459,8 @@ class Localizer:
         noise = self.config.odom_noise
         for j in range(start, len(self._entries)):
             prev, e = self._entries[j - 1], self._entries[j]
-            state = ekf.predict(prev.state, se2.between(prev.odom, e.odom), noise)
+            state = self.reset_state(prev.state) if e.reset else \
+                ekf.predict(prev.state, se2.between(prev.odom, e.odom), noise)
             if isinstance(e.obs, EchoObservation):
                 state, _ = echoes.update(state, e.obs)
             elif e.obs is not None and e.feature is not None:
@@ -1404,6 +1507,10 @@ class Localizer:
             self.stats.skipped[self._too_old(r.t_s)] += 1
             return
         i = max(bisect.bisect_right(self._times, r.t_s), 1)
+        if i < len(self._entries) and self._entries[i].reset and \
+                r.t_s > self._entries[i - 1].t:
+            self.stats.skipped["tof_across_odom_reset"] += 1   # no pose between the two
+            return
         if self._in_odom_gap(r.t_s, i):
             self.stats.skipped["tof_in_odom_gap"] += 1
             return
@@ -1524,6 +1631,28 @@ class Localizer:
     def _make_estimate(self, t_s: float) -> PoseEstimate:
         last = self._entries[-1]
         status, reason = self._status(last.t, last.state)
-        m2o = se2.compose(last.state.mean, se2.inverse(last.odom))
-        return PoseEstimate(t_s, last.state, last.odom, m2o, status, reason)
+        odom = last.odom if last.frame is None else np.array(raw_pose(last.odom.tolist(),
+                                                                      last.frame))
+        m2o = se2.compose(last.state.mean, se2.inverse(odom))
+        return PoseEstimate(t_s, last.state, odom, m2o, status, reason)
+
+    def reset_state(self, state: Gaussian) -> Gaussian:
+        """The belief across an odometry reset or jump: ``state`` kept, its covariance
+        grown by ``LocalizerConfig.odom_reset_sd_m`` / ``odom_reset_sd_deg``."""
+        return Gaussian(state.mean, ekf.symmetrize(state.cov + self._reset_cov))
+
+    def _odom_restart(self, restart: Restart) -> Gaussian:
+        """An odometry reset or jump (online): counted; the segments the fitter holds
+        open are closed, fitted and fused (their readings are in the old odometry's
+        stretch); returns the belief across it (:meth:`reset_state` of the latest)."""
+        if restart == "reset":
+            self.stats.odom_resets += 1
+        else:
+            self.stats.odom_jumps += 1
+        if self._source is not None:
+            for lm in self._source.flush():
+                self.add_landmark(lm)
+            if not isinstance(self._source, SegmentFitSource):
+                self._source = None   # a LandmarkSource's flush ends its stream
+        return self.reset_state(self._entries[-1].state)
 

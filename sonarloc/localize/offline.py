@@ -60,9 +60,13 @@ from sonarloc.localize.localizer import (
     _Entry,
     odom_moved,
 )
+from sonarloc.localize.odomframe import Frame, Pose
 
 Array = NDArray[np.float64]
 EstimateCallback = Callable[[OdomRecord, PoseEstimate], None]
+#: A pending odom record: (time, record, joined pose, raw frame in the joined one,
+#: whether the odometry restarted there) (:mod:`~sonarloc.localize.odomframe`).
+_Odom = tuple[float, OdomRecord, Pose, Frame | None, bool]
 #: How :meth:`OfflinePipeline._fuse_prepared` fused a segment.
 FuseHow = Literal["reduced", "segment", "stale"]
 
@@ -142,12 +146,18 @@ class OfflinePipeline:
         self.round_odom = max(int(round_odom), 1)
         self.rows = 0
         self.last: PoseEstimate | None = None
-        self._odom: list[tuple[float, OdomRecord]] = []  # received, not yet in the history
+        self._odom: list[_Odom] = []  # received, not yet in the history
         self._last_t = -math.inf
         self._last_rec: OdomRecord | None = None  # the last odom record taken
         self._last_pushed_t = -math.inf           # the segmenter's latest reading
         self._new = 0                            # odom records since the last round
-        self._rows: list[tuple[float, OdomRecord]] = []  # in the history, not yet handed out
+        self._rows: list[_Odom] = []  # in the history, not yet handed out
+        # odometry restarts (resets, jumps): (time of the record before, of the restart)
+        # spans whose readings have no pose, and restarts whose open segments the
+        # segmenter has yet to close; any at all (entries then carry frames)
+        self._restart_spans: list[tuple[float, float]] = []
+        self._flush_t: list[float] = []
+        self._restarted = False
         # readings waiting for odometry at or after them, as columns (tof NaN: no echo)
         self._tof_t: list[float] = []
         self._tof_sensor: list[int] = []
@@ -170,18 +180,33 @@ class OfflinePipeline:
         """
         t = rec.t_s
         last = self._last_rec
+        joiner = self.loc.odom_joiner
         if t < self._last_t and last is not None:
             self.loc.stats.skipped["odom_time_backwards"] += 1
             self._odom.append((self._last_t, OdomRecord(rec.t_s, last.x_m, last.y_m,
-                                                        last.yaw_deg)))
+                                                        last.yaw_deg),
+                               self._track[-1], joiner.frame, False))
             return  # the track and the rounds as without it
         if t - self._last_t > self.loc.config.odom_gap_s and last is not None:
             self.loc.stats.odom_gaps += 1          # as Localizer.on_odom
+        if last is None:
+            joiner.forget()                        # as the Localizer's first entry
+        raw = (rec.x_m, rec.y_m, math.radians(rec.yaw_deg))
+        restart = joiner.restart(t, raw, rec.reset)
+        if restart is not None:                    # as Localizer.on_odom
+            if restart == "reset":
+                self.loc.stats.odom_resets += 1
+            else:
+                self.loc.stats.odom_jumps += 1
+            self._restart_spans.append((self._last_t, t))
+            self._flush_t.append(t)
+            self._restarted = True
+        joined = joiner.join(t, raw, restart)
         self._last_t = t
         self._last_rec = rec
-        self._odom.append((t, rec))
+        self._odom.append((t, rec, joined, joiner.frame, restart is not None))
         self._track_t.append(t)
-        self._track.append((rec.x_m, rec.y_m, math.radians(rec.yaw_deg)))
+        self._track.append(joined)
         self._new += 1
         if self._new >= self.round_odom:
             self._round(final=False)
@@ -226,6 +251,7 @@ class OfflinePipeline:
             self._last_t = -math.inf
             self._last_rec = None
             self._track_t, self._track = [], []
+            self._restart_spans, self._flush_t = [], []
 
     # -- internals ------------------------------------------------------------------
 
@@ -265,6 +291,8 @@ class OfflinePipeline:
         if k > 0:
             del self._track_t[:k]
             del self._track[:k]
+            t0 = self._track_t[0]
+            self._restart_spans = [s for s in self._restart_spans if s[1] > t0]
 
     def _segment(self, t_odom: float, final: bool) -> None:
         """Push the readings up to the latest odometry through the segmenter."""
@@ -327,6 +355,15 @@ class OfflinePipeline:
             ready, t, tof = ready[~late], t[~late], tof[~late]
             if not ready.size:
                 return
+        if self._restart_spans:   # no pose between a restart and the record before it
+            across = np.zeros(len(t), dtype=bool)
+            for ta, tb in self._restart_spans:
+                across |= (t > ta) & (t < tb)
+            if across.any():
+                loc.stats.skipped["tof_across_odom_reset"] += int(np.count_nonzero(across))
+                ready, t, tof = ready[~across], t[~across], tof[~across]
+                if not ready.size:
+                    return
         track_t = np.array(self._track_t)
         track = np.array(self._track)
         gap = self._in_odom_gap(track_t, track, t)
@@ -356,7 +393,19 @@ class OfflinePipeline:
         px = bx + c * m[:, 0] - s * m[:, 1]
         py = by + s * m[:, 0] + c * m[:, 1]
         pth = bth + m[:, 2] + pan
-        closed = self._source.segmenter.push_many(t, px, py, pth, tof, sensors)
+        seg = self._source.segmenter
+        lo = 0
+        while self._flush_t and self._flush_t[0] <= t[-1]:
+            # an odometry restart: the segments open before it are closed there (as
+            # Localizer.on_odom closes them), those after it begin afresh
+            hi = int(np.searchsorted(t, self._flush_t.pop(0), side="left"))
+            if hi > lo:
+                closed = seg.push_many(t[lo:hi], px[lo:hi], py[lo:hi], pth[lo:hi],
+                                       tof[lo:hi], sensors[lo:hi])
+                self._waiting += [s for _, s in closed]
+            self._waiting += seg.flush()
+            lo = hi
+        closed = seg.push_many(t[lo:], px[lo:], py[lo:], pth[lo:], tof[lo:], sensors[lo:])
         self._waiting += [s for _, s in closed]
 
     def _in_odom_gap(self, track_t: Array, track: Array, t: Array
@@ -377,7 +426,7 @@ class OfflinePipeline:
         times, the odometry entered as needed; hand out the rows before ``horizon``."""
         loc = self.loc
         odom, self._odom = self._odom, []
-        pending_t = np.array([t for t, _ in odom])
+        pending_t = np.array([o[0] for o in odom])
         pos = 0  # next pending odom record to enter into the history
 
         def enter(upto: int) -> None:
@@ -385,8 +434,7 @@ class OfflinePipeline:
             if upto <= pos:
                 return
             part = odom[pos:upto]
-            loc.extend_odometry(pending_t[pos:upto],
-                                [(r.x_m, r.y_m, math.radians(r.yaw_deg)) for _, r in part])
+            self._extend(part, pending_t[pos:upto])
             self._rows += part
             pos = upto
 
@@ -410,7 +458,7 @@ class OfflinePipeline:
         k = 0
         rows = self._rows
         while k < len(rows) and rows[k][0] < before:
-            t, rec = rows[k]
+            t, rec = rows[k][0], rows[k][1]
             est = self.loc.estimate_at(t)
             if est is not None:
                 self.rows += 1
@@ -423,7 +471,18 @@ class OfflinePipeline:
 
     # -- fast path (no fits: segments fused by their readings) ---------------------
 
-    def _enter_upto(self, odom: list[tuple[float, OdomRecord]], pos: int, t: float) -> int:
+    def _extend(self, part: list[_Odom], t: Any = None) -> None:
+        """Enter odom records into the Localizer's history (joined poses; with resets
+        and frames once the odometry has restarted); ``t``: their times, if at hand."""
+        ts = [o[0] for o in part] if t is None else t
+        poses = [o[2] for o in part]
+        if self._restarted:
+            self.loc.extend_odometry(ts, poses, resets=[o[4] for o in part],
+                                     frames=[o[3] for o in part])
+        else:
+            self.loc.extend_odometry(ts, poses)
+
+    def _enter_upto(self, odom: list[_Odom], pos: int, t: float) -> int:
         """Enter the pending odom records at or before ``t`` (from ``pos``); rows of those
         before ``t`` handed out. Returns the new position."""
         end = pos
@@ -431,8 +490,7 @@ class OfflinePipeline:
             end += 1
         if end > pos:
             part = odom[pos:end]
-            self.loc.extend_odometry([tk for tk, _ in part],
-                                     [(r.x_m, r.y_m, math.radians(r.yaw_deg)) for _, r in part])
+            self._extend(part)
             self._rows += part
         if self._rows and self._rows[0][0] < t:
             self._hand_out(t)
@@ -507,8 +565,7 @@ class OfflinePipeline:
             next((j for j in range(pos, len(odom)) if not odom[j][0] < horizon), len(odom))
         if end > pos:
             part = odom[pos:end]
-            loc.extend_odometry([tk for tk, _ in part],
-                                [(r.x_m, r.y_m, math.radians(r.yaw_deg)) for _, r in part])
+            self._extend(part)
             self._rows += part
             pos = end
         self._odom = odom[pos:]
@@ -598,7 +655,8 @@ class OfflinePipeline:
         loc = self.loc
         last = loc._entries[-1]
         loc.note_fused(kind, index, sensor_odom)
-        loc._append(_Entry(max(p.t_ref, last.t), p.odom_ref, state, obs, obs.feature))
+        loc._append(_Entry(max(p.t_ref, last.t), p.odom_ref, state, obs, obs.feature,
+                           frame=last.frame))
         st = loc.stats
         st.echoes_fused += n
         st.accepted += 1

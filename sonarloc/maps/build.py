@@ -67,6 +67,7 @@ from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, Tof
 from sonarloc.io.posescsv import PoseTrack
 from sonarloc.localize.ekf import OdomNoise, predict_lists
 from sonarloc.localize.localizer import DEFAULT_ODOM_NOISE, in_odom_gap
+from sonarloc.localize.odomframe import OdomJoiner, check_odom_reset_settings
 from sonarloc.maps.geojson import Map, map_from_geojson
 from sonarloc.physics import constants
 
@@ -107,6 +108,14 @@ class BuildConfig:
     #: odometry increment noise of a build without poses (dead reckoning): its drift's
     #: covariance, propagated along the log, goes into the features' ``sd_m``
     odom_noise: OdomNoise = field(default_factory=lambda: DEFAULT_ODOM_NOISE)
+    # an odometry increment implying more is a jump, taken as a reset (as the Localizer's
+    # LocalizerConfig.odom_max_speed_mps / odom_max_yaw_rate_rad_s; math.inf: never)
+    odom_max_speed_mps: float = 5.0
+    odom_max_yaw_rate_rad_s: float = 10.0
+    #: across a reset or jump the motion is unknown: the dead reckoning's covariance
+    #: grows by these SDs (as LocalizerConfig.odom_reset_sd_m / odom_reset_sd_deg)
+    odom_reset_sd_m: float = 0.1
+    odom_reset_sd_deg: float = 5.0
 
     def __post_init__(self) -> None:
         for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "pole_radius_m", "shadow_m",
@@ -118,6 +127,8 @@ class BuildConfig:
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
         if not self.odom_gap_s > 0:  # math.inf allowed: no gaps
             raise ValueError(f"`odom_gap_s` must be positive, got {self.odom_gap_s!r}")
+        check_odom_reset_settings(self.odom_max_speed_mps, self.odom_max_yaw_rate_rad_s,
+                                  self.odom_reset_sd_m, self.odom_reset_sd_deg)
         if not (isinstance(self.min_observations, int) and self.min_observations >= 1):
             raise ValueError(f"`min_observations` must be a positive integer, got "
                              f"{self.min_observations!r}")
@@ -920,6 +931,11 @@ class BuildResult:
     """Distance the odometry travelled over the log (its drift grows with it)."""
     odom_turn_deg: float = 0.0
     """Heading change the odometry summed over the log, degrees."""
+    odom_resets: int = 0
+    """Odom records flagged ``reset`` (the odometry restarted): not taken as motion."""
+    odom_jumps: int = 0
+    """Odometry increments faster than ``BuildConfig.odom_max_speed_mps`` /
+    ``odom_max_yaw_rate_rad_s``: taken as resets."""
 
     def geojson(self) -> dict[str, Any]:
         return self.builder.geojson()
@@ -930,6 +946,10 @@ class BuildResult:
         parts = [f"log: {self.log.summary()}", f"{self.readings} readings",
                  f"{self.landmarks} landmarks fitted",
                  "map: " + (", ".join(f"{v} {k}" for k, v in sorted(kinds.items())) or "empty")]
+        for n, what in ((self.odom_resets, "odometry resets"),
+                        (self.odom_jumps, "odometry jumps")):
+            if n:
+                parts.append(f"{n} {what}")
         return "; ".join(parts + self.skipped_summary() + self.notes)
 
     def skipped_summary(self) -> list[str]:
@@ -949,15 +969,23 @@ def _in_gap(times: Sequence[float] | Array, poses: Sequence[Array] | Array, t_s:
 
 
 def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult,
-              gap_s: float = math.inf, odom_noise: OdomNoise = DEFAULT_ODOM_NOISE
-              ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float]]:
-    """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c).
+              gap_s: float = math.inf, odom_noise: OdomNoise = DEFAULT_ODOM_NOISE,
+              joiner: OdomJoiner | None = None, reset_cov: Array | None = None
+              ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float] | None]:
+    """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c),
+    and None where the odometry restarted (the segments open then are to be closed).
+
+    Odometry is joined across resets and jumps (``joiner``, default limits:
+    :class:`~sonarloc.localize.odomframe.OdomJoiner`), counted in ``result``: the
+    increment across one is not taken as motion, and readings placed by odometry between
+    the record before it and it are skipped (``tof_across_odom_reset``).
 
     The base pose's covariance is the pose track's (None if it has none), or without a
     track the dead reckoning's: the ``init`` record's prior (none without one: the map
     frame is the first odometry pose) carried along the odometry, each increment adding
-    ``odom_noise`` (:func:`~sonarloc.localize.ekf.predict`), interpolated between
-    odometry records.
+    ``odom_noise`` (:func:`~sonarloc.localize.ekf.predict`), and ``reset_cov`` across a
+    reset or jump (the motion across it is unknown), interpolated between odometry
+    records.
 
     A reading without a pose is counted in ``result.skipped``, never given a made-up
     one: outside the pose track (``tof_outside_poses``; pose rows whose time went
@@ -989,10 +1017,12 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
     odo_t: list[float] = []
     odo_p: list[Array] = []
     odo_c: list[Array] = []  # covariance of the pose relative to the first odometry
+    odo_reset: list[bool] = []
     rel_mean: list[float] = [0.0, 0.0, 0.0]
     rel_cov: list[list[float]] = [[0.0] * 3 for _ in range(3)]
     init_cov = np.zeros((3, 3))
     pending: list[TofRecord] = []
+    joiner = joiner if joiner is not None else OdomJoiner()
 
     def odom_at(t: float) -> Array:
         i = bisect.bisect_right(odo_t, t)
@@ -1020,6 +1050,11 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
         the robot moved across (counted: a pose interpolated over it is a guess)."""
         nonlocal anchored
         times, track_poses = (track.t, track.poses) if track is not None else (odo_t, odo_p)
+        if track is None:
+            i = bisect.bisect_right(odo_t, r.t_s)
+            if 0 < i < len(odo_t) and odo_reset[i] and r.t_s > odo_t[i - 1]:
+                skipped["tof_across_odom_reset"] += 1   # no pose between the two records
+                return
         if _in_gap(times, track_poses, r.t_s, gap_s):
             skipped["tof_in_odom_gap"] += 1
             return
@@ -1054,12 +1089,22 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
                 init_cov = np.diag([rec.sd_xy_m**2, rec.sd_xy_m**2,
                                     math.radians(rec.sd_yaw_deg) ** 2])
         elif isinstance(rec, OdomRecord):
-            p = np.array([rec.x_m, rec.y_m, math.radians(rec.yaw_deg)])
-            if odom_first is None:
-                odom_first = p
+            raw = (rec.x_m, rec.y_m, math.radians(rec.yaw_deg))
             if odo_t and rec.t_s < odo_t[-1]:
                 skipped["odom_time_backwards"] += 1
                 continue
+            restart = joiner.restart(rec.t_s, raw, rec.reset)
+            p = np.array(joiner.join(rec.t_s, raw, restart))
+            if odom_first is None:
+                odom_first = p
+            if restart is not None:
+                if restart == "reset":
+                    result.odom_resets += 1
+                else:
+                    result.odom_jumps += 1
+                if reset_cov is not None:  # the motion across it is unknown
+                    rel_cov = (np.array(rel_cov) + reset_cov).tolist()
+                yield None
             if odo_p:
                 step = se2.between(odo_p[-1], p)
                 result.odom_travel_m += math.hypot(step[0], step[1])
@@ -1068,10 +1113,12 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
             odo_t.append(rec.t_s)
             odo_p.append(p)
             odo_c.append(np.array(rel_cov))
+            odo_reset.append(restart is not None)
             if len(odo_t) > 4096:  # only recent odometry is needed: keep memory flat
                 del odo_t[:2048]
                 del odo_p[:2048]
                 del odo_c[:2048]
+                del odo_reset[:2048]
             ready = [r for r in pending if r.t_s <= rec.t_s]
             pending = [r for r in pending if r.t_s > rec.t_s]
             for r in ready:
@@ -1132,8 +1179,19 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     fit_cfg: FitConfig | None = None
     ref_cov: dict[float, tuple[Array, Array | None]] = {}
     drift = poses is None  # dead reckoning: an error the sightings share
-    for t, sensor, tof, pose, cov, base, c_mps in _readings(source, poses, result,
-                                                            cfg.odom_gap_s, cfg.odom_noise):
+    joiner = OdomJoiner(cfg.odom_max_speed_mps, cfg.odom_max_yaw_rate_rad_s)
+    reset_cov = np.diag([cfg.odom_reset_sd_m**2, cfg.odom_reset_sd_m**2,
+                         math.radians(cfg.odom_reset_sd_deg) ** 2])
+    for item in _readings(source, poses, result, cfg.odom_gap_s, cfg.odom_noise, joiner,
+                          reset_cov):
+        if item is None:  # the odometry restarted: close the segments open across it
+            if seg is not None and fit_cfg is not None and poses is None:
+                closed = seg.flush()
+                if closed:
+                    _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov,
+                                  drift)
+            continue
+        t, sensor, tof, pose, cov, base, c_mps = item
         if seg is None or fit_cfg is None:
             fit_cfg = FitConfig(module=ModuleParams(c_mps=cfg.speed_of_sound_mps or c_mps))
             seg = Segmenter(SegmenterConfig(max_readings=cfg.segment_max_readings),

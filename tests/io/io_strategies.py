@@ -70,7 +70,7 @@ def tof_records() -> st.SearchStrategy[TofRecord]:
 
 def odom_records() -> st.SearchStrategy[OdomRecord]:
     return st.builds(OdomRecord, times, st.floats(-1e4, 1e4), st.floats(-1e4, 1e4),
-                     st.floats(-1e4, 1e4))
+                     st.floats(-1e4, 1e4), st.booleans())
 
 
 @st.composite

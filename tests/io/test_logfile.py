@@ -89,3 +89,23 @@ def test_a_rig_whose_speed_of_sound_is_not_air_is_malformed():
         assert line == 1 and msg.startswith("`speed_of_sound_mps` must be within [250, 450]")
     (rec,) = iter_log(io.StringIO(rig % "331.3"))
     assert isinstance(rec, RigRecord) and rec.speed_of_sound_mps == 331.3
+
+
+def test_odom_reset_round_trip_and_old_lines():
+    """``"reset": true`` (FORMATS.md §4 extension) survives a round trip; it is written
+    only when true, so a log without resets is byte for byte as before."""
+    recs = [OdomRecord(0.0, 1.0, 2.0, 30.0), OdomRecord(0.1, 0.0, 0.0, 0.0, reset=True)]
+    buf = io.StringIO()
+    LogWriter(buf).write_all(recs)
+    lines = buf.getvalue().splitlines()
+    assert lines[0] == '{"type":"odom","t_s":0.0,"x_m":1.0,"y_m":2.0,"yaw_deg":30.0}'
+    assert json.loads(lines[1]) == {"type": "odom", "t_s": 0.1, "x_m": 0.0, "y_m": 0.0,
+                                    "yaw_deg": 0.0, "reset": True}
+    assert list(iter_log(io.StringIO(buf.getvalue()), strict=True)) == recs
+    # "reset": false is read (as absent); anything but a boolean is named
+    text = ('{"type":"odom","t_s":0.2,"x_m":0,"y_m":0,"yaw_deg":0,"reset":false}\n'
+            '{"type":"odom","t_s":0.3,"x_m":0,"y_m":0,"yaw_deg":0,"reset":1}\n')
+    stats = LogStats()
+    back = list(iter_log(io.StringIO(text), stats))
+    assert back == [OdomRecord(0.2, 0.0, 0.0, 0.0)]
+    assert stats.malformed == [(2, "field `reset` must be true or false, got 1")]

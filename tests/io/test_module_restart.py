@@ -163,3 +163,25 @@ def test_a_module_reset_behind_an_open_serial_port_is_started_again() -> None:
     finally:
         os.close(slave)
         os.close(master)
+
+
+def test_the_first_odometry_after_a_module_restart_is_a_reset() -> None:
+    """A restarted module's odometry begins again (at zero): its first odom record is
+    flagged ``reset`` (a new odometry frame), no other."""
+    from sonarloc.io.protocol.messages import Echo, Odom
+    from sonarloc.io.protocol.records import RecordAssembler
+
+    asm = RecordAssembler()
+    out = []
+    host = 100.0
+    for k in range(5):  # the module's first life: 0.1 s apart, driving along x
+        out += asm.push(Odom(1_000_000 + 100_000 * k, 1000 * k, 0, 0), host + 0.1 * k)
+    # restarted: its clock and its odometry start again at zero
+    out += asm.push(Echo(0, 0, 100), host + 2.0)
+    out += asm.push(Odom(10_000, 0, 0, 0), host + 2.01)
+    out += asm.push(Odom(110_000, 1000, 0, 0), host + 2.11)
+    out += asm.flush()
+    odoms = [r for r in out if r.type == "odom"]
+    assert [r.reset for r in odoms] == [False] * 5 + [True, False]
+    assert asm.clock.restarts == 1
+    assert odoms[5].x_m == 0.0 and odoms[5].t_s > odoms[4].t_s

@@ -13,7 +13,7 @@ what it sent.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from sonarloc.io.logfile import (
     OdomRecord,
@@ -205,6 +205,7 @@ class RecordAssembler:
         self._mounts: dict[int, RigMount] = {}
         self.rig: RigRecord | None = None
         self._held: Record | None = None  # a reading whose time jumped (see ModuleClock)
+        self._odom_restarts = 0  # clock.restarts when the last odom record came out
 
     def push(self, msg: Message, host_s: float | None = None) -> list[Record]:
         """The records completed by ``msg``, which arrived at the host's time ``host_s``
@@ -241,7 +242,7 @@ class RecordAssembler:
         """End of stream: the reading still held back, kept (nothing contradicts its time)."""
         self.clock.flush()
         held, self._held = self._held, None
-        return [] if held is None else [held]
+        return [] if held is None else self._mark_reset([held])
 
     def _reading(self, rec: Record) -> list[Record]:
         """``rec``, whose time the clock just placed, after the reading held back before it
@@ -250,8 +251,22 @@ class RecordAssembler:
         out = [held] if held is not None and self.clock.verdict else []
         if self.clock.pending:
             self._held = rec
-            return out
+            return self._mark_reset(out)
         out.append(rec)
+        return self._mark_reset(out)
+
+    def _mark_reset(self, out: list[Record]) -> list[Record]:
+        """``out`` with the first odom record after a module restart flagged ``reset``:
+        a restarted module's odometry begins again (at zero), a new odometry frame that
+        must not be differenced against the pose before the restart."""
+        restarts = self.clock.restarts
+        if restarts == self._odom_restarts:
+            return out
+        for k, rec in enumerate(out):
+            if isinstance(rec, OdomRecord):
+                out[k] = replace(rec, reset=True)
+                self._odom_restarts = restarts
+                break
         return out
 
     def _finish_rig(self, info: RigInfo) -> list[Record]:
