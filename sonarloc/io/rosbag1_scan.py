@@ -314,7 +314,8 @@ class UnindexedBag1Reader:
                 rows.append((t, -1, data_pos, data_len, conn))
                 rep.inline_messages += 1
             elif not complete:
-                self._tail(pos, {OP_IDXDATA: "index data", OP_CHUNKINFO: "chunk info"}
+                self._tail(pos, {OP_IDXDATA: "index data, no messages in it",
+                                 OP_CHUNKINFO: "chunk info, no messages in it"}
                            .get(op or -1, f"op {op}"))
                 break
             pos = data_pos + data_len
