@@ -320,7 +320,7 @@ class UnindexedBag1Reader:
                 break
             pos = data_pos + data_len
         if first:
-            raise BagScanError("no bag header record; not a ROS 1 bag v2.0")
+            raise BagScanError(f"no complete bag header record in its {size} bytes")
         if rows:
             self._msgs = np.array(rows, dtype=np.int64)
         return conns

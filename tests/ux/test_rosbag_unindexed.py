@@ -204,3 +204,37 @@ def test_bag_header_only(tmp_path: Path) -> None:
     assert got == [] and reader.report.tail_bytes == 30 and reader.report.chunks == 0
     with pytest.raises(rosbag.RosbagError, match="no sensor_msgs/msg/Range topics"):
         rosbag.import_bag(cut, tmp_path / "x.jsonl")
+
+
+@pytest.mark.parametrize("compression", [None, "bz2"])
+def test_any_cut_keeps_a_prefix_of_the_messages(tmp_path: Path, compression: str | None
+                                                ) -> None:
+    # wherever the file ends, the reader keeps whole messages of the intact bag (in its
+    # order, fewer for an earlier cut) and accounts for every byte: read + lost = size
+    bag = _indexed(tmp_path, compression)
+    expected, _ = _rosbags_index(bag)
+    full = [e[:3] for e in expected]
+    unindexed = _unindex(bag.read_bytes())
+    cut = tmp_path / "cut.bag.active"
+    previous = -1
+    step = len(unindexed) // 100 | 1   # ~100 cuts, at odd offsets
+    for end in [*range(13, len(unindexed), step), len(unindexed)]:
+        cut.write_bytes(unindexed[:end])
+        if end < 4096 + 13:   # the bag header record (4096 bytes) is not complete
+            if b"chunk_count=" not in unindexed[:end]:   # its fields are not complete
+                with pytest.raises(rosbag.RosbagError, match="no complete bag header record"):
+                    with rosbag._open_reader(cut):
+                        pass
+            else:   # its padding is cut: an empty bag, all of it lost
+                got, reader = _read_all(cut)
+                assert got == [] and reader.report.tail_pos == 13
+            continue
+        got, reader = _read_all(cut)
+        kept = set(got)
+        assert [m for m in full if m in kept] == got
+        assert len(got) >= previous
+        previous = len(got)
+        rep = reader.report
+        assert rep.size_bytes == end and 0 <= rep.tail_bytes < end - 4096
+        assert (rep.tail_bytes == 0) == (rep.tail_pos is None)
+    assert got == full and rep.tail_bytes == 0   # the whole unindexed file
