@@ -413,15 +413,15 @@ class UnindexedBag1Reader:
             self.report.messages -= int((~known & (self._msgs[:, 1] >= 0)).sum())
             self._msgs = self._msgs[known]
         self.report.connections = len(conns)
-        counts = (np.bincount(self._msgs[:, 4]) if len(self._msgs)
-                  else np.zeros(0, dtype=np.int64))
+        ids, n = np.unique(self._msgs[:, 4], return_counts=True)
+        counts = dict(zip(ids.tolist(), n.tolist(), strict=True))
         out = []
         for cid in sorted(conns):
             c = conns[cid]
             out.append(Connection(
                 c.id, c.topic, normalize_msgtype(c.msgtype_ros1),
                 MessageDefinition(MessageDefinitionFormat.MSG, c.msgdef), c.md5sum,
-                int(counts[cid]) if cid < len(counts) else 0,
+                counts.get(cid, 0),
                 ConnectionExtRosbag1(c.callerid, c.latching), self))
         self.connections = out
         if not out:
@@ -463,12 +463,9 @@ class UnindexedBag1Reader:
         sel = np.flatnonzero(np.isin(m[:, 4], ids))
         if not len(sel):
             return
-        lut = np.full(int(m[:, 4].max()) + 1, -1, dtype=np.int64)
-        for cid, r in rank.items():
-            if cid < len(lut):
-                lut[cid] = r
+        ranks = np.array([rank[i] for i in ids.tolist()], dtype=np.int64)
         sub = m[sel]
-        order = np.lexsort((sel, lut[sub[:, 4]], sub[:, 0]))
+        order = np.lexsort((sel, ranks[np.searchsorted(ids, sub[:, 4])], sub[:, 0]))
         for t, chunk, off, length, cid in sub[order].tolist():
             yield by_id[cid], t, self._data(chunk, off, length)
 
