@@ -4,7 +4,9 @@
   sonarloc rosbag export POSES.csv --out OUT.bag [--log LOG.jsonl]
 
 Import reads sensor_msgs/msg/Range (one topic per transducer, or frame_ids on one
-topic) and nav_msgs/msg/Odometry from a ROS 1 .bag or a ROS 2 bag directory. Mount
+topic) and nav_msgs/msg/Odometry from a ROS 1 .bag or a ROS 2 bag directory; an
+unindexed ROS 1 bag (the NAME.bag.active a killed recorder leaves) is read record by
+record, and the summary says so and how many bytes at its end were lost. Mount
 poses come from --sensor, a rig JSON, or the bag's /tf_static. Export writes
 geometry_msgs/msg/PoseWithCovarianceStamped in `map` and, with --log, the map->odom
 transform on /tf.
@@ -38,7 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     imp = sub.add_parser("import", help="Range + Odometry topics of a bag -> log JSONL",
                          description="Convert sensor_msgs/msg/Range and nav_msgs/msg/Odometry "
                                      "topics of a ROS 1 or ROS 2 bag into a sonarloc log.")
-    imp.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag directory")
+    imp.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag directory; an unindexed "
+                                 "ROS 1 bag (NAME.bag.active of a killed `rosbag record`) "
+                                 "is read sequentially, up to a truncated last record")
     imp.add_argument("--out", required=True, help="log JSONL to write")
     imp.add_argument("--sensor", action="append", default=[], metavar="NAME=ID[@X,Y,YAW_DEG]",
                      help="map a Range topic or frame_id to a sensor id, optionally with its "

@@ -29,6 +29,7 @@ import math
 import re
 from collections import Counter
 from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Literal
@@ -50,6 +51,7 @@ from sonarloc.io.logfile import (
     iter_log,
 )
 from sonarloc.io.posescsv import PoseTrack
+from sonarloc.io.rosbag1_scan import BagScanError, ScanReport, UnindexedBag1Reader
 from sonarloc.physics.sound import check_air_speed_of_sound
 
 RANGE_TYPE = "sensor_msgs/msg/Range"
@@ -208,6 +210,7 @@ class ImportStats:
     mount_from: dict[int, str] = field(default_factory=dict)
     odom_topic: str | None = None
     base_frame: str = "base_link"
+    unindexed: ScanReport | None = None
 
     def summary(self) -> str:
         parts = [f"{self.tof} tof ({self.no_echo} no echo) from {len(self.sensors)} sensors",
@@ -222,6 +225,8 @@ class ImportStats:
         if self.unmapped:
             parts.append("unmapped Range sources: " + ", ".join(
                 f"{k} ({v})" for k, v in sorted(self.unmapped.items())))
+        if self.unindexed is not None:
+            parts.append(self.unindexed.summary())
         return "; ".join(parts)
 
 
@@ -230,15 +235,50 @@ def _stamp_s(msg: Any) -> float:
     return float(st.sec) + float(st.nanosec) * 1e-9
 
 
-def _open_reader(bag: Path) -> Any:
+def is_active_bag(bag: Path) -> bool:
+    """True for ``NAME.bag.active``: the file ``rosbag record`` writes until it stops cleanly."""
+    return bag.name.endswith(".bag.active") and bag.is_file()
+
+
+#: rosbags' messages (rosbags 0.11) for a ROS 1 bag the sequential reader can still read:
+#: never indexed (index_pos 0), or an index that points past a cut end
+UNINDEXED_ERRORS = ("Bag is not indexed", "Bag index looks damaged")
+
+
+@contextmanager
+def _open_reader(bag: Path) -> Iterator[Any]:
+    """An open bag reader: rosbags' AnyReader, or the sequential reader of an unindexed
+    ROS 1 bag (``.bag.active``, or a ``.bag`` rosbags reports as not indexed)."""
     rb = _rosbags()
     if not bag.exists():
         raise RosbagError(f"bag {bag} does not exist")
-    store = typestore(1 if bag.suffix == ".bag" else 2)
+    if is_active_bag(bag):
+        reader: Any = _open_unindexed(bag)
+    else:
+        store = typestore(1 if bag.suffix == ".bag" else 2)
+        try:
+            reader = rb.highlevel.AnyReader([bag], default_typestore=store)
+        except Exception as err:  # rosbags raises its own error classes
+            raise RosbagError(f"cannot open bag {bag}: {_first_line(err)}") from err
+        try:
+            reader.open()
+        except Exception as err:
+            if not (bag.suffix == ".bag" and str(err).startswith(UNINDEXED_ERRORS)):
+                raise
+            reader = _open_unindexed(bag)
     try:
-        return rb.highlevel.AnyReader([bag], default_typestore=store)
-    except Exception as err:  # rosbags raises its own error classes
-        raise RosbagError(f"cannot open bag {bag}: {_first_line(err)}") from err
+        yield reader
+    finally:
+        reader.close()
+
+
+def _open_unindexed(bag: Path) -> UnindexedBag1Reader:
+    reader = UnindexedBag1Reader(bag, default_typestore=typestore(1))
+    try:
+        reader.open()
+    except BagScanError as err:
+        raise RosbagError(f"bag {bag}: {err}") from err
+    return reader
 
 
 def _first_line(err: BaseException) -> str:
@@ -342,6 +382,8 @@ def import_bag(
     stats = ImportStats()
     try:
         with _open_reader(bag) as reader:
+            if isinstance(reader, UnindexedBag1Reader):
+                stats.unindexed = reader.report
             conns = list(reader.connections)
             range_conns = [x for x in conns if x.msgtype == RANGE_TYPE]
             if not range_conns:

@@ -45,16 +45,23 @@ def _quat(ts, yaw: float):
 def write_test_bag(path: Path, version: int, *, ranges: list[tuple[float, int, float]],
                    odom: list[tuple[float, float, float, float]], tf_static: bool = True,
                    one_topic: bool = False, lag_s: float = 0.0, t0: float = 1_700_000_000.0,
-                   truth: bool = False):
+                   truth: bool = False, compression: str | None = None,
+                   chunk_bytes: int | None = None):
     """A bag with Range topics per sensor (or one topic with frame_ids), Odometry, /tf_static.
 
     ``ranges``: (t_s, sensor, range_m); ``odom``: (t_s, x, y, yaw_rad). Messages are
     written at bag time stamp + ``lag_s`` (receive delay). With ``truth``, a PoseStamped
-    topic ``/gt`` carries the odometry poses shifted by +1 m in x.
+    topic ``/gt`` carries the odometry poses shifted by +1 m in x. ROS 1 only:
+    ``compression`` ``"bz2"`` or ``"lz4"`` compresses the chunks; ``chunk_bytes`` closes a
+    chunk once it holds more than that many bytes (rosbags' default 1 MiB).
     """
     ts = _store(version)
     T = ts.types
     writer = Writer1(path) if version == 1 else Writer2(path, version=9)
+    if compression is not None:
+        writer.set_compression(Writer1.CompressionFormat[compression.upper()])
+    if chunk_bytes is not None:
+        writer.chunk_threshold = chunk_bytes
     ser = ts.serialize_ros1 if version == 1 else ts.serialize_cdr
     with writer:
         topics = ["/sonar"] if one_topic else [f"/sonar/{i}" for i in range(len(MOUNTS))]
