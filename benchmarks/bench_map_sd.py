@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import io
-import math
 import os
 import platform
 import sys
@@ -43,6 +42,7 @@ from sonarloc.io.logfile import LogWriter, TruthRecord, iter_log  # noqa: E402
 from sonarloc.io.posescsv import PoseTrack  # noqa: E402
 from sonarloc.localize.features import FeatureMap  # noqa: E402
 from sonarloc.localize.replay import replay_log  # noqa: E402
+from sonarloc.maps import compare as maps_compare  # noqa: E402
 from sonarloc.maps.build import BuiltFeature, build_from_log  # noqa: E402
 from sonarloc.maps.geojson import Map, load_map  # noqa: E402
 from sonarloc.world.rig import ring16  # noqa: E402
@@ -76,26 +76,9 @@ def localized_track(text: str, world: Map) -> PoseTrack:
 def feature_errors(feats: list[BuiltFeature], world: Map, gate_m: float
                    ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
     """(error, sd_m) of the built points and of the built walls matched to true ones."""
-    t = FeatureMap.from_map(world)
-    points, walls = [], []
-    for f in feats:
-        if f.kind == "wall":
-            d = f.coords[1] - f.coords[0]
-            best = math.inf
-            for a, b in t.wall_ends:
-                e = b - a
-                nrm = np.array([-e[1], e[0]]) / np.hypot(*e)
-                cos = abs(float(d @ e)) / (np.hypot(*d) * np.hypot(*e))
-                if cos < math.cos(math.radians(10)):
-                    continue
-                best = min(best, max(abs(float((p - a) @ nrm)) for p in f.coords))
-            if best <= gate_m:
-                walls.append((best, f.sd_m))
-        else:
-            dist = float(np.min(np.hypot(*(t.point_xy - f.coords).T)))
-            if dist <= gate_m:
-                points.append((dist, f.sd_m))
-    return points, walls
+    pairs = maps_compare.feature_errors(feats, world, gate_m)
+    return ([(e, f.sd_m) for f, e in pairs if f.kind != "wall"],
+            [(e, f.sd_m) for f, e in pairs if f.kind == "wall"])
 
 
 def row(label: str, errs: list[tuple[float, float]]) -> str:

@@ -1024,25 +1024,24 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
     pending: list[TofRecord] = []
     joiner = joiner if joiner is not None else OdomJoiner()
 
-    def odom_at(t: float) -> Array:
+    def around(t: float) -> tuple[int, int, float]:
+        """The odometry records either side of ``t`` and the fraction of the way from
+        the first to the second (the first or the last record alone outside them)."""
         i = bisect.bisect_right(odo_t, t)
         if i <= 0:
-            return odo_p[0]
+            return 0, 0, 0.0
         if i >= len(odo_t):
-            return odo_p[-1]
+            return -1, -1, 0.0
         span = odo_t[i] - odo_t[i - 1]
-        return se2.interpolate(odo_p[i - 1], odo_p[i], 0.0 if span <= 0 else
-                               (t - odo_t[i - 1]) / span)
+        return i - 1, i, 0.0 if span <= 0 else (t - odo_t[i - 1]) / span
+
+    def odom_at(t: float) -> Array:
+        a, b, f = around(t)
+        return odo_p[a] if a == b else se2.interpolate(odo_p[a], odo_p[b], f)
 
     def odom_cov_at(t: float) -> Array:
-        i = bisect.bisect_right(odo_t, t)
-        if i <= 0:
-            return odo_c[0]
-        if i >= len(odo_t):
-            return odo_c[-1]
-        span = odo_t[i] - odo_t[i - 1]
-        f = 0.0 if span <= 0 else (t - odo_t[i - 1]) / span
-        return (1 - f) * odo_c[i - 1] + f * odo_c[i]
+        a, b, f = around(t)
+        return (1 - f) * odo_c[a] + f * odo_c[b]
 
     def emit(r: TofRecord) -> Iterator[tuple[float, int, float, Array, Array | None, Array,
                                               float]]:

@@ -11,6 +11,7 @@ from sonarloc.io.posescsv import PoseTrack, read_poses_csv, write_poses_csv
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.replay import replay_log
 from sonarloc.maps.build import BuildConfig, MapBuilder, build_from_log
+from sonarloc.maps.compare import feature_errors
 from sonarloc.maps.geojson import load_map, map_from_geojson
 from sonarloc.world.rig import ring16
 from sonarloc.world.simulate import simulate_records
@@ -279,26 +280,9 @@ def test_a_landmark_its_fit_cannot_place_is_skipped_not_fatal():
 
 
 def _normalized_errors(feats, world, gate_m=0.5):
-    """error / sd_m of every built feature against the nearest true one (walls: the
-    worse end's distance from a true wall's line within 10 deg), and the errors."""
-    true = FeatureMap.from_map(world)
-    z, errs = [], []
-    for f in feats:
-        if f.kind == "wall":
-            d = f.coords[1] - f.coords[0]
-            err = math.inf
-            for a, b in true.wall_ends:
-                e = b - a
-                if abs(d @ e) < math.cos(math.radians(10)) * np.hypot(*d) * np.hypot(*e):
-                    continue
-                nrm = np.array([-e[1], e[0]]) / np.hypot(*e)
-                err = min(err, max(abs(float((p - a) @ nrm)) for p in f.coords))
-        else:
-            err = float(np.min(np.hypot(*(true.point_xy - f.coords).T)))
-        if err <= gate_m:
-            z.append(err / f.sd_m)
-            errs.append(err)
-    return np.array(z), np.array(errs)
+    """error / sd_m of every built feature matched to a true one, and the errors."""
+    pairs = feature_errors(feats, world, gate_m)
+    return np.array([e / f.sd_m for f, e in pairs]), np.array([e for _, e in pairs])
 
 
 def test_odometry_only_build_states_its_drift():
@@ -372,3 +356,19 @@ def test_wall_sd_is_stated_at_its_far_end(rng):
     far = 5.5 * math.radians(1.0)
     assert w.sd_m == pytest.approx(far, rel=0.05)
     assert w.sd_alpha_deg == pytest.approx(1.0, rel=0.05)
+
+
+def test_feature_errors_against_the_true_map():
+    """`maps.compare.feature_errors`: a point's distance to the nearest true point, a
+    wall's worse end from the line of a true wall of its direction; beyond the gate (a
+    ghost) or at another direction: left out."""
+    from sonarloc.maps.build import BuiltFeature
+
+    world = load_map(ROOM)
+    pole = BuiltFeature("pole", np.array([2.53, 2.04]), 0.5, 0.01, 5)       # pole-a, 5 cm
+    wall = BuiltFeature("wall", np.array([[1.0, 0.01], [6.0, -0.02]]), 0.1, 0.01, 5)
+    ghost = BuiltFeature("pole", np.array([6.0, 2.5]), 0.5, 0.01, 5)
+    slanted = BuiltFeature("wall", np.array([[1.0, 0.5], [1.6, 1.3]]), 0.1, 0.01, 5)
+    got = feature_errors([pole, wall, ghost, slanted], world, gate_m=0.3)
+    assert [f for f, _ in got] == [pole, wall]
+    assert got[0][1] == pytest.approx(0.05) and got[1][1] == pytest.approx(0.02)
