@@ -17,7 +17,9 @@ import math
 from pathlib import Path
 
 import pytest
-from conftest import MAPS
+
+REPO = Path(__file__).resolve().parents[2]
+MAPS = REPO / "maps"   # (tests/io's conftest shadows the root one by name in a full run)
 
 OFFSETS = [(1e4, -2e4), (5e5, 5e6)]
 
@@ -92,13 +94,16 @@ def drive(tmp_path_factory, run_cli_module) -> Path:
 
 @pytest.fixture(scope="module")
 def run_cli_module():
+    import os
     import subprocess
+    import sys
 
-    from conftest import _cli_command
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
 
     def run(*args: str, check: bool = False):
-        cmd, env = _cli_command(*args)
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+        proc = subprocess.run([sys.executable, "-m", "sonarloc", *args], capture_output=True,
+                              text=True, timeout=300, env=env)
         if check and proc.returncode != 0:
             raise AssertionError(f"sonarloc {' '.join(args)} failed:\n{proc.stderr}")
         return proc
