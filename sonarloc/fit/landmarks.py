@@ -148,11 +148,14 @@ def _fallback(seg_arrays: _Cleaned, status: FitStatus, reason: str,
     r, bearing, _ = conventional(t, x, y, yaw, tof, cfg)
     ref = int(np.flatnonzero(finite)[-1])
     i = int(np.argmin(np.where(finite, tof, np.inf)))
-    # the object is on the min-TOF beam axis at range r, seen from that reading
-    px, py = x[i] + r * math.cos(bearing), y[i] + r * math.sin(bearing)
+    # the object is on the min-TOF beam axis at range r, seen from that reading; its
+    # offset from the reference formed from the readings' difference first (the same in
+    # any frame: absolute points at x ~ 5e5 m would round to 1e-10 m)
     rx, ry = float(x[ref]), float(y[ref])
-    r_ref = math.hypot(px - rx, py - ry)
-    b_ref = math.atan2(py - ry, px - rx) if r_ref > 0 else bearing
+    px = float(x[i] - rx) + r * math.cos(bearing)
+    py = float(y[i] - ry) + r * math.sin(bearing)
+    r_ref = math.hypot(px, py)
+    b_ref = math.atan2(py, px) if r_ref > 0 else bearing
     half_beam = math.radians(12.0)
     sd_r = math.sqrt(float(M.tof_variance_us2(0.0, cfg.module))) / M.us_per_m(cfg.module)
     local = np.array([r_ref, b_ref, cfg.kappa_guess_us])

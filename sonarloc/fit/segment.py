@@ -268,8 +268,13 @@ class _Open:
     misses: int = 0
     trailing: int = 0       # no-echo readings attached after the last echo
     sensors: set[int] = field(default_factory=set)
-    mid: tuple[float, float] = (math.nan, math.nan)   # landmark on the last echo's axis
-    arc: list[tuple[float, float]] | None = None      # of ``last`` (cached when needed)
+    # the landmark on the last echo's axis, and the arc's points (cached when needed),
+    # as offsets from the last echo's transducer position (last[1], last[2]): a
+    # reading's offset from them is (lx - x) + mid, the same in any frame (the
+    # absolute point, x ~ 5e5 m in UTM, would round to 1e-10 m and move the knife-edge
+    # tests of the miss angle; docs/FITTING.md "Numerics")
+    mid: tuple[float, float] = (math.nan, math.nan)
+    arc: list[tuple[float, float]] | None = None
     occluded_lead: bool = False     # the reading before the first echo: a nearer echo
     occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
     first: tuple[float, float] = (math.nan, math.nan)   # where its first echo was taken
@@ -323,12 +328,11 @@ def _ints(a: np.ndarray) -> Sequence[int]:
     return array("q", np.ascontiguousarray(a, dtype=np.int64).tobytes())
 
 
-def _mids(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, R: np.ndarray
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """The ``mid`` of :class:`_Open` for echoes at (x, y, yaw, R): math's cos and sin, so
-    the same bits as :meth:`Segmenter._step`."""
+def _mids(yaw: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``mid`` of :class:`_Open` for echoes at (yaw, R) (offsets from their
+    transducers): math's cos and sin, so the same bits as :meth:`Segmenter._step`."""
     a = (yaw + 0.0).tolist()
-    return (x + R * np.array(list(map(math.cos, a))), y + R * np.array(list(map(math.sin, a))))
+    return R * np.array(list(map(math.cos, a))), R * np.array(list(map(math.sin, a)))
 
 
 class _Chunk:
@@ -641,7 +645,8 @@ class Segmenter:
                 # first: a landmark well off the axis is neither missed nor censored (the
                 # exact angle is only needed near the miss half-width)
                 mx, my = s.mid
-                dx, dy = mx - x, my - y
+                last = s.last
+                dx, dy = (last[1] - x) + mx, (last[2] - y) + my
                 along = dx * cy + dy * sy
                 if not (cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along)):
                     a = math.atan2(dy, dx) - yaw
@@ -674,10 +679,11 @@ class Segmenter:
                     if arc is None:
                         arc = s.arc = self._arc_points(s)
                     d_best = math.inf
+                    ex, ey = lx - x, ly - y
                     for px, py in arc:
                         # the closest point within the gate that the new beam covers
                         # (range first: the cheaper test, and most points fail it)
-                        dx, dy = px - x, py - y
+                        dx, dy = ex + px, ey + py
                         d = abs(math.hypot(dx, dy) - R)
                         if d >= d_best or d > gate:
                             continue
@@ -722,7 +728,7 @@ class Segmenter:
             best.rows.append(ref)
             best.n_echo += 1
             best.last = (t, x, y, yaw, R, sensor)
-            best.mid = (x + R * math.cos(yaw + 0.0), y + R * math.sin(yaw + 0.0))
+            best.mid = (R * math.cos(yaw + 0.0), R * math.sin(yaw + 0.0))
             best.arc = None
             best.misses = 0
             best.trailing = 0
@@ -734,7 +740,8 @@ class Segmenter:
             best = None
             for s in opened:
                 mx, my = s.mid
-                dx, dy = mx - x, my - y
+                last = s.last
+                dx, dy = (last[1] - x) + mx, (last[2] - y) + my
                 along = dx * cy + dy * sy
                 if cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
@@ -857,7 +864,7 @@ class Segmenter:
                     k = j - 1
                     lx, ly, lyaw, lR = xl[k], yl[k], yawl[k], Rl[k]
                     s.last = (tl[k], lx, ly, lyaw, lR, sl[k])
-                    s.mid = (lx + lR * math.cos(lyaw + 0.0), ly + lR * math.sin(lyaw + 0.0))
+                    s.mid = (lR * math.cos(lyaw + 0.0), lR * math.sin(lyaw + 0.0))
                     s.arc = None
                     s.misses = 0
                     s.trailing = 0
@@ -907,6 +914,7 @@ class Segmenter:
         tl, xl, yl, yawl, sl = ch.tl, ch.xl, ch.yl, ch.yawl, ch.sl
         last_t = s.last[0]
         mx, my = s.mid
+        lx, ly = s.last[1], s.last[2]
         sensors, rows = s.sensors, s.rows
         max_gap, away, miss = self._max_gap, self._away, self._miss
         censor, lim, miss_angle = self._censor, self.config.miss_limit, self._miss_angle
@@ -924,7 +932,7 @@ class Segmenter:
             yaw, sensor = yawl[j], sl[j]
             # the off-axis angle of _off_axis (the swept test) and of the miss test (whose
             # cheap pre-test only skips landmarks beyond the miss width: not needed here)
-            a = atan2(my - yl[j], mx - xl[j]) - yaw
+            a = atan2((ly - yl[j]) + my, (lx - xl[j]) + mx) - yaw
             off = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
             if off > away and sensor in sensors:
                 why = "swept"
@@ -965,8 +973,9 @@ class Segmenter:
             # the swept test: off-axis angle of the last echo's landmark (exact mid) with
             # numpy's arctan2, which may differ from math.atan2 in the last bits: a margin
             k = np.flatnonzero(c)
-            mx, my = _mids(x[k], y[k], yaw[k], R[k])
-            off = np.abs(_wrap_array(np.arctan2(my - y[k + 1], mx - x[k + 1]) - yaw[k + 1]))
+            mx, my = _mids(yaw[k], R[k])
+            off = np.abs(_wrap_array(np.arctan2((y[k] - y[k + 1]) + my,
+                                                (x[k] - x[k + 1]) + mx) - yaw[k + 1]))
             c[k[~(off <= self._away - 1e-9)]] = False
         chain[1:] = c
         return chain
@@ -981,13 +990,13 @@ class Segmenter:
         dq.append((row, R))
 
     def _arc_points(self, s: _Open) -> list[tuple[float, float]]:
-        _, lx, ly, lyaw, lR, _ = s.last
-        return [(lx + lR * math.cos(lyaw + a), ly + lR * math.sin(lyaw + a)) for a in self._arc]
+        _, _, _, lyaw, lR, _ = s.last
+        return [(lR * math.cos(lyaw + a), lR * math.sin(lyaw + a)) for a in self._arc]
 
     def _off_axis(self, s: _Open, x: float, y: float, yaw: float) -> float:
         """Off-axis angle [rad] of ``s``'s last seen landmark for a reading at (x, y, yaw)."""
         px, py = s.mid   # the arc's middle point: the beam axis of the last echo
-        a = math.atan2(py - y, px - x) - yaw
+        a = math.atan2((s.last[2] - y) + py, (s.last[1] - x) + px) - yaw
         return abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
 
     def _gone(self, s: _Open, off: float) -> bool:
@@ -1054,7 +1063,7 @@ class Segmenter:
         lead.append(ref)
         # its mid: the middle of :meth:`_arc_points` (the landmark on the echo's axis)
         s = _Open(self._next_id, lead, 1, (t, x, y, yaw, R, sensor), sensors={sensor},
-                  mid=(x + R * math.cos(yaw + 0.0), y + R * math.sin(yaw + 0.0)),
+                  mid=(R * math.cos(yaw + 0.0), R * math.sin(yaw + 0.0)),
                   occluded_lead=occluded, first=(x, y))
         self._next_id += 1
         self._open.append(s)

@@ -35,6 +35,13 @@ transform ``map_to_odom`` (x, y, yaw of ``odom`` in ``map``) lays them onto the 
    (``insufficient``, ``no_match`` or ``ambiguous`` with the rival poses) and nothing
    is guessed.
 
+Translations (the SD test, distinctness, the hypotheses' 2 cm grid) are those of the
+observed landmarks' centroid: the transform is solved between ``odom`` about that
+centroid and ``map`` about its features' centre, so the outcome does not depend on
+where either frame's origin lies (a 10 km drive's odometry, a map in UTM), and a
+transform judged about ``odom``'s origin would not pin it once that origin is far off
+(its translation SD grows by the distance times the yaw's SD).
+
 The functional core is :func:`relocalize` (observed landmarks + map -> result); the
 :class:`Relocalizer` keeps the recent fits and the odometry path length for the
 :class:`~sonarloc.localize.localizer.Localizer`.
@@ -45,7 +52,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -53,7 +60,7 @@ from numpy.typing import NDArray
 
 from sonarloc import se2
 from sonarloc.fit.result import Landmark
-from sonarloc.localize.features import EDGE_RANGE_M, FeatureMap
+from sonarloc.localize.features import EDGE_RANGE_M, FeatureMap, _lines
 
 Array = NDArray[np.float64]
 RelocStatus = Literal["found", "ambiguous", "insufficient", "no_match"]
@@ -155,6 +162,16 @@ class Relocalization:
     n_landmarks: int = 0
     n_hypotheses: int = 0
     alternatives: tuple[tuple[Array, float, int], ...] = ()
+    odom_origin: Array = field(default_factory=lambda: np.zeros(2))
+    """(2,) m: the point of ``odom`` (the observed landmarks' centroid) about which the
+    transform was solved; ``map_origin`` (2,) the point of ``map`` its local frame starts
+    at; ``local`` (3,) and ``local_cov`` (3, 3) the transform between those local frames
+    (``map - map_origin = R (odom - odom_origin) + local[:2]``). :meth:`pose_in_map`
+    works from them: ``map_to_odom``'s translation and its covariance carry the lever
+    of ``odom``'s origin (huge after a long drive or in UTM, x ~ 5e5 m)."""
+    map_origin: Array = field(default_factory=lambda: np.zeros(2))
+    local: Array | None = None
+    local_cov: Array | None = None
 
     @property
     def found(self) -> bool:
@@ -163,9 +180,19 @@ class Relocalization:
     def pose_in_map(self, odom_pose: Array) -> tuple[Array, Array]:
         """base_link pose (3,) in ``map`` and its covariance (3, 3) at odometry pose
         ``odom_pose`` (3,) in ``odom`` (the transform's uncertainty carried through)."""
-        pose = se2.compose(self.map_to_odom, odom_pose)
-        ja, _ = se2.compose_jacobians(self.map_to_odom, odom_pose)
-        return pose, ja @ self.cov @ ja.T
+        q = np.asarray(odom_pose, dtype=float)
+        if self.local is None or self.local_cov is None:
+            pose = se2.compose(self.map_to_odom, q)
+            ja, _ = se2.compose_jacobians(self.map_to_odom, q)
+            return pose, ja @ self.cov @ ja.T
+        # in the local frames: the offset from the solved-about point first (exact in any
+        # frame), then the large origins added
+        rel = np.array([q[0] - self.odom_origin[0], q[1] - self.odom_origin[1], q[2]])
+        local_pose = se2.compose(self.local, rel)
+        ja, _ = se2.compose_jacobians(self.local, rel)
+        pose = np.array([self.map_origin[0] + local_pose[0],
+                         self.map_origin[1] + local_pose[1], local_pose[2]])
+        return pose, ja @ self.local_cov @ ja.T
 
 
 # --------------------------------------------------------------------------- observations
@@ -564,6 +591,15 @@ def relocalize(points: Sequence[ObservedPoint], walls: Sequence[ObservedWall],
     if n < cfg.min_landmarks:
         return Relocalization("insufficient", f"{n} landmark(s) seen recently, need "
                               f"{cfg.min_landmarks}", n_landmarks=n)
+    # solved between local frames: odom about the landmarks' centroid, the map about its
+    # features' centre, so that neither the hypotheses' grid, the distinctness test, the
+    # translation's SD nor the Gauss-Newton lever depend on where either frame's origin
+    # is (odometry after a long drive, a map in UTM: x ~ 5e5 m; docs/LOCALIZATION.md)
+    o = np.mean([p.xy for p in pts] + [w.foot for w in wls], axis=0)
+    m = _map_centre(fmap)
+    pts = [replace(p, xy=p.xy - o) for p in pts]
+    wls = [replace(w, foot=w.foot - o, extent=w.extent - o) for w in wls]
+    fmap = _shifted_map(fmap, m)
     hyp = _hypotheses(pts, wls, fmap, cfg)
     if not len(hyp):
         return Relocalization("no_match", "no pair of observed landmarks matches a pair of "
@@ -592,10 +628,12 @@ def relocalize(points: Sequence[ObservedPoint], walls: Sequence[ObservedWall],
             distinct.append(r)
     best = distinct[0]
     x, cov, cost, inliers = best
-    alts = tuple((d[0], d[2], d[3]) for d in distinct[1:4])
+    alts = tuple((_to_frames(d[0], d[1], o, m)[0], d[2], d[3]) for d in distinct[1:4])
+    x_frame, cov_frame = _to_frames(x, cov, o, m)
 
     def result(status: RelocStatus, reason: str) -> Relocalization:
-        return Relocalization(status, reason, x, cov, cost, inliers, n, len(hyp), alts)
+        return Relocalization(status, reason, x_frame, cov_frame, cost, inliers, n, len(hyp),
+                              alts, o, m, x, cov)
 
     if inliers < cfg.min_inliers:
         return result("no_match", f"the best pose explains {inliers} of {n} landmarks, "
@@ -615,6 +653,35 @@ def relocalize(points: Sequence[ObservedPoint], walls: Sequence[ObservedWall],
     margin = (distinct[1][2] - cost) if len(distinct) > 1 else math.inf
     return result("found", f"{inliers} of {n} landmarks matched, next best pose costs "
                   f"{margin:.1f} more")
+
+
+def _map_centre(fmap: FeatureMap) -> Array:
+    """(2,) the centre of the map's features' bounding box (zeros for an empty map)."""
+    xy = np.concatenate([fmap.point_xy.reshape(-1, 2), fmap.wall_ends.reshape(-1, 2)])
+    if not len(xy):
+        return np.zeros(2)
+    return 0.5 * (xy.min(axis=0) + xy.max(axis=0))
+
+
+def _shifted_map(fmap: FeatureMap, origin: Array) -> FeatureMap:
+    """``fmap`` with its positions relative to ``origin`` (2,) (directions unchanged)."""
+    ends = fmap.wall_ends - origin
+    return replace(fmap, point_xy=fmap.point_xy - origin, wall_ends=ends,
+                   wall_line=_lines(ends))
+
+
+def _to_frames(x: Array, cov: Array, o: Array, m: Array) -> tuple[Array, Array]:
+    """The transform ``x`` (3,) between the local frames (odom about ``o``, map about
+    ``m``) and its covariance as ``map_to_odom`` between the frames themselves:
+    ``t = m + x[:2] - R o``."""
+    c, s = math.cos(x[2]), math.sin(x[2])
+    ro = np.array([c * o[0] - s * o[1], s * o[0] + c * o[1]])
+    out = np.array([(m[0] - ro[0]) + x[0], (m[1] - ro[1]) + x[1], x[2]])
+    if not np.all(np.isfinite(cov)):
+        return out, cov.copy()
+    j = np.eye(3)
+    j[0, 2], j[1, 2] = ro[1], -ro[0]     # d(-R o)/d theta
+    return out, j @ cov @ j.T
 
 
 def _same(a: Array, b: Array, cfg: RelocalizeConfig) -> bool:

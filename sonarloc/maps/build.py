@@ -54,7 +54,7 @@ import bisect
 import math
 from collections import Counter, deque
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
@@ -392,13 +392,26 @@ class BuiltFeature:
 
 
 class MapBuilder:
-    """Clusters landmarks (in ``map``) across passes; :meth:`features` merges them."""
+    """Clusters landmarks (in ``map``) across passes; :meth:`features` merges them.
 
-    def __init__(self, config: BuildConfig | None = None) -> None:
+    ``origin`` (2,) m: the builder works in ``map`` shifted by ``-origin``: :meth:`add`
+    takes landmarks, views, poses and feet in that frame, :meth:`features` and
+    :meth:`geojson` give ``map`` coordinates. :func:`build_from_log` puts it at the
+    first reading's robot position, so that the walls' (rho, alpha) information and
+    the vague-landmark test are formed near the data whatever the map frame's origin
+    (a wall's rho about an origin 5e6 m away, as in UTM, has an SD of 5e6 m times its
+    alpha's: every wall was skipped as vague there).
+    """
+
+    def __init__(self, config: BuildConfig | None = None,
+                 origin: tuple[float, float] | Array = (0.0, 0.0)) -> None:
         self.config = config or BuildConfig()
         self.points: list[_PointCluster] = []
         self.walls: list[_WallCluster] = []
         self.stats: Counter[str] = Counter()
+        self.origin = np.asarray(origin, dtype=float).reshape(2).copy()
+        if not np.all(np.isfinite(self.origin)):
+            raise ValueError(f"`origin` must be two finite numbers, got {origin!r}")
 
     def add(self, lm: Landmark, view_xy: Array, pose: Array | None = None,
             pose_cov: Array | None = None, feet: Array | None = None,
@@ -539,7 +552,15 @@ class MapBuilder:
         self.stats["walls"] += 1
 
     def features(self) -> list[BuiltFeature]:
-        """The merged map features (clusters with at least ``min_observations``)."""
+        """The merged map features (clusters with at least ``min_observations``), in
+        ``map`` (:attr:`origin` added back)."""
+        o = self.origin
+        if not o.any():
+            return self._features()
+        return [replace(f, coords=f.coords + o) for f in self._features()]
+
+    def _features(self) -> list[BuiltFeature]:
+        """:meth:`features` in the builder's frame (``map`` less :attr:`origin`)."""
         cfg = self.config
         walls: list[BuiltFeature] = []
         for c in _merge_walls(self.walls, cfg):
@@ -1181,6 +1202,9 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     joiner = OdomJoiner(cfg.odom_max_speed_mps, cfg.odom_max_yaw_rate_rad_s)
     reset_cov = np.diag([cfg.odom_reset_sd_m**2, cfg.odom_reset_sd_m**2,
                          math.radians(cfg.odom_reset_sd_deg) ** 2])
+    # readings are fitted and clustered relative to the first reading's robot position
+    # (MapBuilder.origin): the same map, shifted, whatever the map frame's origin
+    shift = np.zeros(3)
     for item in _readings(source, poses, result, cfg.odom_gap_s, cfg.odom_noise, joiner,
                           reset_cov):
         if item is None:  # the odometry restarted: close the segments open across it
@@ -1195,6 +1219,9 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
             fit_cfg = FitConfig(module=ModuleParams(c_mps=cfg.speed_of_sound_mps or c_mps))
             seg = Segmenter(SegmenterConfig(max_readings=cfg.segment_max_readings),
                             fit_cfg.module)
+            shift[:2] = base[:2]
+            result.builder.origin = shift[:2].copy()
+        pose, base = pose - shift, base - shift
         result.readings += 1
         if math.isfinite(tof):
             ref_cov[t] = (base, cov)

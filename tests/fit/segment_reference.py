@@ -1,6 +1,7 @@
 """The segmenter's per-reading logic as it was before its loop was written out inline
 (session 3, sonarloc/fit/segment.py at 06e309f: ``_Open`` and ``Segmenter``, verbatim but
-for the docstrings), kept as the reference the fast form must match segment for segment
+for the docstrings; its arc points and ``mid`` are offsets from the last
+echo's transducer position, as the package's, for translation invariance), kept as the reference the fast form must match segment for segment
 (tests/fit/test_fit_segment_equivalence.py). Its configuration, result and counter
 types are the package's own. Not used by the package."""
 
@@ -33,7 +34,8 @@ class _Open:
     misses: int = 0
     trailing: int = 0       # no-echo readings attached after the last echo
     sensors: set[int] = field(default_factory=set)
-    mid: tuple[float, float] = (math.nan, math.nan)   # landmark on the last echo's axis
+    mid: tuple[float, float] = (math.nan, math.nan)   # landmark on the last echo's axis,
+    # as arc: offsets from the last echo's transducer position (last[1], last[2])
     arc: list[tuple[float, float]] | None = None      # of ``last`` (cached when needed)
     occluded_lead: bool = False     # the reading before the first echo: a nearer echo
     occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
@@ -140,7 +142,7 @@ class Segmenter:
                     continue
                 # cheap test first: a landmark well off the axis is neither missed nor
                 # censored (the exact angle is only needed near the miss half-width)
-                dx, dy = s.mid[0] - x, s.mid[1] - y
+                dx, dy = (s.last[1] - x) + s.mid[0], (s.last[2] - y) + s.mid[1]
                 along = dx * cy + dy * sy
                 if wide < math.inf and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
@@ -188,7 +190,7 @@ class Segmenter:
             wide = self._tan_miss_wide
             cy, sy = math.cos(yaw), math.sin(yaw)
             for s in list(self._open):
-                dx, dy = s.mid[0] - x, s.mid[1] - y
+                dx, dy = (s.last[1] - x) + s.mid[0], (s.last[2] - y) + s.mid[1]
                 along = dx * cy + dy * sy
                 if wide < math.inf and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
@@ -232,14 +234,14 @@ class Segmenter:
         dq.append((row, R))
 
     def _arc_points(self, s: _Open) -> list[tuple[float, float]]:
-        _, lx, ly, lyaw, lR, _ = s.last
-        return [(lx + lR * math.cos(lyaw + a), ly + lR * math.sin(lyaw + a)) for a in self._arc]
+        _, _, _, lyaw, lR, _ = s.last
+        return [(lR * math.cos(lyaw + a), lR * math.sin(lyaw + a)) for a in self._arc]
 
     @staticmethod
     def _mid_point(s: _Open) -> tuple[float, float]:
         """The middle of :meth:`_arc_points` (the landmark on the last echo's beam axis)."""
-        _, lx, ly, lyaw, lR, _ = s.last
-        return lx + lR * math.cos(lyaw + 0.0), ly + lR * math.sin(lyaw + 0.0)
+        _, _, _, lyaw, lR, _ = s.last
+        return lR * math.cos(lyaw + 0.0), lR * math.sin(lyaw + 0.0)
 
     def _travelled(self, s: _Open, x: float, y: float) -> bool:
         """Whether (x, y) is more than ``max_travel_m`` from where ``s``'s first echo was
@@ -268,7 +270,7 @@ class Segmenter:
         if s.arc is None:
             s.arc = self._arc_points(s)
         for px, py in s.arc:
-            dx, dy = px - x, py - y
+            dx, dy = (lx - x) + px, (ly - y) + py
             a = math.atan2(dy, dx) - yaw
             if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) > beam:
                 continue
@@ -280,7 +282,7 @@ class Segmenter:
     def _off_axis(self, s: _Open, x: float, y: float, yaw: float) -> float:
         """Off-axis angle [rad] of ``s``'s last seen landmark for a reading at (x, y, yaw)."""
         px, py = s.mid   # the arc's middle point: the beam axis of the last echo
-        a = math.atan2(py - y, px - x) - yaw
+        a = math.atan2((s.last[2] - y) + py, (s.last[1] - x) + px) - yaw
         return abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
 
     def _gone(self, s: _Open, off: float) -> bool:
