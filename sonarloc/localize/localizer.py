@@ -647,7 +647,6 @@ class Localizer:
         self._odom_start_t = math.nan
         self._last_pushed_t = -math.inf  # the latest reading given to the segmenter
         self._consecutive_rejected = 0
-        self._last_accept_t = -math.inf
         # map features that confirmed the pose lately (confirm(); the status)
         self._confirmed = ConfirmedFeatures()
         self._dof_memo: tuple[list[tuple[str, int]] | None, str] = (None, "")
@@ -705,7 +704,6 @@ class Localizer:
         self._pending.clear()
         self._last_odom_t = -math.inf
         self._consecutive_rejected = 0
-        self._last_accept_t = -math.inf
         self._confirmed.clear()
         self._start_t = t_s
 
@@ -1370,7 +1368,6 @@ class Localizer:
         the last ``dead_reckoning_after_s`` pin all three degrees of freedom
         (:func:`~sonarloc.localize.confirmed.missing_dof`)."""
         self._confirmed.add(t_s, kind, index)
-        self._last_accept_t = max(self._last_accept_t, t_s)
 
     def map_var_m2(self, kind: str | None, index: int) -> float:
         """Variance [m²] of map feature (``kind``, ``index``)'s position: the larger of its
@@ -1421,7 +1418,6 @@ class Localizer:
         self._unknown = False
         self._consecutive_rejected = 0
         self._reject_start_t = math.nan
-        self._last_accept_t = t
         self._confirmed.clear()
         self.confirm(t, POSE, -1)
 
@@ -1611,13 +1607,13 @@ class Localizer:
                 reason += f"; relocalization: {self._reloc.last.reason}"
             return "lost", reason
         window = c.dead_reckoning_after_s
-        if not math.isfinite(self._last_accept_t):
+        if not math.isfinite(self._confirmed.newest_s):
             since = t - self._start_t
             if since <= window:     # the prior is what the landmarks have to confirm
                 return "dead_reckoning", f"no landmark fused yet ({since:.1f} s since " \
                     f"the prior)"
             return "dead_reckoning", f"no landmark fused for {since:.1f} s"
-        since = t - self._last_accept_t
+        since = t - self._confirmed.newest_s
         if since > window:
             return "dead_reckoning", f"no landmark fused for {since:.1f} s"
         recent = self._confirmed.recent(t - window)
