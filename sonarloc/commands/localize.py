@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 
 from sonarloc.commands._args import accept_negative_values, parse_pose, refuse_overwrite
@@ -63,6 +64,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "an update; a feature's own sd_m (written by `map build`) is "
                              "used where larger (default 0: the map taken as exact unless "
                              "it says otherwise)")
+    parser.add_argument("--max-tof", type=float, metavar="US", default=None,
+                        help="readings at or above this TOF [us] are a module's timeout, "
+                             "taken as no echo and counted (as `sonarloc fit --max-tof`)")
+    parser.add_argument("--odom-max-speed", type=float, metavar="MPS", default=None,
+                        help="an odometry increment implying more speed is a jump, taken as "
+                             "a restart of the odometry (default 5 m/s; inf: never)")
+    parser.add_argument("--odom-max-yaw-rate", type=float, metavar="DEG_S", default=None,
+                        help="the same for turning (default 573 deg/s = 10 rad/s; inf: never)")
     parser.add_argument("--quiet", action="store_true", help="no summary on stderr")
 
 
@@ -71,8 +80,17 @@ def run(args: argparse.Namespace) -> int:
     init = parse_pose(args.init, "--init") if args.init is not None else None
     fmap = FeatureMap.from_map(load_map(args.map))
     config = LocalizerConfig(method=args.method, relocalize=args.relocalize)
+    yaw_rate = args.odom_max_yaw_rate
+    if yaw_rate is not None:
+        if not yaw_rate > 0:  # named in the user's unit, before the config's rad/s check
+            raise ValueError(f"--odom-max-yaw-rate must be positive (deg/s; inf: never), "
+                             f"got {yaw_rate}")
+        yaw_rate = math.radians(yaw_rate)
     for option, name, value in (("--odom-gap", "odom_gap_s", args.odom_gap),
-                                ("--map-sd", "map_sd_m", args.map_sd)):
+                                ("--map-sd", "map_sd_m", args.map_sd),
+                                ("--max-tof", "max_tof_us", args.max_tof),
+                                ("--odom-max-speed", "odom_max_speed_mps", args.odom_max_speed),
+                                ("--odom-max-yaw-rate", "odom_max_yaw_rate_rad_s", yaw_rate)):
         if value is None:
             continue
         try:

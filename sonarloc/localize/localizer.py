@@ -258,6 +258,10 @@ class LocalizerConfig:
         the filter at an unambiguous winner. Without a prior, no estimate is reported
         until then.
     relocalization : its settings.
+    max_tof_us : a module that reports a timeout as a reading (its largest TOF) rather
+        than as no echo: readings at or above this [us] are taken as no echo and counted
+        (``stats.timeouts``), as ``sonarloc fit --max-tof``. None (default): every
+        reading is an echo.
     """
 
     method: Method = "kuc"
@@ -290,8 +294,13 @@ class LocalizerConfig:
     update_min_a: float = math.radians(1.0)
     relocalize: bool = False
     relocalization: RelocalizeConfig = field(default_factory=RelocalizeConfig)
+    max_tof_us: float | None = None
 
     def __post_init__(self) -> None:
+        if self.max_tof_us is not None and not (math.isfinite(self.max_tof_us)
+                                                and self.max_tof_us > 0):
+            raise ValueError(f"`max_tof_us` must be a positive number of microseconds or "
+                             f"None, got {self.max_tof_us!r}")
         if self.kuc_fusion not in ("echoes", "fit"):
             raise ValueError(f"`kuc_fusion` must be 'echoes' or 'fit', got {self.kuc_fusion!r}")
         for name in ("echo_gate_probability", "echo_screen_probability"):
@@ -385,6 +394,8 @@ class LocalizerStats:
     #: jumps (``LocalizerConfig.odom_max_speed_mps`` / ``odom_max_yaw_rate_rad_s``)
     odom_resets: int = 0
     odom_jumps: int = 0
+    #: readings at or above ``LocalizerConfig.max_tof_us``, taken as no echo
+    timeouts: int = 0
 
     def summary(self) -> str:
         parts = [f"{self.odom} odom", f"{self.tof} tof", f"{self.observations} observations",
@@ -406,6 +417,8 @@ class LocalizerStats:
             parts.append(f"{self.odom_resets} odometry resets")
         if self.odom_jumps:
             parts.append(f"{self.odom_jumps} odometry jumps")
+        if self.timeouts:
+            parts.append(f"{self.timeouts} timeouts taken as no echo")
         if self.skipped:
             parts.append("skipped: " + ", ".join(f"{k} {v}" for k, v in
                                                  sorted(self.skipped.items())))
@@ -948,11 +961,13 @@ class Localizer:
         ``tof_us`` None or NaN: no echo. Skipped and counted in ``stats.skipped``: an
         unknown ``sensor`` (``unknown_sensor``; ``tof_before_rig`` before any mounts),
         a non-finite time or pan angle, a zero, negative or infinite TOF (``bad_tof``).
+        A TOF at or above ``LocalizerConfig.max_tof_us`` is no echo (``stats.timeouts``).
         """
         self.stats.tof += 1
         if sensor not in self._mounts:
             self.stats.skipped["unknown_sensor" if self._mounts else "tof_before_rig"] += 1
             return
+        tof_us = self._timeout_as_no_echo(tof_us)
         bad_tof = tof_us is not None and (tof_us <= 0.0 or tof_us == math.inf)  # NaN: none
         if bad_tof or not math.isfinite(t_s) or (pan_rad is not None
                                                  and not math.isfinite(pan_rad)):
@@ -965,6 +980,14 @@ class Localizer:
             self.stats.skipped["tof_without_odom"] += 1
         if self._entries and t_s <= self._last_odom_t:
             self._drain_pending(self._last_odom_t)
+
+    def _timeout_as_no_echo(self, tof_us: float | None) -> float | None:
+        """``tof_us``, or None when at or above ``config.max_tof_us`` (counted)."""
+        limit = self.config.max_tof_us
+        if limit is not None and tof_us is not None and tof_us >= limit:
+            self.stats.timeouts += 1
+            return None
+        return tof_us
 
     def add_landmark(self, lm: Landmark) -> FusionOutcome:
         """Fuse a fitted landmark (in ``odom``; refers to the pose at ``lm.ref_t_s``).

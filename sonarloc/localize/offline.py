@@ -219,9 +219,10 @@ class OfflinePipeline:
             loc.stats.skipped["unknown_sensor" if loc._mounts else "tof_before_rig"] += 1
             return
         if loc.config.method == "kuc":
+            tof_us = loc._timeout_as_no_echo(rec.tof_us)
             self._tof_t.append(rec.t_s)
             self._tof_sensor.append(rec.sensor)
-            self._tof_us.append(math.nan if rec.tof_us is None else float(rec.tof_us))
+            self._tof_us.append(math.nan if tof_us is None else float(tof_us))
             self._tof_pan.append(rec.pan_deg)
 
     def tofs(self, run: TofRun) -> None:
@@ -237,7 +238,13 @@ class OfflinePipeline:
         if loc.config.method == "kuc":
             self._tof_t += run.t_s
             self._tof_sensor += run.sensor
-            self._tof_us += run.tof_us
+            limit = loc.config.max_tof_us
+            if limit is None:
+                self._tof_us += run.tof_us
+            else:  # as Localizer._timeout_as_no_echo (NaN compares False: stays no echo)
+                tofs = [math.nan if v >= limit else v for v in run.tof_us]
+                loc.stats.timeouts += sum(v >= limit for v in run.tof_us)
+                self._tof_us += tofs
             self._tof_pan += run.pan_deg
 
     def finish(self, restart: bool = False) -> None:

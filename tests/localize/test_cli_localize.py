@@ -234,3 +234,51 @@ def test_a_still_robot_s_skipped_readings_are_counted_in_the_summary(run_cli, tm
     proc = run_cli("localize", str(path), "--map", ROOM, "--status", check=True)
     assert "no_motion_since_fused" in proc.stderr
     assert proc.stdout.splitlines()[-1].endswith(",tracking")
+
+
+def test_max_tof_takes_a_module_s_timeouts_as_no_echo(run_cli, room_log, tmp_path):
+    """A module that logs its timeout as a reading (62,000 us) instead of no echo:
+    `localize --max-tof 62000` gives the clean log's poses, batch and online, and counts
+    the timeouts; without it the readings are taken as echoes 10.6 m away."""
+    text = room_log.read_text()
+    n_none = text.count('"tof_us":null')
+    assert n_none > 100
+    sat = tmp_path / "timeouts.jsonl"
+    sat.write_text(text.replace('"tof_us":null', '"tof_us":62000.0'))
+
+    def poses(log, *flags):
+        out = tmp_path / "poses.csv"
+        proc = run_cli("localize", str(log), "--map", ROOM, "--out", str(out), *flags,
+                       check=True)
+        return out.read_text(), proc.stderr
+
+    for mode in ((), ("--online",)):
+        want, clean_err = poses(room_log, *mode)
+        assert "timeouts" not in clean_err
+        got, err = poses(sat, "--max-tof", "62000", *mode)
+        assert got == want
+        assert f"{n_none} timeouts taken as no echo" in err
+    assert poses(sat)[0] != poses(room_log)[0]
+    bad = run_cli("localize", str(sat), "--map", ROOM, "--max-tof", "0")
+    assert bad.returncode == 2 and "--max-tof" in bad.stderr and "max_tof_us" in bad.stderr
+
+
+@pytest.mark.parametrize(("flag", "value"), [("--odom-max-speed", "0"),
+                                             ("--odom-max-yaw-rate", "-5")])
+def test_odom_limit_flags_name_themselves(run_cli, room_log, flag, value):
+    proc = run_cli("localize", str(room_log), "--map", ROOM, flag, value)
+    assert proc.returncode == 2 and flag in proc.stderr
+
+
+def test_odom_max_speed_flag_reaches_the_jump_detector(run_cli, room_log, tmp_path):
+    """The simulated robot drives at ~0.3 m/s: a 0.05 m/s limit takes every odometry
+    increment as a jump (counted), inf or the default none."""
+    out = tmp_path / "poses.csv"
+    slow = run_cli("localize", str(room_log), "--map", ROOM, "--out", str(out),
+                   "--odom-max-speed", "0.05", check=True)
+    assert "odometry jumps" in slow.stderr
+    for value in ("inf", None):
+        flags = () if value is None else ("--odom-max-speed", value)
+        proc = run_cli("localize", str(room_log), "--map", ROOM, "--out", str(out), *flags,
+                       check=True)
+        assert "odometry jumps" not in proc.stderr
