@@ -9,13 +9,13 @@ import math
 
 import numpy as np
 import pytest
-from conftest import MAPS
 
 from sonarloc.fit.landmarks import _resolve, fit_scan, fit_segments
 from sonarloc.fit.lsq import FitConfig
 from sonarloc.fit.segment import Segment, SegmentBlock, Segmenter, SegmenterConfig
 from sonarloc.fit.synth import Reflector, pan_scan, rotation_scan, simulate_readings
 from sonarloc.io.scancsv import ScanReadings
+from tests.conftest import MAPS
 
 FIELDS = ("t_s", "x_m", "y_m", "yaw_rad", "tof_us", "sensor")
 

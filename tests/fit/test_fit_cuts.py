@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-from conftest import MAPS
 
 from sonarloc.fit.landmarks import (
     _fit_p,
@@ -23,6 +22,7 @@ from sonarloc.fit.pair import resolve_pair_groups
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.segment import Segment, Segmenter, SegmenterConfig
 from sonarloc.fit.select import KAPPA_WALL_US
+from tests.conftest import MAPS
 
 
 def _ring_drive(duration_s=30.0, seed=2):

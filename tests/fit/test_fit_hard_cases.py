@@ -6,12 +6,12 @@ import math
 
 import numpy as np
 import pytest
-from conftest import MAPS
 
 from sonarloc.fit.landmarks import fit_scan, fit_segments
 from sonarloc.fit.result import FitStatus, Landmark
 from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings
 from sonarloc.io.scancsv import ScanReadings
+from tests.conftest import MAPS
 
 
 def check_invariants(landmarks: list[Landmark]) -> None:

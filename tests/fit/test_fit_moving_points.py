@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import MAPS
 
 from sonarloc.fit.landmarks import fit_segments
 from sonarloc.fit.lsq import FitConfig, _readmit, _solve, _trilaterate, fit_batch, pack_segments
@@ -21,6 +20,7 @@ from sonarloc.fit.synth import Reflector, simulate_readings
 from sonarloc.maps import load_map
 from sonarloc.world.rig import rig_by_name
 from sonarloc.world.simulate import scan_from_pings, simulate_records
+from tests.conftest import MAPS
 
 
 def _pass_by(seed: int = 0, sweep_deg: float = 8.0, kappa_us: float = 0.15):

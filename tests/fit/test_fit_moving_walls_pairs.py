@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-from conftest import MAPS
 
 from sonarloc.fit.landmarks import fit_scan, fit_segments, weak_wall
 from sonarloc.fit.lsq import FitConfig
@@ -19,6 +18,7 @@ from sonarloc.fit.synth import Reflector, simulate_readings
 from sonarloc.maps import load_map
 from sonarloc.world.rig import rig_by_name
 from sonarloc.world.simulate import simulate_scan
+from tests.conftest import MAPS
 
 RHO_M = 2.0
 

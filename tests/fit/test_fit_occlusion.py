@@ -6,12 +6,12 @@ import math
 
 import numpy as np
 import pytest
-from conftest import MAPS
 
 from sonarloc.fit.landmarks import fit_scan
 from sonarloc.fit.result import FitStatus
 from sonarloc.fit.segment import Segmenter
 from sonarloc.fit.synth import Reflector, pan_scan
+from tests.conftest import MAPS
 
 
 def _fig5(seed: int, tier: str):

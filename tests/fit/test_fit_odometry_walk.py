@@ -9,7 +9,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import MAPS
 
 from sonarloc.fit import odomcov
 from sonarloc.fit.landmarks import fit_segments
@@ -18,6 +17,7 @@ from sonarloc.fit.pair import is_candidate
 from sonarloc.fit.result import FitStatus
 from sonarloc.fit.synth import Reflector, simulate_readings
 from sonarloc.world.robot import Pose2, Robot, Route
+from tests.conftest import MAPS
 
 
 def _drive(seed, reflectors, length_m=4.0, radius_m=4.0, mount_m=0.2, hz=8.0):

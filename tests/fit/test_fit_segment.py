@@ -6,13 +6,13 @@ import math
 
 import numpy as np
 import pytest
-from conftest import MAPS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sonarloc.fit.segment import Segmenter, SegmenterConfig
 from sonarloc.fit.synth import Reflector, pan_scan, simulate_readings
 from sonarloc.io.scancsv import ScanReadings
+from tests.conftest import MAPS
 
 FIG5 = [Reflector.polar(1.46, -17, 0.67), Reflector.polar(1.50, 4, 0.15),
         Reflector.polar(1.47, 22, 2.68)]

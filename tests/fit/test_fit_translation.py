@@ -28,11 +28,11 @@ import math
 
 import numpy as np
 import pytest
-from conftest import MAPS
 
 from sonarloc.fit.landmarks import FitReport, fit_scan
 from sonarloc.fit.result import Landmark
 from sonarloc.io.scancsv import ScanReadings
+from tests.conftest import MAPS
 
 OFFSETS = [(0.0, 0.0), (1e3, 0.0), (1e4, -2e4), (1e5, 1e5), (5e5, 5e6)]
 """Frame offsets [m]: none, a 1 km and a 10-20 km drive, 100 km, a UTM-like frame."""

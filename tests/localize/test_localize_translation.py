@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-MAPS = REPO / "maps"   # (tests/io's conftest shadows the root one by name in a full run)
+MAPS = REPO / "maps"
 
 OFFSETS = [(1e4, -2e4), (5e5, 5e6)]
 
