@@ -30,6 +30,7 @@ from sonarloc.fit.segment import (
     Segmenter,
     SegmenterConfig,
     SegmenterStats,
+    usable,
 )
 from sonarloc.fit.select import KAPPA_WALL_US, Selection, overlap_reasons, select_models
 from sonarloc.io.scancsv import ScanReadings
@@ -107,9 +108,8 @@ def _arrays(seg: SegmentLike) -> _Cleaned:
 
 def _clean(t: Array, x: Array, y: Array, yaw: Array, tof: Array
            ) -> tuple[NDArray[np.bool_], int]:
-    """Readings usable by the fitter (finite pose; TOF NaN or finite positive)."""
-    ok = np.isfinite(t) & np.isfinite(x) & np.isfinite(y) & np.isfinite(yaw)
-    ok &= np.isnan(tof) | (np.isfinite(tof) & (tof > 0))
+    """Readings usable by the fitter (:func:`~sonarloc.fit.segment.usable`)."""
+    ok = usable(t, x, y, yaw, tof)
     return ok, int((~ok).sum())
 
 
@@ -369,7 +369,8 @@ def _select_packed(seg: NDArray[np.int64], t: Array, x: Array, y: Array, yaw: Ar
             # its echoes (if any) were unusable: say so, not "no echo"
             out[i] = _fallback(arrs, FitStatus.BAD_INPUT,
                                f"no usable echo: {n_bad[i]} reading(s) with a non-finite "
-                               "pose or an inf, zero or negative TOF dropped", cfg, meta[i])
+                               "or absurd pose or an inf, zero, negative or absurd TOF "
+                               "dropped", cfg, meta[i])
         elif n_echo[i] == 0:
             out[i] = _fallback(arrs, FitStatus.NO_ECHO, "no echo in the segment", cfg, meta[i])
         else:
@@ -811,7 +812,8 @@ def fit_scan(scan: ScanReadings, config: FitConfig | None = None,
              odometry_sd_deg_per_m: float | None = None) -> FitReport:
     """Segment a scan (in reading order) and fit every segment.
 
-    Readings with non-finite poses or inf/zero/negative TOF are ignored (counted in
+    Readings with non-finite or absurd poses or inf/zero/negative/absurd TOF
+    (:func:`~sonarloc.fit.segment.usable`) are ignored (counted in
     ``stats.bad``); duplicate times are allowed (ring transducers firing together).
     """
     cfg = config or FitConfig()

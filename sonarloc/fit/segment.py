@@ -241,6 +241,25 @@ class SegmentBlock(Sequence[Segment]):
                        self.seg_id[k], self.closed_by[k], self.occluded[k])
 
 
+#: Largest TOF [us] and transducer coordinate [m] taken as data: beyond them a reading
+#: is bad input (counted, ignored), not an echo 17 km away or a robot past the Moon.
+#: Their squares and products stay far inside float64 (and float32 for the offsets the
+#: fitter uses); a corrupt log's 1e300 us reading used to overflow the fit to NaN and
+#: crash a table lookup on a moving ring's segment.
+MAX_TOF_US = 1e8
+MAX_COORD_M = 1e9
+
+
+def usable(t: ArrayLike, x: ArrayLike, y: ArrayLike, yaw: ArrayLike, tof: ArrayLike
+           ) -> np.ndarray:
+    """Readings the segmenter and the fitter take: finite time and pose, coordinates
+    within :data:`MAX_COORD_M`, TOF NaN (no echo) or in (0, :data:`MAX_TOF_US`]."""
+    tof = np.asarray(tof, dtype=float)
+    ok = (np.isfinite(t) & np.isfinite(yaw) & (np.abs(x) <= MAX_COORD_M)
+          & (np.abs(y) <= MAX_COORD_M))
+    return ok & (np.isnan(tof) | ((tof > 0.0) & (tof <= MAX_TOF_US)))
+
+
 @dataclass
 class SegmenterStats:
     """Counters of what the segmenter saw and dropped."""
@@ -248,7 +267,7 @@ class SegmenterStats:
     readings: int = 0
     echoes: int = 0
     no_echo: int = 0
-    bad: int = 0            # non-finite pose, inf/negative TOF
+    bad: int = 0            # non-finite or absurd pose or TOF (:func:`usable`)
     out_of_order: int = 0   # time went backwards
     spikes: int = 0         # echoes in segments dropped for having < min_echoes
     segments: int = 0       # segments returned
@@ -466,10 +485,10 @@ class Segmenter:
              sensor: int = 0) -> list[Segment]:
         """Add one reading; returns the segments this reading closed (often none).
 
-        ``tof_us`` NaN means no echo; inf, zero or negative TOFs and non-finite poses are
-        counted as bad and ignored, as are readings older than the previous one. A
-        ``sensor`` id beyond int64 raises ``ValueError`` (a bad argument, as in
-        :class:`~sonarloc.io.scancsv.ScanReadings`).
+        ``tof_us`` NaN means no echo; inf, zero, negative or absurd TOFs and non-finite
+        or absurd poses (:func:`usable`) are counted as bad and ignored, as are readings
+        older than the previous one. A ``sensor`` id beyond int64 raises ``ValueError``
+        (a bad argument, as in :class:`~sonarloc.io.scancsv.ScanReadings`).
         """
         sensor = int(sensor)
         if not -(1 << 63) <= sensor < (1 << 63):   # ScanReadings keeps ids as int64
@@ -483,9 +502,9 @@ class Segmenter:
         reading, then :meth:`_step`."""
         st = self.stats
         st.readings += 1
-        if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)
-                and math.isfinite(yaw)) or math.isinf(tof) or tof <= 0.0:
-            st.bad += 1
+        if not (math.isfinite(t) and math.isfinite(yaw) and abs(x) <= MAX_COORD_M
+                and abs(y) <= MAX_COORD_M) or tof <= 0.0 or tof > MAX_TOF_US:
+            st.bad += 1   # as usable(): NaN passes both TOF tests (no echo)
             return []
         if t < self._last_t:
             st.out_of_order += 1
@@ -766,8 +785,7 @@ class Segmenter:
         n = len(t)
         # the checks of :meth:`_push`, for all readings at once: bad values, then time
         # going backwards (behind the latest accepted time, as a running maximum)
-        valid = (np.isfinite(t) & np.isfinite(x) & np.isfinite(y) & np.isfinite(yaw)
-                 & ~np.isinf(tof) & ~(tof <= 0.0))
+        valid = usable(t, x, y, yaw, tof)
         latest = np.maximum.accumulate(np.concatenate(([self._last_t],
                                                        np.where(valid, t, -np.inf))))
         late = valid & (t < latest[:-1])

@@ -193,6 +193,53 @@ def test_nan_inf_and_duplicate_times(rng):
     check_invariants([lm])
 
 
+def _ring_scan(duration_s: float = 6.0) -> ScanReadings:
+    from sonarloc.maps.geojson import load_map
+    from sonarloc.world.rig import rig_by_name
+    from sonarloc.world.simulate import simulate_scan
+
+    return simulate_scan(load_map(MAPS / "room.geojson"), rig_by_name("ring16"),
+                         frame="odom", duration_s=duration_s, seed=5).readings
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_absurd_tofs_and_poses_are_bad_input_not_a_crash():
+    """A corrupt log's 1e300 us readings, on two transducers of a moving ring in a row:
+    the segmenter made a segment of them, and its fit overflowed to NaN and raised an
+    IndexError in the beam table (`map build`, `localize --online`). Readings beyond
+    MAX_TOF_US or MAX_COORD_M are bad input now: counted, never fitted, no warning."""
+    from sonarloc.fit.segment import MAX_COORD_M, MAX_TOF_US, Segment, Segmenter, usable
+
+    assert usable([0.0] * 4, [0.0, MAX_COORD_M, 0.0, 0.0], [0.0] * 4, [0.0] * 4,
+                  [MAX_TOF_US, 5000.0, np.nan, 2 * MAX_TOF_US]).tolist() == [
+        True, True, True, False]
+    scan = _ring_scan()
+    echo = np.flatnonzero(np.isfinite(scan.tof_us) & np.isin(scan.sensor, [1, 2]))
+    tof, x = scan.tof_us.copy(), scan.x_m.copy()
+    tof[echo[40:48]] = 1e300
+    x[echo[90:96]] = 1e200
+    junk = ScanReadings(scan.t_s, x, scan.y_m, scan.yaw_rad, tof, scan.sensor)
+    n_ok = sum(lm.ok for lm in fit_scan(scan).landmarks)
+    rep = fit_scan(junk)                       # the segmenter's block path
+    check_invariants(rep.landmarks)
+    assert rep.stats.bad == 14
+    assert sum(lm.ok for lm in rep.landmarks) >= n_ok - 4
+    one = Segmenter()                          # reading by reading, as online
+    segments = [s for r in zip(junk.t_s, junk.x_m, junk.y_m, junk.yaw_rad, junk.tof_us,
+                               junk.sensor, strict=True) for s in one.push(*r)]
+    lms = fit_segments(segments + one.flush())
+    check_invariants(lms)
+    assert one.stats.bad == 14 and sum(lm.ok for lm in lms) >= n_ok - 4
+    # such readings handed to the fitter in a segment of their own
+    sel = echo[40:48]
+    seg = Segment(ScanReadings(scan.t_s[sel], scan.x_m[sel], scan.y_m[sel],
+                               scan.yaw_rad[sel], tof[sel], scan.sensor[sel]), 0, "misses",
+                  (False, False))
+    (lm,) = fit_segments([seg])
+    assert lm.status is FitStatus.BAD_INPUT and "absurd" in lm.reason
+    assert int(lm.extra["n_bad_input"]) == 8
+
+
 def test_paper_fig5_scene_from_the_world_map():
     from sonarloc.maps.geojson import load_map
     from sonarloc.world.rig import rig_by_name
