@@ -214,9 +214,9 @@ class LocalizerNode:
             raise ValueError(f"`feed` takes a sonarloc.io.logfile record (rig, init, odom, "
                              f"tof, truth), got {type(rec).__name__}")
         if isinstance(rec, InitRecord):
-            self.set_pose(rec.x_m, rec.y_m, math.radians(rec.yaw_deg),
-                          sd_xy_m=rec.sd_xy_m, sd_yaw_rad=math.radians(rec.sd_yaw_deg),
-                          t_s=rec.t_s)
+            sd_xy, sd_yaw = rec.prior_sds()
+            self.set_pose(rec.x_m, rec.y_m, math.radians(rec.yaw_deg), sd_xy_m=sd_xy,
+                          sd_yaw_rad=sd_yaw, t_s=rec.t_s)
             return None
         return self.localizer.handle(rec)
 

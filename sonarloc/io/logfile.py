@@ -39,8 +39,16 @@ class RigRecord:
     type: ClassVar[str] = "rig"
 
 
+#: The SDs of an exact prior (an init record's 0, as a simulation writes its truth): a
+#: Gaussian needs a positive variance
+EXACT_PRIOR_SD_M = 1e-6
+EXACT_PRIOR_SD_RAD = 1e-6
+
+
 @dataclass(frozen=True)
 class InitRecord:
+    """The prior pose of ``base_link`` in ``map`` and its SDs (0: exact)."""
+
     t_s: float
     x_m: float
     y_m: float
@@ -48,6 +56,12 @@ class InitRecord:
     sd_xy_m: float
     sd_yaw_deg: float
     type: ClassVar[str] = "init"
+
+    def prior_sds(self) -> tuple[float, float]:
+        """(position SD [m], yaw SD [rad]) of the prior, an exact one's (0) raised to
+        :data:`EXACT_PRIOR_SD_M` / :data:`EXACT_PRIOR_SD_RAD`."""
+        return (max(self.sd_xy_m, EXACT_PRIOR_SD_M),
+                max(math.radians(self.sd_yaw_deg), EXACT_PRIOR_SD_RAD))
 
 
 @dataclass(frozen=True)
@@ -123,6 +137,17 @@ def _num(obj: dict[str, Any], name: str, default: float | None = None) -> float:
     return float(value)
 
 
+def _sd(obj: dict[str, Any], name: str) -> float:
+    """A standard deviation field: a non-negative number (0: exact, as a simulation's
+    truth) whose square is finite (a variance of 1e600 would overflow the prior's
+    covariance)."""
+    v = _num(obj, name)
+    if not (v >= 0.0 and math.isfinite(v * v)):
+        raise ValueError(f"init record: field `{name}` must be a non-negative standard "
+                         f"deviation, got {v!r}")
+    return v
+
+
 def _finite(v: object) -> TypeGuard[float]:
     """``v`` is a finite float (not an int, bool or anything else)."""
     return type(v) is float and v - v == 0.0
@@ -166,8 +191,11 @@ def _record_checked(obj: dict[str, Any], kind: object) -> Record | None:
             raise ValueError(f"field `reset` must be true or false, got {reset!r}")
         return OdomRecord(**pose, reset=reset)
     if kind == "init":
-        return InitRecord(**{n: _num(obj, n) for n in
-                             ("t_s", "x_m", "y_m", "yaw_deg", "sd_xy_m", "sd_yaw_deg")})
+        try:
+            pose = {n: _num(obj, n) for n in ("t_s", "x_m", "y_m", "yaw_deg")}
+        except ValueError as err:  # named as an init record's (a missing prior is fatal)
+            raise ValueError(f"init record: {err}") from None
+        return InitRecord(**pose, sd_xy_m=_sd(obj, "sd_xy_m"), sd_yaw_deg=_sd(obj, "sd_yaw_deg"))
     if kind == "rig":
         sensors = obj.get("sensors")
         if not isinstance(sensors, list) or not sensors:

@@ -733,8 +733,8 @@ class Localizer:
         elif isinstance(rec, RigRecord):
             self.set_rig(rec.sensors, rec.speed_of_sound_mps)
         elif isinstance(rec, InitRecord):
-            self.set_prior(rec.t_s, rec.x_m, rec.y_m, math.radians(rec.yaw_deg), rec.sd_xy_m,
-                           math.radians(rec.sd_yaw_deg))
+            self.set_prior(rec.t_s, rec.x_m, rec.y_m, math.radians(rec.yaw_deg),
+                           *rec.prior_sds())
         elif isinstance(rec, TruthRecord):
             pass  # never read: localization must not see the truth
         return None

@@ -162,9 +162,12 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
         elif isinstance(rec, OdomRecord) and not have_prior and \
                 not (init is None and loc.config.relocalize):  # relocalizes from scratch
             if init is None:
+                bad = [f"line {n}: {m}" for n, m in stats.malformed
+                       if m.startswith("init record")][:1]   # a refused init record
                 raise LogFormatError(
                     f"the log has no `init` record before its first `odom` record (t_s="
-                    f"{rec.t_s}); give --init X,Y,YAW_DEG")
+                    f"{rec.t_s}); give --init X,Y,YAW_DEG" +
+                    "".join(f" (malformed, skipped: {b})" for b in bad))
             loc.set_prior(rec.t_s, init[0], init[1], math.radians(init[2]),
                           DEFAULT_INIT_SD_XY_M, math.radians(DEFAULT_INIT_SD_YAW_DEG))
             have_prior = True

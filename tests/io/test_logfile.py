@@ -91,6 +91,33 @@ def test_a_rig_whose_speed_of_sound_is_not_air_is_malformed():
     assert isinstance(rec, RigRecord) and rec.speed_of_sound_mps == 331.3
 
 
+def test_an_init_record_with_a_bad_sd_is_malformed_and_named(run_cli, tmp_path):
+    """An init record whose SD was negative or 1e300 (its square overflows) stopped
+    `localize` with "`sd_yaw_rad` must be positive and finite" and no line number, and
+    crashed `map build` (OverflowError). It is a malformed line now, named and skipped;
+    `localize` says a prior is missing and which line was refused."""
+    init = '{"type":"init","t_s":0,"x_m":1,"y_m":2,"yaw_deg":30,"sd_xy_m":%s,"sd_yaw_deg":%s}'
+    for xy, yaw in (("0.1", "-5"), ("0.1", "1e300"), ("-0.1", "5"), ("1e200", "5")):
+        stats = LogStats()
+        assert list(iter_log(io.StringIO(init % (xy, yaw)), stats)) == []
+        ((line, msg),) = stats.malformed
+        assert line == 1 and msg.startswith("init record: field `sd_")
+    for xy, yaw in ((0.1, 180.0), (0.0, 0.0)):   # 0: an exact prior (a simulation's)
+        (rec,) = iter_log(io.StringIO(init % (xy, yaw)))
+        assert rec == InitRecord(0.0, 1.0, 2.0, 30.0, xy, yaw)
+    log = tmp_path / "bad_init.jsonl"
+    with LogWriter(log) as w:
+        w.write_all([RECORDS[0], RECORDS[2], RECORDS[3]])
+    lines = log.read_text().splitlines()
+    log.write_text("\n".join([lines[0], init % ("0.1", "-1e300"), *lines[1:]]) + "\n")
+    proc = run_cli("localize", str(log), "--map", "maps/room.geojson")
+    assert proc.returncode == 2
+    assert "no `init` record" in proc.stderr and "line 2: init record: field `sd_yaw_deg`" \
+        in proc.stderr
+    built = run_cli("map", "build", str(log), "--out", str(tmp_path / "m.geojson"))
+    assert "Traceback" not in built.stderr and "line 2" in built.stderr
+
+
 def test_odom_reset_round_trip_and_old_lines():
     """``"reset": true`` (FORMATS.md §4 extension) survives a round trip; it is written
     only when true, so a log without resets is byte for byte as before."""

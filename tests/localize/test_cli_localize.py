@@ -282,3 +282,28 @@ def test_odom_max_speed_flag_reaches_the_jump_detector(run_cli, room_log, tmp_pa
         proc = run_cli("localize", str(room_log), "--map", ROOM, "--out", str(out), *flags,
                        check=True)
         assert "odometry jumps" not in proc.stderr
+
+
+def test_an_exact_init_record_is_a_prior(run_cli, tmp_path):
+    """An init record with SDs of 0 (exact, as a simulation writes its truth): `map build`
+    took it, `localize` stopped with "`sd_xy_m` must be positive and finite". It is
+    the prior at EXACT_PRIOR_SD_M / _RAD now, in the API too."""
+    from sonarloc.api import LocalizerNode
+    from sonarloc.io.logfile import EXACT_PRIOR_SD_M, InitRecord
+
+    log = tmp_path / "exact.jsonl"
+    with LogWriter(log) as w:
+        w.write_all(simulate_records(load_map(ROOM), ring16(), duration_s=6.0, seed=3,
+                                     init_sd_xy_m=0.0, init_sd_yaw_deg=0.0))
+    (init,) = [r for r in iter_log(log) if isinstance(r, InitRecord)]
+    assert init.sd_xy_m == 0.0 and init.sd_yaw_deg == 0.0
+    out = tmp_path / "poses.csv"
+    run_cli("localize", str(log), "--map", ROOM, "--out", str(out), check=True)
+    track, truth = read_poses_csv(out), _truth(log)
+    err = [math.hypot(x - truth[t][0], y - truth[t][1])
+           for t, x, y in zip(track.t_s, track.x_m, track.y_m, strict=True)]
+    assert max(err) < 0.01
+    node = LocalizerNode(FeatureMap.from_map(load_map(ROOM)))
+    node.feed(init)
+    node.odometry(init.t_s, 0.0, 0.0, 0.0)
+    assert node.covariance[0, 0] == pytest.approx(EXACT_PRIOR_SD_M**2)
