@@ -70,8 +70,14 @@ from sonarloc.localize.ekf import OdomNoise, predict_lists
 from sonarloc.localize.localizer import DEFAULT_ODOM_NOISE, in_odom_gap
 from sonarloc.localize.odomframe import OdomJoiner, check_odom_reset_settings
 from sonarloc.maps.geojson import Map, map_from_geojson
-from sonarloc.maps.slam import (Observation, OdomTrace, SlamConfig, SlamResult, optimize,
-                                transform_with_cov)
+from sonarloc.maps.slam import (
+    Observation,
+    OdomTrace,
+    SlamConfig,
+    SlamResult,
+    optimize,
+    transform_with_cov,
+)
 from sonarloc.physics import constants
 
 Array = NDArray[np.float64]
@@ -1018,7 +1024,8 @@ def _in_gap(times: Sequence[float] | Array, poses: Sequence[Array] | Array, t_s:
 def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult,
               gap_s: float = math.inf, odom_noise: OdomNoise = DEFAULT_ODOM_NOISE,
               joiner: OdomJoiner | None = None, reset_cov: Array | None = None,
-              trace: OdomTrace | None = None) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float] | None]:
+              trace: OdomTrace | None = None
+              ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float] | None]:
     """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c),
     and None where the odometry restarted (the segments open then are to be closed).
 

@@ -158,9 +158,10 @@ class SlamResult:
     the observations' ``base``). ``moved_m`` / ``moved_deg``: the largest difference of
     an optimized pose from the dead reckoning; ``last_move_m`` / ``last_move_deg``: the
     largest change in the last round. ``chi2_odom`` / ``chi2_obs``: mean squared
-    whitened residual per degree of freedom of the odometry and observation factors
-    (about 1 when the stated noise is honest); ``outliers``: observations beyond the
-    Huber threshold; ``associated``: observations in the graph (of ``observations``).
+    whitened residual per degree of freedom of the odometry factors and of the
+    observation factors within the Huber threshold (about 1 when the stated noise is
+    honest); ``outliers``: observations beyond it (down-weighted); ``associated``:
+    observations in the graph (of ``observations``).
     """
 
     ok: bool
@@ -191,10 +192,11 @@ class SlamResult:
         return (f"slam: {self.rounds} rounds, {len(self.node_t)} poses, {self.landmarks} "
                 f"landmarks ({self.revisited} seen again), {self.associated} of "
                 f"{self.observations} fits associated, {self.outliers} beyond the Huber "
-                f"threshold; poses moved up to {100 * self.moved_m:.1f} cm / "
+                f"threshold (down-weighted); poses moved up to {100 * self.moved_m:.1f} cm / "
                 f"{self.moved_deg:.1f} deg from the odometry (last round "
                 f"{100 * self.last_move_m:.2f} cm / {self.last_move_deg:.2f} deg); factors "
-                f"chi2/dof odometry {self.chi2_odom:.2f}, landmarks {self.chi2_obs:.2f}; "
+                f"chi2/dof odometry {self.chi2_odom:.2f}, landmark fits {self.chi2_obs:.2f} "
+                f"(within the threshold); "
                 f"{self.cpu_s:.1f} s CPU")
 
 
@@ -759,8 +761,9 @@ def optimize(obs: list[Observation], odom: OdomTrace, dr_first: Array, prior_cov
                                                                                  math.nan)
     res.chi2_odom = float(np.mean(norms["odom"]) / 3) if len(norms.get("odom", [])) else \
         math.nan
-    res.chi2_obs = float(np.mean(norms["obs"]) / 2) if len(norms["obs"]) else math.nan
-    res.outliers = int(np.count_nonzero(norms["obs"] > cfg.huber**2))
+    inl = norms["obs"][norms["obs"] <= cfg.huber**2]
+    res.chi2_obs = float(np.mean(inl) / 2) if len(inl) else math.nan
+    res.outliers = int(len(norms["obs"]) - len(inl))
     res.associated = int(np.count_nonzero(assoc >= 0))
     res.landmarks = len(lms)
     res.revisited = n_revisit
