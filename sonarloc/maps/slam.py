@@ -36,12 +36,14 @@ A fit belongs to the landmark whose prediction is nearest within the builder's g
 in the current pose estimate, or starts a new landmark; a fit within the gates of two
 landmarks alike (nearest less than 1.5 times nearer) is left out. The first round is
 incremental: the fits are taken in time order, ``window_s`` of them at a time, and the
-graph is solved after each window, so that the poses a fit is placed with have only a
-window's drift; the gates grow with the distance travelled since the landmark was last
-seen (``gate_growth_per_m``, up to ``gate_max_m``) for the drift that no landmark held
-in between. Later rounds re-associate every fit with the last round's poses (base
-gates: duplicate landmarks of the first round merge) and solve once; rounds stop when
-the poses move less than ``converge_m`` / ``converge_deg`` (at most ``rounds``).
+graph is solved after each window (the poses of the last ``free_window_s`` free, the
+older ones held: the cost stays linear in the log's length), so that the poses a fit
+is placed with have only a window's drift; the gates grow with the distance
+travelled since the landmark was last seen (``gate_growth_per_m``, up to
+``gate_max_m``) for the drift that no landmark held in between. Later rounds
+re-associate every fit with the last round's poses (base gates: duplicate landmarks of
+the first round merge) and solve once; rounds stop when the poses move less than
+``converge_m`` / ``converge_deg`` (at most ``rounds``).
 
 Uncertainty
 -----------
@@ -60,6 +62,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
@@ -68,6 +71,9 @@ from sonarloc import se2
 from sonarloc.localize.ekf import OdomNoise, predict_lists
 
 Array = NDArray[np.float64]
+
+#: information matrices up to this size are inverted densely for the marginals
+_DENSE_MARGINALS = 3000
 
 #: weight of turning in the travel that widens the association gates [m per rad]
 _TURN_M_PER_RAD = 0.5
@@ -85,6 +91,7 @@ class SlamConfig:
     radius_prior_sd_m: float = 0.03
     rounds: int = 4
     window_s: float = 5.0
+    free_window_s: float = 60.0
     node_merge_s: float = 0.05
     huber: float = 3.0
     gate_growth_per_m: float = 0.01
@@ -99,7 +106,7 @@ class SlamConfig:
 
     def __post_init__(self) -> None:
         for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "wall_gap_m",
-                     "radius_prior_sd_m", "window_s", "huber", "gate_max_m",
+                     "radius_prior_sd_m", "window_s", "free_window_s", "huber", "gate_max_m",
                      "converge_m", "converge_deg"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -301,18 +308,27 @@ class _Graph:
             view = t + np.stack([c * self.p_view[:, 0] - s * self.p_view[:, 1],
                                  s * self.p_view[:, 0] + c * self.p_view[:, 1]], axis=-1)
             u = view - cen
-            u = u / np.maximum(np.hypot(u[:, 0], u[:, 1]), 1e-9)[:, None]
+            length = np.maximum(np.hypot(u[:, 0], u[:, 1]), 1e-9)
+            u = u / length[:, None]
             d = cen + rad[:, None] * u - t
             hx, hy = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
             e = np.stack([hx - self.p_z[:, 0], hy - self.p_z[:, 1]], axis=-1)
-            jn = np.zeros((len(i), 2, 3))
-            jn[:, 0, 0], jn[:, 0, 1], jn[:, 0, 2] = -c, -s, hy
-            jn[:, 1, 0], jn[:, 1, 1], jn[:, 1, 2] = s, -c, -hx
-            jl = np.zeros((len(i), 2, 3))
-            jl[:, 0, 0], jl[:, 0, 1] = c, s
-            jl[:, 1, 0], jl[:, 1, 1] = -s, c
-            jl[:, 0, 2] = c * u[:, 0] + s * u[:, 1]
-            jl[:, 1, 2] = -s * u[:, 0] + c * u[:, 1]
+            # p = c + R u, u = (v - c) / |v - c|: du = (I - u u^T) (dv - dc) / |v - c|,
+            # v = t + rot(th) view: dv/dt = I, dv/dth = perp(v - t)
+            m = len(i)
+            proj = (np.eye(2)[None] - u[:, :, None] * u[:, None, :]) * \
+                (rad / length)[:, None, None]           # R dp/dv, (m, 2, 2)
+            rot_t = np.zeros((m, 2, 2))                  # rot(-th)
+            rot_t[:, 0, 0], rot_t[:, 0, 1], rot_t[:, 1, 0], rot_t[:, 1, 1] = c, s, -s, c
+            vt = view - t
+            perp = np.stack([-vt[:, 1], vt[:, 0]], axis=-1)
+            jn = np.zeros((m, 2, 3))
+            jn[:, :, :2] = rot_t @ (proj - np.eye(2)[None])
+            jn[:, :, 2] = np.stack([hy, -hx], axis=-1) + \
+                np.einsum("mij,mj->mi", rot_t @ proj, perp)
+            jl = np.zeros((m, 2, 3))
+            jl[:, :, :2] = rot_t @ (np.eye(2)[None] - proj)
+            jl[:, :, 2] = np.einsum("mij,mj->mi", rot_t, u)
             cost += self._robust(e, self.p_a, [(jn, 3 * i), (jl, off)], put, obs_sq)
         # wall observations: the landmark's line seen from the node
         if len(self.w_node):
@@ -360,35 +376,41 @@ class _Graph:
         return float(np.sum(np.where(s <= k, sq, 2 * k * s - k * k)))
 
 
-def _solve(g: _Graph, x: Array, max_iterations: int) -> tuple[Array, float, bool]:
-    """Levenberg-Marquardt from ``x``: the solution, its robust cost, success."""
+def _solve(g: _Graph, x: Array, max_iterations: int, first_free_node: int = 0
+           ) -> tuple[Array, float, bool]:
+    """Levenberg-Marquardt from ``x``: the solution, its robust cost, success. Nodes
+    before ``first_free_node`` are held fixed (the first round's sliding window)."""
     n = g.n_nodes
     angle_idx = np.concatenate([3 * np.arange(n) + 2,
                                 [o + 1 for o, k in zip(g.lm_offset, g.lm_kind, strict=True)
                                  if k == "line"]]).astype(np.int64)
+    free = np.arange(3 * first_free_node, len(x))
     r, jac, cost, _ = g.linearize(x)
     lam = 1e-4
+    small = False
     for _ in range(max_iterations):
         assert jac is not None
-        h = (jac.T @ jac).tocsc()
-        grad = jac.T @ r
+        jf = jac.tocsc()[:, free] if first_free_node > 0 else jac
+        h = (jf.T @ jf).tocsc()
+        grad = jf.T @ r
         dgn = h.diagonal()
         improved = False
         while lam < 1e8:
             try:
-                step = spla.spsolve(h + sp.diags(lam * dgn + 1e-12), -grad)
+                step = spla.spsolve(h + sp.diags(lam * dgn + 1e-12, format="csc"), -grad)
             except (RuntimeError, np.linalg.LinAlgError):  # pragma: no cover - singular
                 lam *= 10
                 continue
             if not np.all(np.isfinite(step)):
                 lam *= 10
                 continue
-            xn = x + step
+            xn = x.copy()
+            xn[free] += step
             xn[angle_idx] = se2.wrap_angle(xn[angle_idx])
             rn, jn, cn, _ = g.linearize(xn)
             if cn <= cost:
                 x, r, jac = xn, rn, jn
-                small = float(np.max(np.abs(step))) < 1e-6 or cost - cn < 1e-9 * max(cost, 1)
+                small = float(np.max(np.abs(step))) < 1e-5 or cost - cn < 1e-6 * max(cost, 1)
                 cost = cn
                 lam = max(lam / 10, 1e-9)
                 improved = True
@@ -416,12 +438,15 @@ class _Lm:
 
 
 def _obs_in_map(o: Observation, pose: Array) -> tuple[Array, Array, Array]:
-    """An observation placed with base pose ``pose``: (point or line (rho>=0, alpha)),
-    view (2,) and feet (k, 2) in the map."""
+    """An observation placed with base pose ``pose``: (point, or line (rho, alpha) with
+    its normal pointing away from the robot, as seen: rho may be negative), view (2,)
+    and feet (k, 2) in the map."""
     if o.kind == "point":
         z = se2.transform_points(pose, o.z)
     else:
-        z = se2.transform_line(pose, o.z)
+        a = float(o.z[1] + pose[2])
+        z = np.array([float(o.z[0]) + pose[0] * math.cos(a) + pose[1] * math.sin(a),
+                      float(se2.wrap_angle(a))])
     return z, se2.transform_points(pose, o.view), se2.transform_points(pose, o.feet)
 
 
@@ -692,7 +717,11 @@ def optimize(obs: list[Observation], odom: OdomTrace, dr_first: Array, prior_cov
                        order[k0:k1], visit_gap_s)
             lm_x = _set_observations(g, obs, obs_node, lms, assoc, flip, a_obs, upto)
             x = np.concatenate([X[:upto].reshape(-1), lm_x])
-            x, _, ok = _solve(g, x, cfg.max_iterations)
+            # the nodes of the last ``free_window_s`` free (older ones hold their place:
+            # every later round solves them all)
+            t_free = float(node_t[upto - 1]) - cfg.free_window_s
+            first_free = max(int(np.searchsorted(node_t[:upto], t_free)), 0)
+            x, _, ok = _solve(g, x, cfg.max_iterations, first_free)
             if not ok:
                 break
             X[:upto] = x[:3 * upto].reshape(-1, 3)
@@ -777,10 +806,16 @@ def _update_lms(lms: list[_Lm], x: Array, g: _Graph) -> None:
 
 
 def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array) -> Array:
-    """(n, 3, 3) marginal covariances of the nodes: from the information matrix J^T J,
-    solved for the columns of at most ``max_nodes`` nodes, linearly interpolated in time
-    between them."""
+    """(n, 3, 3) marginal covariances of the nodes: from the information matrix J^T J
+    (inverted if small; else solved for the columns of at most ``max_nodes`` nodes,
+    linearly interpolated in time between them). Raises ``LinAlgError`` (dense) or
+    ``RuntimeError`` (sparse) if it is singular."""
     h = (jac.T @ jac).tocsc()
+    if h.shape[0] <= _DENSE_MARGINALS:  # a dense inverse is quicker than sparse solves
+        hd = h.toarray()
+        inv = scipy.linalg.cho_solve(scipy.linalg.cho_factor(hd), np.eye(len(hd)))
+        blocks = np.stack([inv[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
+        return 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
     lu = spla.splu(h)
     pick = np.unique(np.linspace(0, n - 1, min(n, max_nodes)).round().astype(np.int64))
     rhs = np.zeros((h.shape[0], 3 * len(pick)))

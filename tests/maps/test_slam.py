@@ -209,8 +209,7 @@ def test_cli_builds_with_slam_and_the_map_localizes(run_cli, loop_log, slam_buil
 
 
 def _random_graph(rng):
-    """A small graph with every factor kind, landmarks of zero radius (the point
-    factor's Jacobian holds its view direction fixed: exact at R = 0)."""
+    """A small graph with every factor kind (a point landmark of radius 5 cm)."""
     n = 4
     x_nodes = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-1, 1, n),
                                rng.uniform(-3, 3, n)])
@@ -227,7 +226,7 @@ def _random_graph(rng):
     g.w_node, g.w_lm = np.array([1, 3]), np.array([1, 1])
     g.w_z = np.column_stack([rng.uniform(0.5, 2, 2), rng.uniform(-3, 3, 2)])
     g.w_a = _whitening(np.stack([np.diag([0.01, 0.02])] * 2))
-    x = np.concatenate([x_nodes.reshape(-1), [0.3, -0.2, 0.0], [1.5, 0.7]])
+    x = np.concatenate([x_nodes.reshape(-1), [0.3, -0.2, 0.05], [1.5, 0.7]])
     return g, x
 
 
