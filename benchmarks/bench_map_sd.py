@@ -96,33 +96,6 @@ def feature_errors(feats: list[BuiltFeature], world: Map, gate_m: float
             [(e, f.sd_m) for f, e in pairs if f.kind == "wall"])
 
 
-def alignment(feats: list[BuiltFeature], world: Map, gate_m: float) -> np.ndarray:
-    """The rigid motion (x, y, yaw: built map frame -> true frame) that best puts the
-    matched points' centres onto the true points (least squares; the identity with
-    fewer than 2)."""
-    true = FeatureMap.from_map(world)
-    pairs = [(f.coords, true.point_xy[int(np.argmin(np.hypot(*(true.point_xy - f.coords).T)))])
-             for f, _ in maps_compare.feature_errors(feats, world, gate_m) if f.kind != "wall"]
-    if len(pairs) < 2:
-        return np.zeros(3)
-    p = np.array([a for a, _ in pairs])
-    q = np.array([b for _, b in pairs])
-    pm, qm = p.mean(axis=0), q.mean(axis=0)
-    u, _, vt = np.linalg.svd((p - pm).T @ (q - qm))
-    rot = (u @ vt).T
-    if np.linalg.det(rot) < 0:
-        return np.zeros(3)
-    yaw = float(np.arctan2(rot[1, 0], rot[0, 0]))
-    return np.array([*(qm - rot @ pm), yaw])
-
-
-def aligned(feats: list[BuiltFeature], motion: np.ndarray) -> list[BuiltFeature]:
-    """The built features moved by the rigid motion ``motion`` (x, y, yaw)."""
-    return [BuiltFeature(f.kind, se2.transform_points(motion, np.asarray(f.coords)),
-                         f.kappa_us, f.sd_m, f.n_obs, f.radius_m, f.sd_alpha_deg, f.n_visits)
-            for f in feats]
-
-
 def row(label: str, errs: list[tuple[float, float]], errs_aligned: list[tuple[float, float]],
         cpu_s: float) -> str:
     if not errs:
@@ -206,8 +179,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             p, w = feature_errors(feats, world, args.gate)
             acc[src][0].extend(p)
             acc[src][1].extend(w)
-            motion = alignment(feats, world, args.gate)
-            p, w = feature_errors(aligned(feats, motion), world, args.gate)
+            motion = maps_compare.rigid_alignment(feats, world, args.gate)
+            p, w = feature_errors(maps_compare.moved(feats, motion), world, args.gate)
             acc_al[src][0].extend(p)
             acc_al[src][1].extend(w)
             if second is not None:

@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
+from sonarloc import se2
 from sonarloc.localize.features import FeatureMap
 from sonarloc.maps.build import BuiltFeature
 from sonarloc.maps.geojson import Map
@@ -49,3 +52,34 @@ def feature_errors(features: Sequence[BuiltFeature], true_map: Map, gate_m: floa
         if err <= gate_m:
             out.append((f, err))
     return out
+
+
+def rigid_alignment(features: Sequence[BuiltFeature], true_map: Map, gate_m: float = 0.5
+                    ) -> NDArray[np.float64]:
+    """The rigid motion (x_m, y_m, yaw_rad: built map frame -> true frame) that best puts
+    the built point features' centres onto their nearest true points within ``gate_m``
+    (least squares, Kabsch); the identity with fewer than two matched.
+
+    A map built without a pose track is in the frame of the log's ``init`` pose, whose
+    error (its SDs) moves every feature alike: errors after this motion are the map's
+    own shape error.
+    """
+    true = FeatureMap.from_map(true_map)
+    pairs = [(f.coords, true.point_xy[int(np.argmin(np.hypot(*(true.point_xy - f.coords).T)))])
+             for f, _ in feature_errors(features, true_map, gate_m) if f.kind != "wall"]
+    if len(pairs) < 2:
+        return np.zeros(3)
+    p = np.array([a for a, _ in pairs], dtype=float)
+    q = np.array([b for _, b in pairs], dtype=float)
+    pm, qm = p.mean(axis=0), q.mean(axis=0)
+    u, _, vt = np.linalg.svd((p - pm).T @ (q - qm))
+    rot = (u @ vt).T
+    if np.linalg.det(rot) < 0:  # pragma: no cover - a reflection fits better: no motion
+        return np.zeros(3)
+    return np.array([*(qm - rot @ pm), math.atan2(rot[1, 0], rot[0, 0])])
+
+
+def moved(features: Sequence[BuiltFeature], motion: ArrayLike) -> list[BuiltFeature]:
+    """The features moved by the rigid motion ``motion`` (x_m, y_m, yaw_rad)."""
+    return [replace(f, coords=se2.transform_points(motion, np.asarray(f.coords, dtype=float)))
+            for f in features]

@@ -243,3 +243,24 @@ def test_factor_jacobians_match_finite_differences(seed):
         rm, _, _, _ = g.linearize(x - dx, jacobian=False)
         num[:, k] = (rp - rm) / (2 * h)
     np.testing.assert_allclose(jac.toarray(), num, atol=1e-5)
+
+
+def test_rigid_alignment_undoes_a_map_frame_error():
+    """`maps.compare.rigid_alignment`: a map moved as a whole (the init prior's error)
+    is put back; its shape error is then what is left."""
+    from sonarloc.localize.features import FeatureMap
+    from sonarloc.maps.build import BuiltFeature
+
+    true = FeatureMap.from_map(load_map(ROOM))
+    shift = np.array([0.04, -0.03, math.radians(1.5)])
+    feats = [BuiltFeature("pole", se2.transform_points(shift, p), 0.5, 0.01, 5)
+             for p in true.point_xy]
+    feats.append(BuiltFeature("wall", se2.transform_points(shift, np.array([[1.0, 0.0],
+                                                                           [6.0, 0.0]])),
+                              0.1, 0.01, 5))
+    assert max(e for _, e in compare.feature_errors(feats, load_map(ROOM), 0.5)) > 0.05
+    motion = compare.rigid_alignment(feats, load_map(ROOM), 0.5)
+    np.testing.assert_allclose(se2.compose(motion, shift), np.zeros(3), atol=1e-9)
+    back = compare.moved(feats, motion)
+    assert max(e for _, e in compare.feature_errors(back, load_map(ROOM), 0.5)) < 1e-9
+    assert np.array_equal(compare.rigid_alignment(feats[:1], load_map(ROOM), 0.5), np.zeros(3))
