@@ -2,7 +2,10 @@
 
 Every reading of the log gets the pose of its transducer in ``map`` -- from a pose
 track (``sonarloc localize ... --out POSES.csv``, interpolated to the reading's time),
-or from the odometry anchored at the log's ``init`` pose (dead reckoning: it drifts).
+or from the odometry anchored at the log's ``init`` pose (dead reckoning: it drifts),
+then, by default (``method="slam"``), corrected by graph SLAM: the robot poses and the
+landmarks estimated together from the odometry and the landmark fits
+(:mod:`sonarloc.maps.slam`), and the fits re-placed with the optimized poses.
 The fitting stage's segmenter and fitter (``sonarloc.fit``) turn the readings into
 landmarks in ``map``; the builder merges them across passes:
 
