@@ -45,6 +45,16 @@ re-associate every fit with the last round's poses (base gates: duplicate landma
 the first round merge) and solve once; rounds stop when the poses move less than
 ``converge_m`` / ``converge_deg`` (at most ``rounds``).
 
+When it cannot help
+-------------------
+:func:`optimize` returns ``ok`` False with a reason, and the build keeps the dead
+reckoning, when there are no landmark fits or fewer than two odometry records, fewer
+than ``min_landmarks`` landmarks seen twice, no landmark seen again more than
+``visit_gap_s`` after a sighting (no loop closure), a solve that fails or leaves
+non-finite values, a singular information matrix, or more than ``max_outlier_share`` of
+the associated fits beyond the Huber threshold at the solution (associations not
+trusted).
+
 Uncertainty
 -----------
 The poses' marginal covariances come from the information matrix at the solution
@@ -103,6 +113,7 @@ class SlamConfig:
     converge_deg: float = 0.2
     max_iterations: int = 30
     max_marginal_nodes: int = 400
+    max_outlier_share: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "wall_gap_m",
@@ -111,6 +122,9 @@ class SlamConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"`slam_{name}` must be positive, got {v!r}")
+        if not 0.0 < self.max_outlier_share <= 1.0:
+            raise ValueError(f"`slam_max_outlier_share` must be in (0, 1], got "
+                             f"{self.max_outlier_share!r}")
         for name in ("node_merge_s", "gate_growth_per_m", "fit_sd_floor_m",
                      "fit_sd_floor_deg"):
             v = getattr(self, name)
@@ -791,8 +805,15 @@ def optimize(obs: list[Observation], odom: OdomTrace, dr_first: Array, prior_cov
     res.chi2_odom = float(np.mean(norms["odom"]) / 3) if len(norms.get("odom", [])) else \
         math.nan
     inl = norms["obs"][norms["obs"] <= cfg.huber**2]
+    n_out = int(len(norms["obs"]) - len(inl))
+    if n_out > cfg.max_outlier_share * max(len(norms["obs"]), 1):
+        res.reason = (f"{n_out} of {len(norms['obs'])} associated landmark fits disagree "
+                      f"with the optimized poses beyond {cfg.huber:g} SDs (more than "
+                      f"{100 * cfg.max_outlier_share:.0f} %): the associations are not "
+                      "trusted")
+        return res
     res.chi2_obs = float(np.mean(inl) / 2) if len(inl) else math.nan
-    res.outliers = int(len(norms["obs"]) - len(inl))
+    res.outliers = n_out
     res.associated = int(np.count_nonzero(assoc >= 0))
     res.landmarks = len(lms)
     res.revisited = n_revisit
@@ -818,11 +839,15 @@ def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array) -
         return 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
     lu = spla.splu(h)
     pick = np.unique(np.linspace(0, n - 1, min(n, max_nodes)).round().astype(np.int64))
-    rhs = np.zeros((h.shape[0], 3 * len(pick)))
-    for j, i in enumerate(pick):
-        rhs[3 * i:3 * i + 3, 3 * j:3 * j + 3] = np.eye(3)
-    sol = lu.solve(rhs)
-    cov_p = np.stack([sol[3 * i:3 * i + 3, 3 * j:3 * j + 3] for j, i in enumerate(pick)])
+    blocks_p: list[Array] = []
+    for k0 in range(0, len(pick), 32):  # 96 right-hand sides at a time: memory bounded
+        part = pick[k0:k0 + 32]
+        rhs = np.zeros((h.shape[0], 3 * len(part)))
+        for j, i in enumerate(part):
+            rhs[3 * i:3 * i + 3, 3 * j:3 * j + 3] = np.eye(3)
+        sol = lu.solve(rhs)
+        blocks_p += [sol[3 * i:3 * i + 3, 3 * j:3 * j + 3] for j, i in enumerate(part)]
+    cov_p = np.stack(blocks_p)
     cov_p = 0.5 * (cov_p + np.swapaxes(cov_p, 1, 2))
     if len(pick) == n:
         return cov_p

@@ -264,3 +264,19 @@ def test_rigid_alignment_undoes_a_map_frame_error():
     back = compare.moved(feats, motion)
     assert max(e for _, e in compare.feature_errors(back, load_map(ROOM), 0.5)) < 1e-9
     assert np.array_equal(compare.rigid_alignment(feats[:1], load_map(ROOM), 0.5), np.zeros(3))
+
+
+def test_pose_marginals_sparse_path_agrees_with_the_dense_inverse(monkeypatch):
+    """Large graphs take their pose marginals from sparse LU solves (a subset of nodes,
+    interpolated between): the same numbers as the dense inverse where both solve."""
+    from sonarloc.maps import slam
+
+    g, x = _random_graph(np.random.default_rng(4))
+    _, jac, _, _ = g.linearize(x)
+    dense = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t)
+    monkeypatch.setattr(slam, "_DENSE_MARGINALS", 0)
+    sparse = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t)
+    np.testing.assert_allclose(sparse, dense, rtol=1e-8, atol=1e-12)
+    few = slam._pose_marginals(jac, g.n_nodes, 2, g.node_t)  # nodes 0 and 3, interpolated
+    np.testing.assert_allclose(few[[0, 3]], dense[[0, 3]], rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(few[1], (2 * dense[0] + dense[3]) / 3, rtol=1e-8, atol=1e-12)
