@@ -1238,8 +1238,8 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
         the odometry and the landmark fits, :mod:`sonarloc.maps.slam`; a log it cannot
         correct falls back to the odometry, ``result.notes`` says why) or ``odometry``
         (dead reckoning alone); default ``config.method``. Not with ``poses``. SLAM
-        keeps the accepted fits and the odometry of the whole log in memory (about a
-        kilobyte per fit, a hundred bytes per odometry record; the rest streams).
+        keeps the accepted fits and the odometry of the whole log in memory (a few
+        kilobytes per fit, a hundred bytes per odometry record; the rest streams).
 
     Returns
     -------
