@@ -54,8 +54,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="simulated seconds (default %(default)s)")
     parser.add_argument("--seed", type=int, default=2, help="random seed (default %(default)s)")
     parser.add_argument("--slam", action="store_true",
-                        help="build without poses: the odometry corrected by SLAM (default off: poses "
-                             "from localizing on the true map)")
+                        help="build without poses: the odometry corrected by SLAM "
+                             "(default off: poses from localizing on the true map)")
     parser.add_argument("--out", default="out/built_room.geojson",
                         help="built map (default %(default)s)")
     args = parser.parse_args(argv)

@@ -446,7 +446,6 @@ class _Lm:
     n: int = 0
     t_min: float = math.inf   # extent along a wall (t = p . d, d = (-sin a, cos a))
     t_max: float = -math.inf
-    first_t: float = math.nan
     last_t: float = math.nan
     revisited: bool = False
 
@@ -522,7 +521,7 @@ def _associate(obs: list[Observation], obs_node: NDArray[np.int64], X: Array,
                 params = np.array([z[0], z[1], 0.0])
             else:
                 params = np.asarray(z, dtype=float).copy()
-            lm = _Lm(o.kind, params, tr, first_t=o.t_s, last_t=o.t_s)
+            lm = _Lm(o.kind, params, tr, last_t=o.t_s)
             lms.append(lm)
             best = len(lms) - 1
         assoc[k] = best
