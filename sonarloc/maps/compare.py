@@ -58,25 +58,40 @@ def rigid_alignment(features: Sequence[BuiltFeature], true_map: Map, gate_m: flo
                     ) -> NDArray[np.float64]:
     """The rigid motion (x_m, y_m, yaw_rad: built map frame -> true frame) that best puts
     the built point features' centres onto their nearest true points within ``gate_m``
-    (least squares, Kabsch); the identity with fewer than two matched.
+    (least squares, Kabsch; trimmed: refitted without pairs further apart than 3 times
+    the median and 2 cm, matched again after each fit); the identity with fewer than
+    two pairs.
 
     A map built without a pose track is in the frame of the log's ``init`` pose, whose
     error (its SDs) moves every feature alike: errors after this motion are the map's
     own shape error.
     """
     true = FeatureMap.from_map(true_map)
-    pairs = [(f.coords, true.point_xy[int(np.argmin(np.hypot(*(true.point_xy - f.coords).T)))])
-             for f, _ in feature_errors(features, true_map, gate_m) if f.kind != "wall"]
-    if len(pairs) < 2:
-        return np.zeros(3)
-    p = np.array([a for a, _ in pairs], dtype=float)
-    q = np.array([b for _, b in pairs], dtype=float)
-    pm, qm = p.mean(axis=0), q.mean(axis=0)
-    u, _, vt = np.linalg.svd((p - pm).T @ (q - qm))
-    rot = (u @ vt).T
-    if np.linalg.det(rot) < 0:  # pragma: no cover - a reflection fits better: no motion
-        return np.zeros(3)
-    return np.array([*(qm - rot @ pm), math.atan2(rot[1, 0], rot[0, 0])])
+    built = np.array([f.coords for f in features if f.kind != "wall"], dtype=float)
+    motion = np.zeros(3)
+    if len(true.point_xy) == 0 or len(built) < 2:
+        return motion
+    for _ in range(5):
+        at = se2.transform_points(motion, built)
+        d = np.hypot(*(at[:, None, :] - true.point_xy[None, :, :]).transpose(2, 0, 1))
+        near = np.argmin(d, axis=1)
+        dist = d[np.arange(len(at)), near]
+        keep = dist <= gate_m
+        if keep.sum() >= 3:
+            keep &= dist <= max(3.0 * float(np.median(dist[keep])), 0.02)
+        if keep.sum() < 2:
+            return motion
+        p, q = built[keep], true.point_xy[near[keep]]
+        pm, qm = p.mean(axis=0), q.mean(axis=0)
+        u, _, vt = np.linalg.svd((p - pm).T @ (q - qm))
+        rot = (u @ vt).T
+        if np.linalg.det(rot) < 0:  # pragma: no cover - a reflection fits better: no motion
+            return np.zeros(3)
+        new = np.array([*(qm - rot @ pm), math.atan2(rot[1, 0], rot[0, 0])])
+        if np.allclose(new, motion, atol=1e-12):
+            break
+        motion = new
+    return motion
 
 
 def moved(features: Sequence[BuiltFeature], motion: ArrayLike) -> list[BuiltFeature]:

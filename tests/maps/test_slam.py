@@ -247,7 +247,8 @@ def test_factor_jacobians_match_finite_differences(seed):
 
 def test_rigid_alignment_undoes_a_map_frame_error():
     """`maps.compare.rigid_alignment`: a map moved as a whole (the init prior's error)
-    is put back; its shape error is then what is left."""
+    is put back, a ghost point among its features left out of the fit; its shape error
+    is then what is left."""
     from sonarloc.localize.features import FeatureMap
     from sonarloc.maps.build import BuiltFeature
 
@@ -259,7 +260,8 @@ def test_rigid_alignment_undoes_a_map_frame_error():
                                                                            [6.0, 0.0]])),
                               0.1, 0.01, 5))
     assert max(e for _, e in compare.feature_errors(feats, load_map(ROOM), 0.5)) > 0.05
-    motion = compare.rigid_alignment(feats, load_map(ROOM), 0.5)
+    ghost = BuiltFeature("corner", np.array([7.99, 0.886]), 0.15, 0.2, 5)  # 0.9 m off
+    motion = compare.rigid_alignment([*feats, ghost], load_map(ROOM), 1.5)
     np.testing.assert_allclose(se2.compose(motion, shift), np.zeros(3), atol=1e-9)
     back = compare.moved(feats, motion)
     assert max(e for _, e in compare.feature_errors(back, load_map(ROOM), 0.5)) < 1e-9
