@@ -3,8 +3,10 @@
 The fixture drives 1.6 laps of a 6.8 m loop around pole-a of ``maps/room.geojson``
 (ring16, 36 s) with an ``init`` record of 1 mm / 0.05 deg SD, so that the map frame is
 the true one and every error left is the build's. Measured on it (seed 1): SLAM puts
-the walls within 9 mm and the poles within 5 mm of the truth; the odometry build of the
-same log (``method="odometry"``) doubles two walls and leaves walls 0.38 m off.
+the 4 walls within 11 mm, pole-a within 5 mm and every point within 54 mm (the far
+ones seen from 2-3 m) of the truth, each within 1.1 of its ``sd_m``; the odometry
+build of the same log (``method="odometry"``) leaves walls 17-76 mm and points up to
+194 mm off, rod-a built twice.
 """
 
 from __future__ import annotations
@@ -75,7 +77,7 @@ def _check_room_features(result):
     pole_a = [e for f, e in points if np.hypot(*(f.coords - [2.5, 2.0])) < 0.1]
     assert len(pole_a) == 1 and pole_a[0] < 0.01
     for f, e in points:
-        assert e < 0.06, (f, e)
+        assert e < 0.08, (f, e)
     # no duplicates: no two walls on one line overlapping, no two points within 0.2 m
     xy = np.array([f.coords for f, _ in points])
     d = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)) + np.eye(len(xy))
