@@ -57,6 +57,7 @@ from sonarloc.localize.features import FeatureMap  # noqa: E402
 from sonarloc.localize.localizer import Localizer, LocalizerConfig, SegmentFitSource  # noqa: E402
 from sonarloc.localize.offline import OfflinePipeline  # noqa: E402
 from sonarloc.localize.replay import Mode, replay_log  # noqa: E402
+from sonarloc.maps import compare as maps_compare  # noqa: E402
 from sonarloc.maps.build import build_from_log  # noqa: E402
 from sonarloc.maps.geojson import Map, load_map, map_from_geojson  # noqa: E402
 from sonarloc.world.rig import PanRig, Rig, ring16  # noqa: E402
@@ -530,8 +531,19 @@ def map_building(seed: int, duration_s: float) -> list[MapErrors]:
                    np.array([r[2] for r in rows]))
     out.append(map_errors(map_from_geojson(build_from_log(io.StringIO(text), lt).geojson()),
                           room, "sonarloc localize (kuc)", tr))
-    out.append(map_errors(map_from_geojson(build_from_log(io.StringIO(text)).geojson()),
+    out.append(map_errors(map_from_geojson(build_from_log(io.StringIO(text),
+                                                          method="odometry").geojson()),
                           room, "odometry only", tr))
+    slam = build_from_log(io.StringIO(text), method="slam")
+    out.append(map_errors(map_from_geojson(slam.geojson()), room, "odometry + SLAM (no poses)",
+                          tr))
+    # its frame is the init pose's (5 cm, 2 deg SD): the same map moved onto the truth
+    feats = slam.builder.features()
+    mv = maps_compare.moved(feats, maps_compare.rigid_alignment(feats, room, 1.5))
+    aligned = {"type": "FeatureCollection",
+               "features": [f.geojson(f"{f.kind}-{i}") for i, f in enumerate(mv)]}
+    out.append(map_errors(map_from_geojson(aligned), room,
+                          "odometry + SLAM, rigidly aligned to the truth", tr))
     return out
 
 
@@ -715,7 +727,10 @@ def _fmt(v: float) -> str:
 def mapping_lines(mapping: list[MapErrors]) -> list[str]:
     lines = ["## Map building (room, ring16, 3 laps, seed 200)", "",
              "`sonarloc map build` on the simulated log, with poses from the truth, from "
-             "`sonarloc localize` (kuc, against the true map) and from odometry alone. "
+             "`sonarloc localize` (kuc, against the true map), from odometry alone "
+             "(`--method odometry`) and from the odometry corrected by SLAM (the default "
+             "without poses; its map frame is the init record's, 5 cm / 2 deg off the "
+             "true one: also shown moved by its best rigid alignment onto the truth). "
              "*found*: built points within 10 cm of the true poles/rods/corners that the "
              "drive can see (a corner only from inside its walls' angle: the L's reflex "
              "vertex has none), and built walls lying on a true wall (both ends < 2 cm "

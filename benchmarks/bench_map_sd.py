@@ -1,9 +1,10 @@
 """How honest are the ``sd_m`` of built maps? Normalized errors against the true map.
 
 Simulates drives of ``maps/room.geojson`` (ring16, the map-building drive of
-``bench_localize.py``), builds maps with ``sonarloc map build`` from odometry alone and
-from the poses of ``sonarloc localize`` (kuc, against the true map), and compares every
-built feature with the nearest true one of its geometry:
+``bench_localize.py``), builds maps with ``sonarloc map build`` from odometry alone
+(``--method odometry``), from the odometry corrected by SLAM (``--method slam``, the
+default without poses) and from the poses of ``sonarloc localize`` (kuc, against the
+true map), and compares every built feature with the nearest true one of its geometry:
 
 * point (pole, rod, corner, edge, point): distance between centres (a pole's or rod's
   centre; a true point within ``--gate`` metres);
@@ -16,7 +17,19 @@ largest ``z``, the share with ``z > 3``, and the median error and ``sd_m`` (mm).
 ``sd_m`` is its larger position SD and its error is 2-D: an honest point has mean ``z^2``
 between 1 and 2 (2 when isotropic); a wall's end error is 1-D (about 1 when honest).
 
-Run: ``python benchmarks/bench_map_sd.py [--seeds 200 201] [--duration 174] [--quick]``
+The map frame is the log's ``init`` pose's, and the simulator's ``init`` record is the
+true start pose plus noise of 5 cm / 2 deg SD: every build without a pose track carries
+that error whole (a rotation of 2 deg moves a feature 5 m away by 17 cm), and its
+``sd_m`` says so. The column "aligned" gives the median error after the best rigid
+motion of the built map onto the true one (least squares over the matched points'
+centres), the map's own shape error. CPU: seconds of the builds, per seed.
+
+``--localize-seed S``: a second drive (seed S) is localized (``sonarloc localize``,
+kuc) against every built map, its init record in the true frame: position RMSE against
+the simulator's truth and the mean pose NEES (x, y, yaw: 3 when honest).
+
+Run: ``python benchmarks/bench_map_sd.py [--seeds 200 201] [--duration 174] [--quick]
+[--localize-seed 202]``
 (writes ``benchmarks/results/map_sd.md``; a 60 s drive builds in ~20 s per seed and
 pose source).
 """
@@ -29,6 +42,7 @@ import io
 import os
 import platform
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -38,13 +52,14 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from sonarloc import se2  # noqa: E402
 from sonarloc.io.logfile import LogWriter, TruthRecord, iter_log  # noqa: E402
 from sonarloc.io.posescsv import PoseTrack  # noqa: E402
 from sonarloc.localize.features import FeatureMap  # noqa: E402
 from sonarloc.localize.replay import replay_log  # noqa: E402
 from sonarloc.maps import compare as maps_compare  # noqa: E402
 from sonarloc.maps.build import BuiltFeature, build_from_log  # noqa: E402
-from sonarloc.maps.geojson import Map, load_map  # noqa: E402
+from sonarloc.maps.geojson import Map, load_map, map_from_geojson  # noqa: E402
 from sonarloc.world.rig import ring16  # noqa: E402
 from sonarloc.world.simulate import simulate_records  # noqa: E402
 
@@ -81,15 +96,43 @@ def feature_errors(feats: list[BuiltFeature], world: Map, gate_m: float
             [(e, f.sd_m) for f, e in pairs if f.kind == "wall"])
 
 
-def row(label: str, errs: list[tuple[float, float]]) -> str:
+def row(label: str, errs: list[tuple[float, float]], errs_aligned: list[tuple[float, float]],
+        cpu_s: float) -> str:
     if not errs:
-        return f"| {label} | 0 | - | - | - | - | - | - |"
+        return f"| {label} | 0 | - | - | - | - | - | - | - | - |"
     e = np.array([x[0] for x in errs])
     sd = np.array([x[1] for x in errs])
     z = e / np.maximum(sd, 1e-12)
+    ea = np.array([x[0] for x in errs_aligned]) if errs_aligned else np.array([np.nan])
     return (f"| {label} | {len(e)} | {np.mean(z**2):.2f} | {np.median(z):.2f} | "
             f"{np.max(z):.2f} | {100 * np.mean(z > 3):.0f} % | {1000 * np.median(e):.1f} | "
-            f"{1000 * np.median(sd):.1f} |")
+            f"{1000 * np.median(ea):.1f} | {1000 * np.median(sd):.1f} | {cpu_s:.1f} |")
+
+
+def localize_against(built: dict[str, object], text: str, motion: np.ndarray
+                     ) -> tuple[float, float, float, float]:
+    """Position RMSE [m] and mean pose NEES (x, y, yaw) of a drive localized (kuc)
+    against the built map (GeoJSON object); then the same with the estimates moved by
+    ``motion`` (the map's alignment onto the true one: errors relative to the map)."""
+    truth = {r.t_s: np.array([r.x_m, r.y_m, np.radians(r.yaw_deg)])
+             for r in iter_log(io.StringIO(text)) if isinstance(r, TruthRecord)}
+    rows: list[tuple[float, np.ndarray, np.ndarray]] = []
+    replay_log(io.StringIO(text), FeatureMap.from_map(map_from_geojson(built)),
+               on_estimate=lambda r, e: rows.append((r.t_s, e.state.mean, e.state.cov)))
+    err = np.array([m - truth[t] for t, m, _ in rows if t in truth])
+    err[:, 2] = se2.wrap_angle(err[:, 2])
+    cov = np.array([c for t, _, c in rows if t in truth])
+    nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    est = np.array([m for t, m, _ in rows if t in truth])
+    tru = np.array([truth[t] for t, _, _ in rows if t in truth])
+    err_a = se2.compose(motion, est) - tru
+    err_a[:, 2] = se2.wrap_angle(err_a[:, 2])
+    j = se2.compose_jacobians(motion, est)[1]
+    cov_a = j @ cov @ np.swapaxes(j, 1, 2)
+    nees_a = np.einsum("ni,ni->n", err_a, np.linalg.solve(cov_a, err_a[..., None])[..., 0])
+    return (float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1)))), float(np.mean(nees)),
+            float(np.sqrt(np.mean(np.sum(err_a[:, :2] ** 2, axis=1)))),
+            float(np.mean(nees_a)))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -102,8 +145,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="largest error [m] of a built feature matched to a true one "
                          "(odometry-only maps are off by decimetres: a smaller gate "
                          "leaves out their worst features)")
-    ap.add_argument("--sources", nargs="+", default=["odometry", "localize"],
-                    choices=["odometry", "localize", "truth"])
+    ap.add_argument("--sources", nargs="+", default=["odometry", "slam", "localize"],
+                    choices=["odometry", "slam", "localize", "truth"])
+    ap.add_argument("--localize-seed", type=int, default=None, metavar="S",
+                    help="localize a drive of seed S against every built map")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "map_sd.md"))
     args = ap.parse_args(argv)
     if args.quick:
@@ -111,15 +156,35 @@ def main(argv: Sequence[str] | None = None) -> int:
     world = load_map(ROOT / "maps" / "room.geojson")
     acc: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
         s: ([], []) for s in args.sources}
+    acc_al: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
+        s: ([], []) for s in args.sources}
+    cpu: dict[str, float] = {s: 0.0 for s in args.sources}
+    loc: dict[str, list[tuple[int, float, float, float, float]]] = {
+        s: [] for s in args.sources}
+    second = simulate(world, args.localize_seed, args.duration) \
+        if args.localize_seed is not None else None
+    notes: list[str] = []
     for seed in args.seeds:
         text = simulate(world, seed, args.duration)
         for src in args.sources:
-            poses = None if src == "odometry" else truth_track(text) if src == "truth" else \
-                localized_track(text, world)
-            res = build_from_log(io.StringIO(text), poses)
-            p, w = feature_errors(res.builder.features(), world, args.gate)
+            poses = None if src in ("odometry", "slam") else truth_track(text) \
+                if src == "truth" else localized_track(text, world)
+            t0 = time.process_time()
+            res = build_from_log(io.StringIO(text), poses,
+                                 method=src if src in ("odometry", "slam") else None)
+            cpu[src] += (time.process_time() - t0) / len(args.seeds)
+            if res.slam is not None:
+                notes.append(f"seed {seed}, {src}: {res.slam.summary()}")
+            feats = res.builder.features()
+            p, w = feature_errors(feats, world, args.gate)
             acc[src][0].extend(p)
             acc[src][1].extend(w)
+            motion = maps_compare.rigid_alignment(feats, world, args.gate)
+            p, w = feature_errors(maps_compare.moved(feats, motion), world, args.gate)
+            acc_al[src][0].extend(p)
+            acc_al[src][1].extend(w)
+            if second is not None:
+                loc[src].append((seed, *localize_against(res.geojson(), second, motion)))
     lines = [
         "# Built maps: is their `sd_m` honest?",
         "",
@@ -130,11 +195,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         "an honest wall end about 1.",
         "",
         "| build | n | NEES (mean z^2) | median z | max z | z > 3 | median error (mm) | "
-        "median sd_m (mm) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        "aligned (mm) | median sd_m (mm) | CPU (s) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for src, (p, w) in acc.items():
-        lines += [row(f"{src}: points", p), row(f"{src}: walls", w)]
+        pa, wa = acc_al[src]
+        lines += [row(f"{src}: points", p, pa, cpu[src]), row(f"{src}: walls", w, wa, cpu[src])]
+    if second is not None:
+        lines += ["", f"A second drive (seed {args.localize_seed}, {args.duration:.0f} s) "
+                  "localized (kuc) against each built map: position RMSE against the truth, "
+                  "mean pose NEES (x, y, yaw; 3 when honest); then the same with the "
+                  "estimates moved by the map's best rigid alignment onto the true map "
+                  "(errors relative to the map: its frame's error, from the init prior, "
+                  "taken out).", "",
+                  "| map | built from seed | RMSE (mm) | NEES | RMSE aligned (mm) | "
+                  "NEES aligned |", "|---|---:|---:|---:|---:|---:|"]
+        for src, rows_ in loc.items():
+            lines += [f"| {src} | {s_} | {1000 * r_:.1f} | {n_:.1f} | {1000 * ra:.1f} | "
+                      f"{na:.1f} |" for s_, r_, n_, ra, na in rows_]
+    if notes:
+        lines += [""] + [f"* {n}" for n in notes]
     lines += [
         "",
         f"Machine: {platform.machine()}, Python {platform.python_version()}, "

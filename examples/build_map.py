@@ -1,12 +1,13 @@
 """Build a landmark map from a logged drive, then localize against the built map.
 
 1. simulate a drive around the room (a log, as `sonarloc simulate` or `record` writes);
-2. localize it against the true map to get poses (`sonarloc localize`);
+2. localize it against the true map to get poses (`sonarloc localize`), or with
+   `--slam` use no map at all: the odometry corrected by SLAM, as for a new place;
 3. build a map from the log and those poses (`sonarloc map build`): walls from
    collinear wall fits, poles/rods/corners from clustered point fits, with uncertainty;
 4. compare the built features with the true map, and localize again on the built map.
 
-    python examples/build_map.py [--duration 58] [--out out/built_room.geojson]
+    python examples/build_map.py [--duration 58] [--slam] [--out out/built_room.geojson]
 """
 
 from __future__ import annotations
@@ -52,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=58.0,
                         help="simulated seconds (default %(default)s)")
     parser.add_argument("--seed", type=int, default=2, help="random seed (default %(default)s)")
+    parser.add_argument("--slam", action="store_true",
+                        help="build without poses: the odometry corrected by SLAM "
+                             "(default off: poses from localizing on the true map)")
     parser.add_argument("--out", default="out/built_room.geojson",
                         help="built map (default %(default)s)")
     args = parser.parse_args(argv)
@@ -64,12 +68,14 @@ def main(argv: list[str] | None = None) -> int:
     log = buf.getvalue()
     truth = load_log(io.StringIO(log)).truth
 
-    poses = _localize(log, FeatureMap.from_map(truth_map))
-    track = np.stack([poses.t_s, poses.x_m, poses.y_m, poses.yaw_rad], -1)
-    print(f"localized on the true map: pose RMSE "
-          f"{100 * track_error(track, truth).rmse_m:.1f} cm")
-
-    built = build_from_log(io.StringIO(log), poses)
+    if args.slam:  # a new place: no map to localize against
+        built = build_from_log(io.StringIO(log), method="slam")
+    else:
+        poses = _localize(log, FeatureMap.from_map(truth_map))
+        track = np.stack([poses.t_s, poses.x_m, poses.y_m, poses.yaw_rad], -1)
+        print(f"localized on the true map: pose RMSE "
+              f"{100 * track_error(track, truth).rmse_m:.1f} cm")
+        built = build_from_log(io.StringIO(log), poses)
     print(f"built: {built.summary()}")
     gj = built.geojson()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

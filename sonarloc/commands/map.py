@@ -3,7 +3,13 @@
 build: fits landmarks to the log's sonar readings (Kuc's forward model) with the
 transducer poses taken from POSES.csv (e.g. the output of `sonarloc localize`,
 interpolated to each reading) or, without --poses, from the odometry anchored at the
-log's init pose (it drifts). Wall fits on one line are merged into walls, point fits
+log's init pose, corrected by SLAM (--method slam, the default): the robot poses and
+the landmarks are estimated together from the odometry and the landmarks seen again
+(graph least squares), which takes the odometry's drift out of the map. A log SLAM
+cannot correct (no landmark seen again, too few landmarks) is built from the odometry
+alone and the summary says why; --method odometry always does (dead reckoning: it
+drifts). The map frame is the init pose's: its error (the init record's SDs) is in
+every feature's position and sd_m. Wall fits on one line are merged into walls, point fits
 into poles, rods, corners, edges and points; each feature carries its uncertainty
 (sd_m, and sd_alpha_deg for walls) and how often it was seen (n_obs). The map loads
 with load_map and works in `sonarloc localize`. A summary goes to stderr; readings
@@ -20,7 +26,7 @@ import sys
 from sonarloc.commands._args import refuse_overwrite
 from sonarloc.errors import LogFormatError
 from sonarloc.io.posescsv import read_poses_csv
-from sonarloc.maps.build import BuildConfig, build_from_log
+from sonarloc.maps.build import BUILD_METHODS, BuildConfig, build_from_log
 from sonarloc.maps.geojson import map_from_geojson, write_geojson
 
 
@@ -32,6 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     b.add_argument("log", metavar="LOG", help="log JSONL (rig, init, odom, tof records)")
     b.add_argument("--poses", metavar="POSES.csv",
                    help="base_link poses in map (default: odometry from the init pose)")
+    b.add_argument("--method", choices=BUILD_METHODS, default=None,
+                   help="without --poses: slam (odometry corrected with the landmarks seen "
+                        "again) or odometry (dead reckoning alone); default "
+                        f"{BuildConfig.method}")
     b.add_argument("--out", required=True, metavar="MAP.geojson", help="map GeoJSON to write")
     b.add_argument("--min-observations", type=int, default=BuildConfig.min_observations,
                    metavar="N", help="drop features seen fewer times (default %(default)s)")
@@ -51,11 +61,15 @@ def _run_build(args: argparse.Namespace) -> int:
     if args.min_observations < 1:
         raise ValueError(f"--min-observations must be at least 1, got {args.min_observations}")
     refuse_overwrite({"--out": args.out}, {"LOG": args.log, "--poses": args.poses})
+    if args.poses and args.method is not None:
+        raise ValueError(f"--method {args.method} is for a build without --poses (with "
+                         "--poses the readings are placed by them)")
     poses = read_poses_csv(args.poses) if args.poses else None
     if not args.odom_gap > 0:
         raise ValueError(f"--odom-gap must be positive, got {args.odom_gap}")
     result = build_from_log(args.log, poses, BuildConfig(min_observations=args.min_observations,
-                                                         odom_gap_s=args.odom_gap))
+                                                         odom_gap_s=args.odom_gap),
+                            method=args.method)
     if result.readings == 0:
         # nothing to build from (no rig, no tof, or no pose for any reading): a failure,
         # not an empty map that a script would take for a successful run

@@ -2,7 +2,10 @@
 
 Every reading of the log gets the pose of its transducer in ``map`` -- from a pose
 track (``sonarloc localize ... --out POSES.csv``, interpolated to the reading's time),
-or from the odometry anchored at the log's ``init`` pose (dead reckoning: it drifts).
+or from the odometry anchored at the log's ``init`` pose (dead reckoning: it drifts),
+then, by default (``method="slam"``), corrected by graph SLAM: the robot poses and the
+landmarks estimated together from the odometry and the landmark fits
+(:mod:`sonarloc.maps.slam`), and the fits re-placed with the optimized poses.
 The fitting stage's segmenter and fitter (``sonarloc.fit``) turn the readings into
 landmarks in ``map``; the builder merges them across passes:
 
@@ -52,6 +55,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import time
 from collections import Counter, deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -69,6 +73,14 @@ from sonarloc.localize.ekf import OdomNoise, predict_lists
 from sonarloc.localize.localizer import DEFAULT_ODOM_NOISE, in_odom_gap
 from sonarloc.localize.odomframe import OdomJoiner, check_odom_reset_settings
 from sonarloc.maps.geojson import Map, map_from_geojson
+from sonarloc.maps.slam import (
+    Observation,
+    OdomTrace,
+    SlamConfig,
+    SlamResult,
+    optimize,
+    transform_with_cov,
+)
 from sonarloc.physics import constants
 
 Array = NDArray[np.float64]
@@ -116,8 +128,17 @@ class BuildConfig:
     #: grows by these SDs (as LocalizerConfig.odom_reset_sd_m / odom_reset_sd_deg)
     odom_reset_sd_m: float = 0.1
     odom_reset_sd_deg: float = 5.0
+    #: without a pose track: ``slam`` (poses and landmarks estimated together,
+    #: :mod:`sonarloc.maps.slam`; falls back to the odometry with a reason) or
+    #: ``odometry`` (dead reckoning alone)
+    method: str = "slam"
+    #: settings of the SLAM (its gates and radius prior are this config's)
+    slam: SlamConfig = field(default_factory=SlamConfig)
 
     def __post_init__(self) -> None:
+        if self.method not in BUILD_METHODS:
+            raise ValueError(f"`method` must be one of {', '.join(BUILD_METHODS)}, got "
+                             f"{self.method!r}")
         for name in ("point_gate_m", "wall_gate_m", "wall_gate_deg", "pole_radius_m", "shadow_m",
                      "wall_gap_m", "join_m", "radius_prior_sd_m", "edge_near_wall_m",
                      "corner_gate_m", "on_wall_m", "end_gate_m", "visit_gap_s",
@@ -132,6 +153,10 @@ class BuildConfig:
         if not (isinstance(self.min_observations, int) and self.min_observations >= 1):
             raise ValueError(f"`min_observations` must be a positive integer, got "
                              f"{self.min_observations!r}")
+
+
+BUILD_METHODS = ("slam", "odometry")
+"""How :func:`build_from_log` places the readings without a pose track."""
 
 
 @dataclass
@@ -957,6 +982,13 @@ class BuildResult:
     odom_jumps: int = 0
     """Odometry increments faster than ``BuildConfig.odom_max_speed_mps`` /
     ``odom_max_yaw_rate_rad_s``: taken as resets."""
+    method: str = "odometry"
+    """How the readings were placed: ``poses`` (a pose track), ``slam`` (odometry
+    corrected by SLAM) or ``odometry`` (dead reckoning; also where SLAM fell back)."""
+    slam: SlamResult | None = None
+    """What the SLAM did (``ok`` False: why it fell back), None if it did not run."""
+    cpu_s: float = 0.0
+    """CPU time of the build [s]."""
 
     def geojson(self) -> dict[str, Any]:
         return self.builder.geojson()
@@ -964,13 +996,16 @@ class BuildResult:
     def summary(self) -> str:
         feats = self.builder.features()
         kinds = Counter(f.kind for f in feats)
-        parts = [f"log: {self.log.summary()}", f"{self.readings} readings",
+        parts = [f"method: {self.method}", f"log: {self.log.summary()}",
+                 f"{self.readings} readings",
                  f"{self.landmarks} landmarks fitted",
                  "map: " + (", ".join(f"{v} {k}" for k, v in sorted(kinds.items())) or "empty")]
         for n, what in ((self.odom_resets, "odometry resets"),
                         (self.odom_jumps, "odometry jumps")):
             if n:
                 parts.append(f"{n} {what}")
+        if self.slam is not None and self.slam.ok:
+            parts.append(self.slam.summary())
         return "; ".join(parts + self.skipped_summary() + self.notes)
 
     def skipped_summary(self) -> list[str]:
@@ -991,7 +1026,8 @@ def _in_gap(times: Sequence[float] | Array, poses: Sequence[Array] | Array, t_s:
 
 def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: BuildResult,
               gap_s: float = math.inf, odom_noise: OdomNoise = DEFAULT_ODOM_NOISE,
-              joiner: OdomJoiner | None = None, reset_cov: Array | None = None
+              joiner: OdomJoiner | None = None, reset_cov: Array | None = None,
+              trace: OdomTrace | None = None
               ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float] | None]:
     """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c),
     and None where the odometry restarted (the segments open then are to be closed).
@@ -1017,6 +1053,9 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
     at the first ``init`` record, or at the origin without one (``result.notes`` says
     so); an ``init`` after readings were placed is skipped (``init_after_readings``):
     one map frame for all of them.
+
+    ``trace``: if given, every odometry record is appended to it (joined pose, restart),
+    and its ``init`` / ``init_cov`` set from the ``init`` record.
     """
     skipped = result.skipped
     anchored = False  # readings placed by odometry: the map frame is fixed
@@ -1108,6 +1147,8 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
                 init = np.array([rec.x_m, rec.y_m, math.radians(rec.yaw_deg)])
                 init_cov = np.diag([rec.sd_xy_m**2, rec.sd_xy_m**2,
                                     math.radians(rec.sd_yaw_deg) ** 2])
+                if trace is not None:
+                    trace.init, trace.init_cov = init.copy(), init_cov.copy()
         elif isinstance(rec, OdomRecord):
             raw = (rec.x_m, rec.y_m, math.radians(rec.yaw_deg))
             if odo_t and rec.t_s < odo_t[-1]:
@@ -1134,6 +1175,10 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
             odo_p.append(p)
             odo_c.append(np.array(rel_cov))
             odo_reset.append(restart is not None)
+            if trace is not None:
+                trace.t.append(rec.t_s)
+                trace.p.append(p)
+                trace.restart.append(restart is not None)
             if len(odo_t) > 4096:  # only recent odometry is needed: keep memory flat
                 del odo_t[:2048]
                 del odo_p[:2048]
@@ -1178,15 +1223,28 @@ DRIFT_NOTE_TRAVEL_M = 5.0
 
 
 def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
-                   config: BuildConfig | None = None) -> BuildResult:
+                   config: BuildConfig | None = None, method: str | None = None
+                   ) -> BuildResult:
     """Build a map from a log (FORMATS.md section 4), streaming.
 
     Parameters
     ----------
     source : the log.
     poses : base_link poses in ``map`` (a pose CSV, e.g. from ``sonarloc localize``);
-        None: odometry anchored at the log's ``init`` pose (or at the origin).
+        None: the odometry anchored at the log's ``init`` pose (or at the origin),
+        corrected by SLAM or not (``method``).
     config : builder settings.
+    method : without ``poses``: ``slam`` (poses and landmarks estimated together from
+        the odometry and the landmark fits, :mod:`sonarloc.maps.slam`; a log it cannot
+        correct falls back to the odometry, ``result.notes`` says why) or ``odometry``
+        (dead reckoning alone); default ``config.method``. Not with ``poses``. SLAM
+        keeps the accepted fits and the odometry of the whole log in memory (a few
+        kilobytes per fit, a hundred bytes per odometry record; the rest streams).
+
+    Returns
+    -------
+    BuildResult; ``method`` says which ran (``poses``, ``slam`` or ``odometry``),
+    ``slam`` what the SLAM did (None if it did not run).
     """
     from sonarloc.fit.landmarks import fit_segments
     from sonarloc.fit.lsq import FitConfig
@@ -1194,7 +1252,14 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     from sonarloc.physics.tof import ModuleParams
 
     cfg = config or BuildConfig()
-    result = BuildResult(MapBuilder(cfg), LogStats())
+    if method is not None and method not in BUILD_METHODS:
+        raise ValueError(f"`method` must be one of {', '.join(BUILD_METHODS)}, got {method!r}")
+    if poses is not None and method is not None:
+        raise ValueError(f"`method` ({method!r}) is for a build without `poses`: with a pose "
+                         "track the readings are placed by it")
+    how = "poses" if poses is not None else (method or cfg.method)
+    t_cpu = time.process_time()
+    result = BuildResult(MapBuilder(cfg), LogStats(), method=how)
     seg: Segmenter | None = None
     fit_cfg: FitConfig | None = None
     ref_cov: dict[float, tuple[Array, Array | None]] = {}
@@ -1202,17 +1267,24 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     joiner = OdomJoiner(cfg.odom_max_speed_mps, cfg.odom_max_yaw_rate_rad_s)
     reset_cov = np.diag([cfg.odom_reset_sd_m**2, cfg.odom_reset_sd_m**2,
                          math.radians(cfg.odom_reset_sd_deg) ** 2])
+    trace = OdomTrace() if how == "slam" else None
+    observations: list[Observation] | None = [] if how == "slam" else None
     # readings are fitted and clustered relative to the first reading's robot position
     # (MapBuilder.origin): the same map, shifted, whatever the map frame's origin
     shift = np.zeros(3)
+
+    def add(closed: list[Any]) -> None:
+        assert fit_cfg is not None
+        _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov, drift,
+                      observations)
+
     for item in _readings(source, poses, result, cfg.odom_gap_s, cfg.odom_noise, joiner,
-                          reset_cov):
+                          reset_cov, trace):
         if item is None:  # the odometry restarted: close the segments open across it
             if seg is not None and fit_cfg is not None and poses is None:
                 closed = seg.flush()
                 if closed:
-                    _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov,
-                                  drift)
+                    add(closed)
             continue
         t, sensor, tof, pose, cov, base, c_mps = item
         if seg is None or fit_cfg is None:
@@ -1230,18 +1302,61 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
                     del ref_cov[k]
         closed = seg.push(t, float(pose[0]), float(pose[1]), float(pose[2]), tof, sensor)
         if closed:
-            _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov, drift)
+            add(closed)
     if seg is not None and fit_cfg is not None:
         closed = seg.flush()
         if closed:
-            _add_segments(result, closed, fit_segments(closed, fit_cfg), ref_cov, drift)
+            add(closed)
+    if trace is not None and observations is not None:
+        _slam(result, cfg, trace, observations, shift, reset_cov)
+    result.cpu_s = time.process_time() - t_cpu
     return result
 
 
+def _slam(result: BuildResult, cfg: BuildConfig, trace: OdomTrace,
+          observations: list[Observation], shift: Array, reset_cov: Array) -> None:
+    """Optimize the poses with the landmark fits (:func:`sonarloc.maps.slam.optimize`)
+    and rebuild the map from the fits placed with them; or keep the dead reckoning's
+    map and say why."""
+    scfg = replace(cfg.slam, point_gate_m=cfg.point_gate_m, wall_gate_m=cfg.wall_gate_m,
+                   wall_gate_deg=cfg.wall_gate_deg, wall_gap_m=cfg.wall_gap_m,
+                   radius_prior_sd_m=cfg.radius_prior_sd_m)
+    if not trace.t:
+        slam = SlamResult(ok=False, reason="no odometry")
+    else:
+        first = trace.init if trace.init is not None else np.zeros(3)
+        slam = optimize(observations, trace, first - shift, trace.init_cov, cfg.odom_noise,
+                        reset_cov, scfg, cfg.visit_gap_s)
+    result.slam = slam
+    if not slam.ok:
+        result.method = "odometry"
+        result.notes.append(f"SLAM fell back to the odometry: {slam.reason}")
+        return
+    builder = MapBuilder(cfg, result.builder.origin)
+    for k, o in enumerate(observations):
+        i = int(slam.obs_node[k])
+        pose = slam.node_pose[i]
+        lm = o.landmark
+        z, c2 = transform_with_cov(o.kind, pose, o.z, o.cov)
+        params = np.array([z[0], z[1], lm.params[2]])
+        cov3 = np.array(lm.cov, dtype=float, copy=True)
+        cov3[:2, :2] = c2
+        cov3[:2, 2] = cov3[2, :2] = 0.0  # (kappa's correlation is not used by the builder)
+        placed = replace(lm, params=params, cov=cov3)
+        feet = se2.transform_points(pose, o.feet) if o.kind == "line" else None
+        builder.add(placed, se2.transform_points(pose, o.view), pose, None, feet,
+                    drift_cov=slam.node_cov[i])
+    result.builder = builder
+    result.notes = [n for n in result.notes if not n.startswith("poses from odometry alone")]
+
+
 def _add_segments(result: BuildResult, segments: list[Any], landmarks: list[Landmark],
-                  ref_cov: dict[float, tuple[Array, Array | None]], drift: bool) -> None:
+                  ref_cov: dict[float, tuple[Array, Array | None]], drift: bool,
+                  observations: list[Observation] | None = None) -> None:
     """Add the fitted landmarks; the poses' covariance in ``ref_cov`` is the dead
-    reckoning's drift if ``drift`` (shared by the sightings), else each pose's own."""
+    reckoning's drift if ``drift`` (shared by the sightings), else each pose's own.
+    The landmarks added are appended to ``observations`` (if given) as seen from their
+    base pose (for the SLAM)."""
     if len(segments) != len(landmarks):  # pragma: no cover - fit_segments is one per segment
         raise RuntimeError("fit_segments returned a different number of landmarks")
     for s, lm in zip(segments, landmarks, strict=True):
@@ -1257,6 +1372,20 @@ def _add_segments(result: BuildResult, segments: list[Any], landmarks: list[Land
             xy = np.stack([r.x_m[echo], r.y_m[echo]], axis=-1)
             feet = xy + (lm.params[0] - xy @ n)[:, None] * n
         if drift:
-            result.builder.add(lm, view, base, None, feet, drift_cov=cov)
+            what = result.builder.add(lm, view, base, None, feet, drift_cov=cov)
         else:
-            result.builder.add(lm, view, base, cov, feet)
+            what = result.builder.add(lm, view, base, cov, feet)
+        if observations is not None and base is not None and what in ("point", "wall"):
+            observations.append(_observation(lm, view, base, feet))
+
+
+def _observation(lm: Landmark, view: Array, base: Array, feet: Array | None) -> Observation:
+    """A landmark fit in ``map`` as seen from the base pose ``base`` (its fit's own
+    covariance carried into base_link)."""
+    kind = "point" if lm.kind == "point" else "line"
+    z, c2 = transform_with_cov(kind, se2.inverse(base), np.asarray(lm.params[:2], dtype=float),
+                               np.asarray(lm.cov, dtype=float)[:2, :2])
+    f = np.zeros((0, 2)) if feet is None else se2.inverse_transform_points(base, feet)
+    return Observation(kind, lm.ref_t_s,
+                       np.asarray(base, dtype=float).copy(), z, c2,
+                       se2.inverse_transform_points(base, view), f, lm)
