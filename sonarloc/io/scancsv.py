@@ -104,11 +104,30 @@ class TimeoutWatch:
         if top == self.largest:
             self.count += int(np.count_nonzero(finite == top))
 
+    def push_one(self, tof_us: float) -> None:
+        """One reading (NaN: no echo), as :meth:`push` takes a block."""
+        if not (math.isfinite(tof_us) and tof_us > 0.0):
+            return
+        if tof_us > self.largest:
+            self.largest, self.count = tof_us, 0
+        if tof_us == self.largest:
+            self.count += 1
+
     def suspect(self, echoes: int) -> tuple[float, int] | None:
         """(the TOF [us], how many readings) when they look like timeouts, else None."""
         if self.count >= max(self.MIN_COUNT, self.MIN_FRACTION * echoes):
             return self.largest, self.count
         return None
+
+    def advice(self, echoes: int) -> str | None:
+        """What to tell the user when the readings look like timeouts (``echoes``: how
+        many echoes were watched), else None."""
+        found = self.suspect(echoes)
+        if found is None:
+            return None
+        tof, n = found
+        return (f"{n} of {echoes} echoes have exactly the largest TOF, {tof:g} us: a module's "
+                f"timeout reported as an echo? If so, --max-tof {tof:g} takes them as no echo")
 
 
 def _column(rows: list[list[str]], index: int, name: str, line_of: list[int],
