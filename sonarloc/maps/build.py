@@ -1284,7 +1284,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     # readings are fitted and clustered relative to the first reading's robot position
     # (MapBuilder.origin): the same map, shifted, whatever the map frame's origin
     shift = np.zeros(3)
-    watch, echoes = TimeoutWatch(), 0   # a module's timeouts logged as echoes?
+    watch = TimeoutWatch()   # a module's timeouts logged as echoes?
 
     def add(closed: list[Any]) -> None:
         assert fit_cfg is not None
@@ -1311,8 +1311,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
         if cfg.max_tof_us is not None and tof >= cfg.max_tof_us:
             tof = math.nan
             result.timeouts += 1
-        elif math.isfinite(tof):
-            echoes += 1
+        else:
             watch.push_one(tof)
         if math.isfinite(tof):
             ref_cov[t] = (base, cov)
@@ -1326,7 +1325,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
         closed = seg.flush()
         if closed:
             add(closed)
-    advice = watch.advice(echoes) if cfg.max_tof_us is None else None
+    advice = watch.advice() if cfg.max_tof_us is None else None
     if advice is not None:
         result.notes.append(advice)
     if trace is not None and observations is not None:
