@@ -283,6 +283,61 @@ class _Segment:
             lqn_v = dlngn = lqn
         return (mean, s2, et.log_p, lqn), _CompGrad(m_v, s2_v, lp_v, dlng, geo, lqn_v, dlngn, ng)
 
+    def _components(self, comps: list[Array], rd: _Rd, grad: bool = False
+                    ) -> list[tuple[tuple[Array, Array, Array, Array], _CompGrad | None]]:
+        """:meth:`_component` of each of ``comps``; two in one call, their rows stacked
+        (each entry's numbers are those of a call of its own: the terms are per reading,
+        and a call's cost is mostly per-call overhead)."""
+        if len(comps) == 1:
+            return [self._component(comps[0], rd, grad)]
+        S = comps[0].shape[0]
+        terms, cg = self._component(np.concatenate(comps), self._doubled(rd), grad)
+        # echo and no-echo entries of the first component: its rows, or its flat readings
+        ne, nn = (S, S) if rd.rows is None else (rd.y.size, rd.nyaw.size)
+
+        def halves(a: Array, at: int) -> tuple[Array, Array]:
+            return a[:at], a[at:]
+
+        (m, s2, lp, lqn) = (halves(terms[0], ne), halves(terms[1], ne),
+                            halves(terms[2], ne), halves(terms[3], nn))
+        out: list[tuple[tuple[Array, Array, Array, Array], _CompGrad | None]] = [
+            ((m[k], s2[k], lp[k], lqn[k]), None) for k in range(2)]
+        if cg is None:
+            return out
+
+        def geo_halves(geo: M.Geometry | None, at: int) -> list[M.Geometry | None]:
+            if geo is None:
+                return [None, None]
+            f = [halves(a, at) for a in (geo.R, geo.theta, geo.dR_dr, geo.dR_dphi,
+                                         geo.dtheta_dr, geo.dtheta_dphi)]
+            return [M.Geometry(f[0][k], f[1][k], f[2][k], f[3][k], f[4][k], f[5][k],
+                               moving=geo.moving) for k in range(2)]
+
+        e = [halves(a, ne) for a in (cg.m_v, cg.s2_v, cg.lp_v, cg.dlng)]
+        n_ = [halves(a, nn) for a in (cg.lqn_v, cg.dlngn)]
+        geo, ng = geo_halves(cg.geo, ne), geo_halves(cg.ng, nn)
+        return [(out[k][0], _CompGrad(e[0][k], e[1][k], e[2][k], e[3][k], geo[k],
+                                      n_[0][k], n_[1][k], ng[k])) for k in range(2)]
+
+    def _doubled(self, rd: _Rd) -> _Rd:
+        """The readings of ``rd`` for two components' rows stacked (the first's rows, then
+        the second's): flat readings twice over (the last call's again)."""
+        if rd.rows is None:
+            return rd
+        last = getattr(self, "_last_doubled", None)
+        if last is not None and last[0] is rd:
+            return last[1]
+        assert rd.nrows is not None
+
+        def twice(a: Array) -> Array:
+            return np.concatenate([a, a])
+
+        rd2 = _Rd(twice(rd.px), twice(rd.py), twice(rd.yaw), twice(rd.y), twice(rd.npx),
+                  twice(rd.npy), twice(rd.nyaw), np.concatenate([rd.rows, rd.rows + rd.S]),
+                  np.concatenate([rd.nrows, rd.nrows + rd.S]), 2 * rd.S)
+        self._last_doubled = (rd, rd2)
+        return rd2
+
     def cost(self, comps: list[Array], owner: NDArray[np.intp] | None = None) -> Array:
         """Robust -2 log-likelihood (S,) of one or two components, each (S, 3)
         ``(r [m], phi [rad], ln kappa)``; ``owner`` (S,): the segment of each row
@@ -316,8 +371,7 @@ class _Segment:
         y = rd.y if rd.y.ndim == 2 or rd.rows is not None else rd.y[None, :]
         parts: list[_CompGrad] = []
         terms: list[tuple[Array, ...]] = []
-        for q in comps:
-            (mean, s2, log_p, lqn), cg = self._component(q, rd, grad=True)
+        for (mean, s2, log_p, lqn), cg in self._components(comps, rd, grad=True):
             assert cg is not None
             lnorm = -0.5 * (y - mean) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
             if ne_mask is not None:
@@ -389,12 +443,13 @@ class _Segment:
         grad[cost >= 1e12] = 0.0
         return cost, grad
 
-    def _terms(self, q: Array, owner: NDArray[np.intp] | None, rd: _Rd
-               ) -> tuple[Array, ...]:
-        """Per-reading terms of components q (S, 3) for the likelihood: echo mean (S, n),
-        variance, log P(echo), log normal density of the reading; the readings (S, n);
-        and the sum of log P(no echo) over the no-echo readings (S,)."""
-        (mean, s2, log_p, lqn), _ = self._component(q, rd)
+    def _terms(self, comp: tuple[Array, Array, Array, Array], owner: NDArray[np.intp] | None,
+               rd: _Rd) -> tuple[Array, ...]:
+        """Per-reading terms of a component for the likelihood from its
+        :meth:`_component` terms ``comp``: echo mean (S, n), variance, log P(echo), log
+        normal density of the reading; the readings (S, n); and the sum of log P(no
+        echo) over the no-echo readings (S,)."""
+        mean, s2, log_p, lqn = comp
         y = rd.y if rd.y.ndim == 2 or rd.rows is not None else rd.y[None, :]
         lnorm = -0.5 * (y - mean) ** 2 / s2 - 0.5 * np.log(2.0 * np.pi * s2)
         ne_mask = self._masks(owner)[1]
@@ -406,7 +461,7 @@ class _Segment:
     def _eval(self, comps: list[Array], detail: bool, owner: NDArray[np.intp] | None
               ) -> tuple[Array, Array, Array]:
         rd = self._readings(owner, comps[0].shape[0])
-        terms = [self._terms(q, owner, rd) for q in comps]
+        terms = [self._terms(comp, owner, rd) for comp, _ in self._components(comps, rd)]
         return self._combine(terms, comps, self._masks(owner)[0], detail, None, rd)
 
     def _mixture(self, terms: list[tuple[Array, ...]]) -> _Mixture:
@@ -461,8 +516,9 @@ class _Segment:
 
 
 class _Segments(_Segment):
-    """Several segments (one tier, all moving or all still) with their readings end to
-    end in flat arrays; every evaluated row says its segment (``owner``) and is
+    """Several segments (one tier, all moving or all still, their no-echo readings too:
+    segments without any go with either) with their readings end to end in flat
+    arrays; every evaluated row says its segment (``owner``) and is
     evaluated on that segment's readings only (gathered per call: no padding, so
     segments of any sizes share every call). A row's cost is that of its segment alone
     (up to the order of the additions)."""
@@ -470,10 +526,11 @@ class _Segments(_Segment):
     def __init__(self, segs: Sequence[_Segment]) -> None:
         first = segs[0]
         self.cfg, self.tier, self.cap = first.cfg, first.tier, first.cap
-        self.moving, self.ne_moving = first.moving, first.ne_moving
-        if any((s.tier, s.moving, s.ne_moving, s.cfg) != (self.tier, self.moving,
-                                                          self.ne_moving, self.cfg)
-               for s in segs):
+        # segments without no-echo readings go with either kind of no-echo motion
+        self.moving = first.moving
+        self.ne_moving = any(s.ne_moving for s in segs)
+        if any((s.tier, s.moving, s.cfg) != (self.tier, self.moving, self.cfg)
+               or (s.npx.size and s.ne_moving != self.ne_moving) for s in segs):
             raise ValueError("`segs` must share tier, motion and config")
         self.px, self.py, self.yaw, self.y = (np.concatenate([getattr(s, f) for s in segs])
                                               for f in ("px", "py", "yaw", "y"))
@@ -1495,15 +1552,24 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
     which = np.repeat(np.arange(len(cand)), [len(r.t_s) for r in reads])
     batch = pack_flat(which[good], t[good], x[good], y[good], M.wrap_angle(yaw[good]),
                       tof[good], n_segments=len(cand))
-    groups: dict[tuple[str, bool, bool], list[tuple[int, _Segment, Array]]] = {}
+    groups: dict[tuple[str, bool, bool | None], list[tuple[int, _Segment, Array]]] = {}
     for j, i in enumerate(cand):
         lm = landmarks[i]
         seg = _Segment(batch, j, cfg, lm.tier)
         local = (lm.range_m, lm.bearing_rad, lm.kappa_us)
         if seg.y.size < 2 * cfg.min_echoes or not all(map(math.isfinite, local)):
             continue
-        groups.setdefault((lm.tier, seg.moving, seg.ne_moving), []).append(
+        # a segment without no-echo readings never evaluates their geometry: it joins
+        # either kind (below), so fewer groups' searches run (the cost of a search step
+        # is mostly per-call overhead)
+        ne_key = seg.ne_moving if seg.npx.size else None
+        groups.setdefault((lm.tier, seg.moving, ne_key), []).append(
             (i, seg, np.array(local)))
+    for key in [k for k in groups if k[2] is None]:
+        joins = next((k2 for k2 in ((key[0], key[1], True), (key[0], key[1], False))
+                      if k2 in groups), None)
+        if joins is not None:
+            groups[joins] += groups.pop(key)
     fits: dict[int, PairFit] = {}
     for members in groups.values():
         for (i, _, _), pf in zip(members, _fit_pairs([m[1] for m in members],
