@@ -179,6 +179,9 @@ class _Rd(NamedTuple):
     rows: NDArray[np.intp] | None
     nrows: NDArray[np.intp] | None
     S: int
+    blocks: tuple[tuple[str, _Rd], ...] | None = None
+    """Rows of several tiers (:class:`_Segments`): each tier's entries, contiguous (the
+    readings of that tier's rows, ``rows`` the same), in order; None: one tier."""
 
 
 def _rowsum(v: Array, rows: NDArray[np.intp] | None, S: int) -> Array:
@@ -233,13 +236,14 @@ class _Segment:
         """:meth:`detail` of flat readings (:class:`_Segments` only)."""
         raise NotImplementedError("flat readings: _Segments")
 
-    def _component(self, q: Array, rd: _Rd, grad: bool = False
+    def _component(self, q: Array, rd: _Rd, grad: bool = False, tier: str | None = None
                    ) -> tuple[tuple[Array, Array, Array, Array], _CompGrad | None]:
         """Per-reading terms of components q (S, 3) local (r, phi, ln kappa):
         echo mean (S, n), variance, log P(echo); no-echo log P(no echo) (S, n_ne); with
         ``grad``, also what the analytic gradient needs (every echo term but the range's
         depends on the parameters through v = ln(kappa g) only), else None."""
         mod = self.cfg.module
+        tier = tier or self.tier
         px, py, yaw, npx, npy, nyaw = rd.px, rd.py, rd.yaw, rd.npx, rd.npy, rd.nyaw
         r_, phi_, K_ = q[:, 0:1], q[:, 1:2], np.exp(np.clip(q[:, 2:3], _LNK_LO, _LNK_HI))
         if rd.rows is None:
@@ -247,10 +251,10 @@ class _Segment:
         else:                                        # flat: each reading its row's values
             r, phi, K = _per_reading((r_, phi_, K_), rd.rows)
         R, theta, geo = _geometry(r, phi, px, py, yaw, self.moving)
-        g, dg, lg = M.beam_delay_factor(theta, self.tier, mod, derivative=grad)
+        g, dg, lg = M.beam_delay_factor(theta, tier, mod, derivative=grad)
         z = M.detection_z(K, lg, mod)
-        et = M.echo_terms(K, g, z, mod, want_info=False, tier=self.tier)
-        waveform = self.tier == "waveform"
+        et = M.echo_terms(K, g, z, mod, want_info=False, tier=tier)
+        waveform = tier == "waveform"
         s2 = M.tof_variance_us2(et.delay, mod, et.delay_var if waveform else None)
         mean = M.us_per_m(mod) * R + et.delay
         ng = None
@@ -259,7 +263,7 @@ class _Segment:
             rn, phin, Kn = ((r, phi, K) if rd.nrows is None else
                             _per_reading((r_, phi_, K_), rd.nrows))
             _, theta_n, ng = _geometry(rn, phin, npx, npy, nyaw, self.ne_moving)
-            gn, dgn, lgn = M.beam_delay_factor(theta_n, self.tier, mod, derivative=grad)
+            gn, dgn, lgn = M.beam_delay_factor(theta_n, tier, mod, derivative=grad)
             ne = M.noecho_terms(M.detection_z(Kn, lgn, mod), want_info=False)
             lqn = ne[0]
         else:
@@ -286,12 +290,22 @@ class _Segment:
     def _components(self, comps: list[Array], rd: _Rd, grad: bool = False
                     ) -> list[tuple[tuple[Array, Array, Array, Array], _CompGrad | None]]:
         """:meth:`_component` of each of ``comps``; two in one call, their rows stacked
-        (each entry's numbers are those of a call of its own: the terms are per reading,
-        and a call's cost is mostly per-call overhead)."""
+        (a call's cost is mostly per-call overhead); rows of several tiers
+        (``rd.blocks``) one call per tier, the entries joined."""
+        if rd.blocks is None:
+            return self._components_tier(comps, rd, grad, self.tier)
+        if len(rd.blocks) == 1:
+            return self._components_tier(comps, rd.blocks[0][1], grad, rd.blocks[0][0])
+        each = [self._components_tier(comps, sub, grad, tier) for tier, sub in rd.blocks]
+        return [_join_component([e[k] for e in each]) for k in range(len(comps))]
+
+    def _components_tier(self, comps: list[Array], rd: _Rd, grad: bool, tier: str
+                         ) -> list[tuple[tuple[Array, Array, Array, Array], _CompGrad | None]]:
+        """:meth:`_components` of rows of one tier."""
         if len(comps) == 1:
-            return [self._component(comps[0], rd, grad)]
+            return [self._component(comps[0], rd, grad, tier)]
         S = comps[0].shape[0]
-        terms, cg = self._component(np.concatenate(comps), self._doubled(rd), grad)
+        terms, cg = self._component(np.concatenate(comps), self._doubled(rd), grad, tier)
         # echo and no-echo entries of the first component: its rows, or its flat readings
         ne, nn = (S, S) if rd.rows is None else (rd.y.size, rd.nyaw.size)
 
@@ -324,9 +338,10 @@ class _Segment:
         the second's): flat readings twice over (the last call's again)."""
         if rd.rows is None:
             return rd
-        last = getattr(self, "_last_doubled", None)
-        if last is not None and last[0] is rd:
-            return last[1]
+        cache: dict[int, tuple[_Rd, _Rd]] = self.__dict__.setdefault("_doubled_rd", {})
+        hit = cache.get(id(rd))
+        if hit is not None and hit[0] is rd:
+            return hit[1]
         assert rd.nrows is not None
 
         def twice(a: Array) -> Array:
@@ -335,7 +350,9 @@ class _Segment:
         rd2 = _Rd(twice(rd.px), twice(rd.py), twice(rd.yaw), twice(rd.y), twice(rd.npx),
                   twice(rd.npy), twice(rd.nyaw), np.concatenate([rd.rows, rd.rows + rd.S]),
                   np.concatenate([rd.nrows, rd.nrows + rd.S]), 2 * rd.S)
-        self._last_doubled = (rd, rd2)
+        if len(cache) > 8:           # the readings of the last calls only
+            cache.clear()
+        cache[id(rd)] = (rd, rd2)
         return rd2
 
     def cost(self, comps: list[Array], owner: NDArray[np.intp] | None = None) -> Array:
@@ -516,8 +533,8 @@ class _Segment:
 
 
 class _Segments(_Segment):
-    """Several segments (one tier, all moving or all still, their no-echo readings too:
-    segments without any go with either) with their readings end to end in flat
+    """Several segments (of any tiers; all moving or all still, their no-echo readings
+    too: segments without any go with either) with their readings end to end in flat
     arrays; every evaluated row says its segment (``owner``) and is
     evaluated on that segment's readings only (gathered per call: no padding, so
     segments of any sizes share every call). A row's cost is that of its segment alone
@@ -525,13 +542,16 @@ class _Segments(_Segment):
 
     def __init__(self, segs: Sequence[_Segment]) -> None:
         first = segs[0]
-        self.cfg, self.tier, self.cap = first.cfg, first.tier, first.cap
+        self.cfg, self.cap = first.cfg, first.cap
+        self.tiers = sorted({s.tier for s in segs})
+        self.tier = first.tier if len(self.tiers) == 1 else "+".join(self.tiers)
+        self.seg_tier = np.array([self.tiers.index(s.tier) for s in segs], dtype=np.intp)
         # segments without no-echo readings go with either kind of no-echo motion
         self.moving = first.moving
         self.ne_moving = any(s.ne_moving for s in segs)
-        if any((s.tier, s.moving, s.cfg) != (self.tier, self.moving, self.cfg)
+        if any((s.moving, s.cfg) != (self.moving, self.cfg)
                or (s.npx.size and s.ne_moving != self.ne_moving) for s in segs):
-            raise ValueError("`segs` must share tier, motion and config")
+            raise ValueError("`segs` must share motion and config")
         self.px, self.py, self.yaw, self.y = (np.concatenate([getattr(s, f) for s in segs])
                                               for f in ("px", "py", "yaw", "y"))
         self.npx, self.npy, self.nyaw = (np.concatenate([getattr(s, f) for s in segs])
@@ -566,12 +586,31 @@ class _Segments(_Segment):
         # evaluate the same rows)
         if self._last is not None and np.array_equal(self._last[0], owner):
             return self._last[1]
-        ie, rows, _ = self._gather(self.off, self.n_echo, owner)
-        inn, nrows, _ = self._gather(self.ne_off, self.n_ne, owner)
+        T = len(self.tiers)
+        rt = self.seg_tier[owner]
+        # rows of several tiers: each tier's entries together (each row's in its order)
+        perm = np.argsort(rt, kind="stable") if T > 1 else np.arange(owner.size)
+        ie, rows, _ = self._gather(self.off, self.n_echo, owner[perm])
+        inn, nrows, _ = self._gather(self.ne_off, self.n_ne, owner[perm])
+        rows, nrows = perm[rows], perm[nrows]
         none = np.zeros(0)
         rd = _Rd(self.px[ie] if self.moving else none, self.py[ie] if self.moving else none,
                  self.yaw[ie], self.y[ie], self.npx[inn] if self.ne_moving else none,
                  self.npy[inn] if self.ne_moving else none, self.nyaw[inn], rows, nrows, S)
+        if T > 1:
+            n_rows = np.bincount(rt, minlength=T)
+            ends_e = np.cumsum(np.bincount(rt, weights=self.n_echo[owner], minlength=T))
+            ends_n = np.cumsum(np.bincount(rt, weights=self.n_ne[owner], minlength=T))
+            blocks = []
+            for t in np.flatnonzero(n_rows).tolist():
+                e = slice(int(ends_e[t - 1]) if t else 0, int(ends_e[t]))
+                n = slice(int(ends_n[t - 1]) if t else 0, int(ends_n[t]))
+                blocks.append((self.tiers[t], _Rd(
+                    rd.px[e] if self.moving else none, rd.py[e] if self.moving else none,
+                    rd.yaw[e], rd.y[e], rd.npx[n] if self.ne_moving else none,
+                    rd.npy[n] if self.ne_moving else none, rd.nyaw[n], rows[e], nrows[n],
+                    S)))
+            rd = rd._replace(blocks=tuple(blocks))
         self._last = (owner.copy(), rd)
         return rd
 
@@ -581,9 +620,10 @@ class _Segments(_Segment):
         readings, padded (zeros) to the longest row."""
         assert rd.rows is not None
         rows = rd.rows
-        ends = np.cumsum(np.bincount(rows, minlength=rd.S))
-        pos = np.arange(rows.size) - np.repeat(ends - np.bincount(rows, minlength=rd.S),
-                                               np.bincount(rows, minlength=rd.S))
+        count = np.bincount(rows, minlength=rd.S)
+        pos = np.empty(rows.size, dtype=np.intp)   # each entry's place in its row
+        pos[np.argsort(rows, kind="stable")] = (np.arange(rows.size)
+                                                - np.repeat(np.cumsum(count) - count, count))
         width = int(pos.max()) + 1 if pos.size else 0
         resp_f = np.exp(np.stack(parts, axis=0) - ll[None, :])      # (m, N)
         pick = np.argmax(resp_f, axis=0)
@@ -601,6 +641,36 @@ class _Segments(_Segment):
     def _masks(self, owner: NDArray[np.intp] | None
                ) -> tuple[NDArray[np.bool_] | None, NDArray[np.bool_] | None]:
         return None, None
+
+
+_Terms = tuple[tuple[Array, Array, Array, Array], _CompGrad | None]
+
+
+def _join_component(parts: list[_Terms]) -> _Terms:
+    """One component's :meth:`_Segment._component` terms of flat readings from those of
+    consecutive blocks of its entries (:attr:`_Rd.blocks`)."""
+    terms = tuple(np.concatenate([p[0][j] for p in parts]) for j in range(4))
+    cgs = [p[1] for p in parts]
+    if any(cg is None for cg in cgs):
+        return (terms[0], terms[1], terms[2], terms[3]), None
+    cs = [cg for cg in cgs if cg is not None]
+
+    def cat(name: str) -> Array:
+        return np.concatenate([getattr(cg, name) for cg in cs])
+
+    def geo(name: str) -> M.Geometry | None:
+        gs = [getattr(cg, name) for cg in cs]
+        real = [g for g in gs if g is not None]
+        if not real:
+            return None
+        # a block without such readings has none (its arrays are empty)
+        f = [np.concatenate([getattr(g, n) for g in real]) for n in (
+            "R", "theta", "dR_dr", "dR_dphi", "dtheta_dr", "dtheta_dphi")]
+        return M.Geometry(f[0], f[1], f[2], f[3], f[4], f[5])
+
+    return ((terms[0], terms[1], terms[2], terms[3]),
+            _CompGrad(cat("m_v"), cat("s2_v"), cat("lp_v"), cat("dlng"), geo("geo"),
+                      cat("lqn_v"), cat("dlngn"), geo("ng")))
 
 
 def _per_reading(cols: tuple[Array, ...], rows: NDArray[np.intp]) -> tuple[Array, ...]:
@@ -1100,7 +1170,7 @@ COST_CHUNK = 1024
 
 def _fit_pairs(segs: Sequence[_Segment], singles: Sequence[Array],
                n_starts: int = N_STARTS) -> list[PairFit]:
-    """Fit one and two point reflectors to each of several segments of one tier (all
+    """Fit one and two point reflectors to each of several segments of any tiers (all
     moving or all still), every search step of all of them in one cost call
     (:class:`_Segments`); candidates whose pair provably cannot gain the bar over their
     single fit (:func:`_pair_cost_floor`) are not searched (:func:`_bounded`)."""
@@ -1177,7 +1247,12 @@ def _search_pairs(ev: _Segment, idx: NDArray[np.intp] | None, segs: Sequence[_Se
     x1, c1 = _minimise_batch(ev, s0, owner=own(every))
     c1 = np.minimum(c1, c0)
     # grid starts of every segment, ranked by the full likelihood in one call
-    grids = _start_grids(segs, singles)
+    grids: list[_Grid | None] = [None] * C
+    for tier in sorted({seg.tier for seg in segs}):     # (the grid's beam is the tier's)
+        sub = [c for c in range(C) if segs[c].tier == tier]
+        for c, grid in zip(sub, _start_grids([segs[c] for c in sub], [singles[c] for c in sub]),
+                           strict=True):
+            grids[c] = grid
     have = [c for c in range(C) if grids[c] is not None]
     starts: list[list[Array]] = [[] for _ in range(C)]
     if have:
@@ -1530,10 +1605,13 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
     """:func:`resolve_pairs`, the result of each segment in its own list (two landmarks
     where the pair is accepted, else the single one).
 
-    The candidates of one tier and kind of motion are searched in lockstep (every
-    quasi-Newton step of all of them in one cost call, :class:`_Segments`: their
-    readings end to end, whatever their sizes); each candidate's search is the one it
-    would have alone (up to floating-point rounding of the sums).
+    The candidates of one kind of motion, whatever their tiers, are searched in lockstep
+    (every quasi-Newton step of all of them in one cost call, :class:`_Segments`: their
+    readings end to end, whatever their sizes; formerly one search per tier
+    and kind of motion of the no-echo readings too, up to six); each candidate's search
+    is the one it would have alone (up to floating-point rounding: the sums, and
+    :func:`sonarloc.fit.model.echo_terms` evaluates the terms of a call all at once or
+    masked by how many need them).
     """
     cfg = config or FitConfig()
     out: list[list[Landmark]] = [[lm] for lm in landmarks]
@@ -1552,7 +1630,7 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
     which = np.repeat(np.arange(len(cand)), [len(r.t_s) for r in reads])
     batch = pack_flat(which[good], t[good], x[good], y[good], M.wrap_angle(yaw[good]),
                       tof[good], n_segments=len(cand))
-    groups: dict[tuple[str, bool, bool | None], list[tuple[int, _Segment, Array]]] = {}
+    groups: dict[tuple[bool, bool | None], list[tuple[int, _Segment, Array]]] = {}
     for j, i in enumerate(cand):
         lm = landmarks[i]
         seg = _Segment(batch, j, cfg, lm.tier)
@@ -1563,11 +1641,9 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
         # either kind (below), so fewer groups' searches run (the cost of a search step
         # is mostly per-call overhead)
         ne_key = seg.ne_moving if seg.npx.size else None
-        groups.setdefault((lm.tier, seg.moving, ne_key), []).append(
-            (i, seg, np.array(local)))
-    for key in [k for k in groups if k[2] is None]:
-        joins = next((k2 for k2 in ((key[0], key[1], True), (key[0], key[1], False))
-                      if k2 in groups), None)
+        groups.setdefault((seg.moving, ne_key), []).append((i, seg, np.array(local)))
+    for key in [k for k in groups if k[1] is None]:
+        joins = next((k2 for k2 in ((key[0], True), (key[0], False)) if k2 in groups), None)
         if joins is not None:
             groups[joins] += groups.pop(key)
     fits: dict[int, PairFit] = {}

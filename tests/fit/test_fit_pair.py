@@ -156,6 +156,40 @@ def test_padded_segments_cost_each_row_on_its_own_segment(rng):
             np.testing.assert_array_equal(c, ev.cost(P._unscale(xx), own))
 
 
+def test_segments_of_several_tiers_evaluate_each_row_in_its_own_tier(rng):
+    # a _Segments of several tiers (one search for all of them) gives each row the cost,
+    # gradient and detail of its segment's own tier, whatever the rows' order: the same
+    # per-reading terms as a _Segments of that tier alone (up to echo_terms' rounding)
+    cfg = FitConfig()
+    scans = [pan_scan([Reflector.polar(r, b, k)], rng, -30, 30, step)
+             for r, b, k, step in ((1.2, 3.0, 0.67, 0.3), (2.5, -4.0, 2.68, 1.0),
+                                   (1.8, 0.0, 0.15, 2.0), (1.5, 2.0, 0.67, 0.5))]
+    batch = pack_segments([(s.t_s, s.x_m, s.y_m, s.yaw_rad, s.tof_us) for s in scans])
+    tiers = ["waveform", "gauss", "piston", "gauss"]
+    segs = [P._Segment(batch, b, cfg, t) for b, t in enumerate(tiers)]
+    mixed = P._Segments(segs)
+    owner = np.array([0, 1, 2, 3, 2, 0, 1, 3, 3, 0])
+    base = np.array([[1200.0, 3.0], [2500.0, -4.0], [1800.0, 0.0], [1500.0, 2.0]])
+    x = np.array([[base[o, 0] + d, base[o, 1] + d, math.log(0.67), base[o, 0] - d,
+                   base[o, 1] + 6.0, math.log(1.0)]
+                  for o, d in zip(owner.tolist(), np.linspace(-0.8, 0.8, owner.size),
+                                  strict=True)])
+    for xx in (x, x[:, :3]):
+        c, g = mixed.cost_grad(xx, owner)
+        _, resp, resid = mixed.detail(P._unscale(xx), owner)
+        for o, seg in enumerate(segs):
+            j = np.flatnonzero(owner == o)
+            c1, g1 = seg.cost_grad(xx[j])
+            _, resp1, resid1 = seg.detail(P._unscale(xx[j]))
+            np.testing.assert_allclose(c[j], c1, rtol=1e-12)
+            np.testing.assert_allclose(g[j], g1, rtol=1e-9, atol=1e-9 * np.abs(g1).max())
+            n = seg.y.size
+            np.testing.assert_allclose(resp[j][:, :, :n], resp1, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(resid[j][:, :n], resid1, rtol=1e-9, atol=1e-12)
+            assert not resp[j][:, :, n:].any()
+        np.testing.assert_array_equal(c, mixed.cost(P._unscale(xx), owner))
+
+
 def _fd_grad(ev: P._Segment, x: np.ndarray, own: np.ndarray | None, h: float = 1e-5
              ) -> np.ndarray:
     out = np.zeros_like(x)
