@@ -146,6 +146,7 @@ class FitPool:
             raise ValueError(f"`executor` must be 'thread' or 'process', got {executor!r}")
         self.workers = workers
         self.kind: FitExecutor = executor
+        self.closed = False
         self._warm: list[Future[Any]] = []
         self._warmed_c: set[float] = set()
         self._executor: Executor
@@ -184,4 +185,5 @@ class FitPool:
 
     def close(self, wait: bool = True) -> None:
         """Shut the workers down; jobs not started are cancelled."""
+        self.closed = True
         self._executor.shutdown(wait=wait, cancel_futures=True)
