@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import re
+from collections.abc import Iterable
+from typing import Any, TypeVar
+
+_Config = TypeVar("_Config")
 
 # Values such as "-40:40:0.3" or "-1.5,2,90" start with "-": let argparse take them as
 # values, not options (it only knows plain negative numbers).
@@ -49,3 +54,44 @@ def refuse_overwrite(outputs: dict[str, str | None], inputs: dict[str, str | Non
             if os.path.realpath(path) == os.path.realpath(earlier):
                 raise ValueError(f"{name} {path} is also {other}: one would overwrite the "
                                  "other")
+
+
+def add_reading_limit_options(parser: argparse.ArgumentParser, like: str) -> None:
+    """``--max-tof``, ``--odom-max-speed`` and ``--odom-max-yaw-rate``: how a log's
+    timeouts and odometry jumps are read (``localize`` and ``map build`` alike; ``like``
+    names the other command in the help)."""
+    parser.add_argument("--max-tof", type=float, metavar="US", default=None,
+                        help="readings at or above this TOF [us] are a module's timeout, "
+                             f"taken as no echo and counted (as `sonarloc {like} --max-tof`)")
+    parser.add_argument("--odom-max-speed", type=float, metavar="MPS", default=None,
+                        help="an odometry increment implying more speed is a jump, taken as "
+                             "a restart of the odometry (default 5 m/s; inf: never)")
+    parser.add_argument("--odom-max-yaw-rate", type=float, metavar="DEG_S", default=None,
+                        help="the same for turning (default 573 deg/s = 10 rad/s; inf: never)")
+
+
+def reading_limit_options(args: argparse.Namespace) -> list[tuple[str, str, Any]]:
+    """(option, config field, value) of :func:`add_reading_limit_options`' options, the
+    yaw rate in rad/s (fields of both ``LocalizerConfig`` and ``BuildConfig``)."""
+    yaw_rate = args.odom_max_yaw_rate
+    if yaw_rate is not None:
+        if not yaw_rate > 0:  # named in the user's unit, before the config's rad/s check
+            raise ValueError(f"--odom-max-yaw-rate must be positive (deg/s; inf: never), "
+                             f"got {yaw_rate}")
+        yaw_rate = math.radians(yaw_rate)
+    return [("--max-tof", "max_tof_us", args.max_tof),
+            ("--odom-max-speed", "odom_max_speed_mps", args.odom_max_speed),
+            ("--odom-max-yaw-rate", "odom_max_yaw_rate_rad_s", yaw_rate)]
+
+
+def replace_options(config: _Config, options: Iterable[tuple[str, str, Any]]) -> _Config:
+    """``config`` (a dataclass) with each (option, field, value) whose value is not None
+    set; a value its check refuses is a ValueError naming the option."""
+    for option, name, value in options:
+        if value is None:
+            continue
+        try:
+            config = dataclasses.replace(config, **{name: value})  # type: ignore[type-var]
+        except ValueError as exc:  # the config's own check, named by the option
+            raise ValueError(f"{option}: {exc}") from None
+    return config

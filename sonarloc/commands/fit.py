@@ -146,11 +146,9 @@ def run(args: argparse.Namespace) -> int:
     out.write([lm for lm in fitter.push_block(pending, flush=True) if keep(lm)])
     out.close(fitter.stats, error=None if error is None else str(error),
               extra={} if max_tof is None else {"timeouts": timeouts})
-    suspect = watch.suspect(fitter.stats.echoes)
-    if suspect is not None:
-        print(f"sonarloc fit: note: {suspect[1]} of {fitter.stats.echoes} echoes have exactly "
-              f"the largest TOF, {suspect[0]:g} us: a module's timeout reported as an echo? "
-              f"If so, --max-tof {suspect[0]:g} takes them as no echo", file=sys.stderr)
+    advice = watch.advice(fitter.stats.echoes)
+    if advice is not None:
+        print(f"sonarloc fit: note: {advice}", file=sys.stderr)
     if error is not None:
         print(f"sonarloc fit: error: {error}", file=sys.stderr)
         return 2

@@ -17,11 +17,16 @@ batches (landmarks fused at their reference readings, as if fitting took no time
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import math
 import sys
 
-from sonarloc.commands._args import accept_negative_values, parse_pose, refuse_overwrite
+from sonarloc.commands._args import (
+    accept_negative_values,
+    add_reading_limit_options,
+    parse_pose,
+    reading_limit_options,
+    refuse_overwrite,
+    replace_options,
+)
 from sonarloc.errors import LogFormatError
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import LocalizerConfig
@@ -64,14 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "an update; a feature's own sd_m (written by `map build`) is "
                              "used where larger (default 0: the map taken as exact unless "
                              "it says otherwise)")
-    parser.add_argument("--max-tof", type=float, metavar="US", default=None,
-                        help="readings at or above this TOF [us] are a module's timeout, "
-                             "taken as no echo and counted (as `sonarloc fit --max-tof`)")
-    parser.add_argument("--odom-max-speed", type=float, metavar="MPS", default=None,
-                        help="an odometry increment implying more speed is a jump, taken as "
-                             "a restart of the odometry (default 5 m/s; inf: never)")
-    parser.add_argument("--odom-max-yaw-rate", type=float, metavar="DEG_S", default=None,
-                        help="the same for turning (default 573 deg/s = 10 rad/s; inf: never)")
+    add_reading_limit_options(parser, like="fit")
     parser.add_argument("--quiet", action="store_true", help="no summary on stderr")
 
 
@@ -80,23 +78,9 @@ def run(args: argparse.Namespace) -> int:
     init = parse_pose(args.init, "--init") if args.init is not None else None
     fmap = FeatureMap.from_map(load_map(args.map))
     config = LocalizerConfig(method=args.method, relocalize=args.relocalize)
-    yaw_rate = args.odom_max_yaw_rate
-    if yaw_rate is not None:
-        if not yaw_rate > 0:  # named in the user's unit, before the config's rad/s check
-            raise ValueError(f"--odom-max-yaw-rate must be positive (deg/s; inf: never), "
-                             f"got {yaw_rate}")
-        yaw_rate = math.radians(yaw_rate)
-    for option, name, value in (("--odom-gap", "odom_gap_s", args.odom_gap),
-                                ("--map-sd", "map_sd_m", args.map_sd),
-                                ("--max-tof", "max_tof_us", args.max_tof),
-                                ("--odom-max-speed", "odom_max_speed_mps", args.odom_max_speed),
-                                ("--odom-max-yaw-rate", "odom_max_yaw_rate_rad_s", yaw_rate)):
-        if value is None:
-            continue
-        try:
-            config = dataclasses.replace(config, **{name: value})
-        except ValueError as exc:  # the config's own check, named by the option
-            raise ValueError(f"{option}: {exc}") from None
+    config = replace_options(config, [("--odom-gap", "odom_gap_s", args.odom_gap),
+                                      ("--map-sd", "map_sd_m", args.map_sd),
+                                      *reading_limit_options(args)])
     mode: Mode = "online" if args.online else "auto"
     if args.out:
         with open(args.out, "w", encoding="utf-8", newline="") as handle:

@@ -23,7 +23,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from sonarloc.commands._args import refuse_overwrite
+from sonarloc.commands._args import (
+    add_reading_limit_options,
+    reading_limit_options,
+    refuse_overwrite,
+    replace_options,
+)
 from sonarloc.errors import LogFormatError
 from sonarloc.io.posescsv import read_poses_csv
 from sonarloc.maps.build import BUILD_METHODS, BuildConfig, build_from_log
@@ -49,6 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="poses (odometry or POSES.csv) further apart than this are a gap: "
                         "the readings inside it, while the robot moved, are skipped and "
                         "counted (default %(default)s s, as `localize`; inf: no gaps)")
+    add_reading_limit_options(b, like="localize")
     b.add_argument("--quiet", action="store_true", help="no summary on stderr")
     b.set_defaults(_map_run=_run_build)
 
@@ -67,9 +73,10 @@ def _run_build(args: argparse.Namespace) -> int:
     poses = read_poses_csv(args.poses) if args.poses else None
     if not args.odom_gap > 0:
         raise ValueError(f"--odom-gap must be positive, got {args.odom_gap}")
-    result = build_from_log(args.log, poses, BuildConfig(min_observations=args.min_observations,
-                                                         odom_gap_s=args.odom_gap),
-                            method=args.method)
+    config = replace_options(BuildConfig(min_observations=args.min_observations,
+                                         odom_gap_s=args.odom_gap),
+                             reading_limit_options(args))
+    result = build_from_log(args.log, poses, config, method=args.method)
     if result.readings == 0:
         # nothing to build from (no rig, no tof, or no pose for any reading): a failure,
         # not an empty map that a script would take for a successful run

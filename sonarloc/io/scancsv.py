@@ -93,22 +93,47 @@ class TimeoutWatch:
     def __init__(self) -> None:
         self.largest = -math.inf
         self.count = 0
+        self.echoes = 0  # echoes watched
 
     def push(self, tof_us: NDArray[np.float64]) -> None:
         finite = tof_us[np.isfinite(tof_us) & (tof_us > 0.0)]  # echoes (not bad readings)
         if finite.size == 0:
             return
+        self.echoes += finite.size
         top = float(finite.max())
         if top > self.largest:
             self.largest, self.count = top, 0
         if top == self.largest:
             self.count += int(np.count_nonzero(finite == top))
 
-    def suspect(self, echoes: int) -> tuple[float, int] | None:
-        """(the TOF [us], how many readings) when they look like timeouts, else None."""
+    def push_one(self, tof_us: float) -> None:
+        """One reading (NaN: no echo), as :meth:`push` takes a block."""
+        if not (math.isfinite(tof_us) and tof_us > 0.0):
+            return
+        self.echoes += 1
+        if tof_us > self.largest:
+            self.largest, self.count = tof_us, 0
+        if tof_us == self.largest:
+            self.count += 1
+
+    def suspect(self, echoes: int | None = None) -> tuple[float, int] | None:
+        """(the TOF [us], how many readings) when they look like timeouts, else None;
+        ``echoes``: of how many (default: those watched)."""
+        echoes = self.echoes if echoes is None else echoes
         if self.count >= max(self.MIN_COUNT, self.MIN_FRACTION * echoes):
             return self.largest, self.count
         return None
+
+    def advice(self, echoes: int | None = None) -> str | None:
+        """What to tell the user when the readings look like timeouts (``echoes``: as
+        :meth:`suspect`), else None."""
+        found = self.suspect(echoes)
+        if found is None:
+            return None
+        tof, n = found
+        echoes = self.echoes if echoes is None else echoes
+        return (f"{n} of {echoes} echoes have exactly the largest TOF, {tof:g} us: a module's "
+                f"timeout reported as an echo? If so, --max-tof {tof:g} takes them as no echo")
 
 
 def _column(rows: list[list[str]], index: int, name: str, line_of: list[int],

@@ -21,9 +21,11 @@ import csv
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Literal
+
+import numpy as np
 
 from sonarloc.errors import LogFormatError
 from sonarloc.io.logfile import (
@@ -39,6 +41,7 @@ from sonarloc.io.logfile import (
     iter_log_runs,
 )
 from sonarloc.io.posescsv import COLUMNS
+from sonarloc.io.scancsv import TimeoutWatch
 from sonarloc.localize.features import FeatureMap
 from sonarloc.localize.localizer import Localizer, LocalizerConfig, PoseEstimate
 from sonarloc.localize.offline import OfflinePipeline
@@ -63,6 +66,8 @@ class ReplayResult:
     #: CPU time of this process during the replay [s] (wall time less what other
     #: processes took: the speed measure on a shared machine)
     cpu_time_s: float = math.nan
+    #: what the replay noticed (e.g. readings that look like a module's timeouts)
+    notes: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         speed = self.log_duration_s / self.wall_time_s if self.wall_time_s > 0 else math.inf
@@ -72,7 +77,7 @@ class ReplayResult:
             parts.append(f"final status {self.last.status} ({self.last.reason})")
         parts.append(f"{self.log_duration_s:.1f} s of log in {self.wall_time_s:.2f} s "
                      f"({speed:.0f}x real time)")
-        return "; ".join(parts)
+        return "; ".join(parts + self.notes)
 
 
 def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
@@ -129,10 +134,14 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
     # batch: runs of tof records as columns (no record objects)
     items: Iterator[Record | TofRun] = iter_log_runs(source, stats) if pipe is not None \
         else iter_log(source, stats)
+    # a module's timeouts logged as echoes? (only asked where they are not taken as such)
+    watch = TimeoutWatch() if loc.config.max_tof_us is None else None
     for rec in items:
         kind = type(rec)
         if isinstance(rec, TofRun):
             assert pipe is not None
+            if watch is not None:
+                watch.push(np.asarray(rec.tof_us, float))
             t_run = max(rec.t_s)
             if t_run > last_t:
                 last_t = t_run
@@ -151,6 +160,8 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
             if kind is TruthRecord:
                 continue
             if kind is TofRecord:
+                if watch is not None:
+                    _watch_one(watch, rec)  # type: ignore[arg-type]
                 pipe.tof(rec)  # type: ignore[arg-type]
                 continue
         if math.isnan(first_t):
@@ -171,6 +182,8 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
             loc.set_prior(rec.t_s, init[0], init[1], math.radians(init[2]),
                           DEFAULT_INIT_SD_XY_M, math.radians(DEFAULT_INIT_SD_YAW_DEG))
             have_prior = True
+        if watch is not None and isinstance(rec, TofRecord):
+            _watch_one(watch, rec)
         if pipe is not None:
             if isinstance(rec, OdomRecord):
                 pipe.odom(rec)
@@ -194,7 +207,13 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
         last = loc.estimate
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     duration = 0.0 if math.isnan(first_t) else last_t - first_t
-    return ReplayResult(stats, loc, rows, last, wall, duration, cpu)
+    advice = None if watch is None else watch.advice()
+    return ReplayResult(stats, loc, rows, last, wall, duration, cpu,
+                        [] if advice is None else [advice])
+
+
+def _watch_one(watch: TimeoutWatch, rec: TofRecord) -> None:
+    watch.push_one(math.nan if rec.tof_us is None else float(rec.tof_us))
 
 
 class PoseCsvWriter:

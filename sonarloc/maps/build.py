@@ -69,6 +69,7 @@ from sonarloc import se2
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import InitRecord, LogStats, OdomRecord, RigRecord, TofRecord, iter_log
 from sonarloc.io.posescsv import PoseTrack
+from sonarloc.io.scancsv import TimeoutWatch
 from sonarloc.localize.ekf import OdomNoise, predict_lists
 from sonarloc.localize.localizer import DEFAULT_ODOM_NOISE, in_odom_gap
 from sonarloc.localize.odomframe import OdomJoiner, check_odom_reset_settings
@@ -124,6 +125,10 @@ class BuildConfig:
     # LocalizerConfig.odom_max_speed_mps / odom_max_yaw_rate_rad_s; math.inf: never)
     odom_max_speed_mps: float = 5.0
     odom_max_yaw_rate_rad_s: float = 10.0
+    #: a module that logs its timeout as a reading: readings at or above this [us] are
+    #: no echo, counted in ``BuildResult.timeouts`` (as ``LocalizerConfig.max_tof_us``);
+    #: None: every reading as logged (the summary says when they look like timeouts)
+    max_tof_us: float | None = None
     #: across a reset or jump the motion is unknown: the dead reckoning's covariance
     #: grows by these SDs (as LocalizerConfig.odom_reset_sd_m / odom_reset_sd_deg)
     odom_reset_sd_m: float = 0.1
@@ -146,6 +151,10 @@ class BuildConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"`{name}` must be positive, got {v!r}")
+        if self.max_tof_us is not None and not (math.isfinite(self.max_tof_us)
+                                                and self.max_tof_us > 0):
+            raise ValueError(f"`max_tof_us` must be a positive number of microseconds or "
+                             f"None, got {self.max_tof_us!r}")
         if not self.odom_gap_s > 0:  # math.inf allowed: no gaps
             raise ValueError(f"`odom_gap_s` must be positive, got {self.odom_gap_s!r}")
         check_odom_reset_settings(self.odom_max_speed_mps, self.odom_max_yaw_rate_rad_s,
@@ -989,6 +998,8 @@ class BuildResult:
     """What the SLAM did (``ok`` False: why it fell back), None if it did not run."""
     cpu_s: float = 0.0
     """CPU time of the build [s]."""
+    timeouts: int = 0
+    """Readings at or above ``BuildConfig.max_tof_us``, taken as no echo."""
 
     def geojson(self) -> dict[str, Any]:
         return self.builder.geojson()
@@ -1001,7 +1012,8 @@ class BuildResult:
                  f"{self.landmarks} landmarks fitted",
                  "map: " + (", ".join(f"{v} {k}" for k, v in sorted(kinds.items())) or "empty")]
         for n, what in ((self.odom_resets, "odometry resets"),
-                        (self.odom_jumps, "odometry jumps")):
+                        (self.odom_jumps, "odometry jumps"),
+                        (self.timeouts, "timeouts taken as no echo")):
             if n:
                 parts.append(f"{n} {what}")
         if self.slam is not None and self.slam.ok:
@@ -1272,6 +1284,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     # readings are fitted and clustered relative to the first reading's robot position
     # (MapBuilder.origin): the same map, shifted, whatever the map frame's origin
     shift = np.zeros(3)
+    watch = TimeoutWatch()   # a module's timeouts logged as echoes?
 
     def add(closed: list[Any]) -> None:
         assert fit_cfg is not None
@@ -1295,6 +1308,11 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
             result.builder.origin = shift[:2].copy()
         pose, base = pose - shift, base - shift
         result.readings += 1
+        if cfg.max_tof_us is not None and tof >= cfg.max_tof_us:
+            tof = math.nan
+            result.timeouts += 1
+        else:
+            watch.push_one(tof)
         if math.isfinite(tof):
             ref_cov[t] = (base, cov)
             if len(ref_cov) > 20000:
@@ -1307,6 +1325,9 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
         closed = seg.flush()
         if closed:
             add(closed)
+    advice = watch.advice() if cfg.max_tof_us is None else None
+    if advice is not None:
+        result.notes.append(advice)
     if trace is not None and observations is not None:
         _slam(result, cfg, trace, observations, shift, reset_cov)
     result.cpu_s = time.process_time() - t_cpu

@@ -224,7 +224,16 @@ class Checking(OfflinePipeline):
                     np.testing.assert_allclose(p.reduced.rq.T @ p.reduced.q_nu,
                                                c.rq.T @ c.q_nu, rtol=1e-6,
                                                atol=1e-6 * np.abs(c.rq.T @ c.q_nu).max())
-                    assert p.reduced.resid2 == pytest.approx(c.resid2, rel=1e-5, abs=1e-9)
+                    # the whitened innovation's squared norm, split into Q's span and the
+                    # rest; where H is rank-deficient (a wall: nothing along it) Q's last
+                    # column is any unit vector the QR's rounding gives (it differed
+                    # between two CPUs), so only the sum is the same there
+                    def total(m):
+                        return m.resid2 + float(m.q_nu @ m.q_nu)
+                    assert total(p.reduced) == pytest.approx(total(c), rel=1e-5, abs=1e-9)
+                    sv = np.linalg.svd(c.rq, compute_uv=False)
+                    if sv[-1] > 1e-9 * sv[0]:
+                        assert p.reduced.resid2 == pytest.approx(c.resid2, rel=1e-5, abs=1e-9)
         return super()._fuse_prepared(p, redecide)
 
 

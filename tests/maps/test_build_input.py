@@ -246,3 +246,29 @@ def test_cli_odom_gap_flag(records, tmp_path, run_cli):
     assert proc.returncode == 0 and "tof_in_odom_gap" not in proc.stderr
     proc, _ = _run_build(run_cli, tmp_path, cut, "--odom-gap", "0")
     assert proc.returncode == 2 and "--odom-gap" in proc.stderr
+
+
+def test_max_tof_takes_a_module_s_timeouts_as_no_echo(records, tmp_path, run_cli):
+    """A module that logs its timeout as a reading (62,000 us): without `--max-tof` the
+    build says the readings look like timeouts and names the flag; with `--max-tof 62000`
+    the map is the clean log's, byte for byte, and the timeouts are counted. The odometry
+    limits reach the jump detector and a bad value names its flag (as `localize`)."""
+    text = log_text(records)
+    n_none = text.count('"tof_us":null')
+    assert n_none > 100
+    sat = [TofRecord(r.t_s, r.sensor, 62000.0 if r.tof_us is None else r.tof_us, r.pan_deg)
+           if isinstance(r, TofRecord) else r for r in records]
+    clean, out = _run_build(run_cli, tmp_path, records)
+    clean_map = out.read_text()
+    assert clean.returncode == 0 and "timeout" not in clean.stderr
+    raw, _ = _run_build(run_cli, tmp_path, sat)
+    assert raw.returncode == 0 and "--max-tof 62000 takes them as no echo" in raw.stderr
+    fixed, out = _run_build(run_cli, tmp_path, sat, "--max-tof", "62000")
+    assert fixed.returncode == 0 and out.read_text() == clean_map
+    assert f"{n_none} timeouts taken as no echo" in fixed.stderr
+    jumps, _ = _run_build(run_cli, tmp_path, records, "--odom-max-speed", "0.05")
+    assert jumps.returncode == 0 and "odometry jumps" in jumps.stderr
+    for flag, value in (("--max-tof", "0"), ("--odom-max-speed", "-1"),
+                        ("--odom-max-yaw-rate", "0")):
+        bad, _ = _run_build(run_cli, tmp_path, records, flag, value)
+        assert bad.returncode == 2 and flag in bad.stderr
