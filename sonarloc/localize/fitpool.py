@@ -179,6 +179,8 @@ class FitPool:
 
     def warm_up_errors(self) -> list[BaseException]:
         """Exceptions of the finished warm-up jobs (forgotten once returned)."""
+        if not self._warm:
+            return []
         done = [f for f in self._warm if f.done()]
         self._warm = [f for f in self._warm if not f.done()]
         return [e for f in done if not f.cancelled() and (e := f.exception()) is not None]
