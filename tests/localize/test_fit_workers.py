@@ -89,8 +89,12 @@ def test_no_workers_is_the_synchronous_localizer_bit_for_bit(drive):
 def test_one_worker_fuses_the_same_landmarks(drive, executor):
     """Thread and process workers: the same fits (same code, same segments), fused in
     the same order at the same reference times, so the final belief equals the
-    synchronous one exactly. The estimates on the way differ (they lack the fits in
-    flight) by at most a few centimetres here, where the prior is 5 cm off."""
+    synchronous one exactly. The estimates on the way differ: they lack the fits in
+    flight, and fed as fast as possible here the worker lags by up to fit_max_lag_s (2 s)
+    of log time, so they keep more of the prior's error (several cm) for longer: up to
+    8 cm apart in the first seconds on this drive (bounded by how far off the prior is,
+    whatever the timing). Fed in real time the lag is a fit's
+    duration: 0.91 against 0.97 mm after warm-up (benchmarks/results/latency.md)."""
     fmap, recs = drive
     rows0, end0 = _run(Localizer(fmap), recs)
     with Localizer(fmap, LocalizerConfig(fit_workers=1, fit_executor=executor)) as loc:
@@ -103,7 +107,7 @@ def test_one_worker_fuses_the_same_landmarks(drive, executor):
     assert np.array_equal(end.state.cov, end0.state.cov)
     assert _counts(loc) == _counts(ref)
     assert rows.shape == rows0.shape and np.array_equal(rows[:, 0], rows0[:, 0])
-    assert np.max(np.hypot(*(rows[:, 1:3] - rows0[:, 1:3]).T)) < 0.1
+    assert np.max(np.hypot(*(rows[:, 1:3] - rows0[:, 1:3]).T)) < 0.15
 
 
 class _Deferred(Future):  # type: ignore[type-arg]
