@@ -171,7 +171,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "observations (segments) fused and rejected by the map. *waits*: calls that "
         "waited for a fit older than `fit_max_lag_s` (2 s of log time). *total CPU*: the "
         "calling thread's CPU over the run (the worker's is not in it). Medians over "
-        f"seeds {seeds}; `LocalizerConfig` defaults otherwise (`fuse_per_call=1`).",
+        f"seeds {seeds}; `LocalizerConfig` defaults otherwise (`fuse_per_call=1`); a "
+        "node with a worker is made 1 s before its first record (the worker warms up).",
         "",
         "| fits | CPU p50 (ms) | CPU p99 (ms) | CPU p99.9 (ms) | CPU max (ms) | "
         "wall p99 (ms) | wall max (ms) | after warm-up (mm) | fused | rejected | waits | "
