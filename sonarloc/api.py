@@ -106,7 +106,8 @@ class LocalizerNode:
         :meth:`set_rig` or a ``rig`` record.
     speed_of_sound_mps : the speed of sound (343 m/s at 20 °C).
     config : :class:`~sonarloc.localize.localizer.LocalizerConfig` (method, noise,
-        gates, status thresholds).
+        gates, status thresholds; ``fit_workers`` to fit in the background, then
+        :meth:`close` the node or use it in a ``with`` block).
     keep_landmarks : how many recent :class:`LandmarkReport` to keep (memory is bounded).
     landmark_source : advanced: a factory ``(speed_of_sound_mps) -> LandmarkSource`` to
         replace the built-in online fitter.
@@ -221,8 +222,22 @@ class LocalizerNode:
         return self.localizer.handle(rec)
 
     def finish(self) -> None:
-        """End of stream: fit and fuse what the online fitter still holds."""
+        """End of stream: fit and fuse what the online fitter still holds (with
+        ``LocalizerConfig.fit_workers``: waits for the fits in flight and fuses them)."""
         self.localizer.finish()
+
+    def close(self) -> None:
+        """Stop the background fit workers (``LocalizerConfig.fit_workers``; nothing to do
+        without them). Fits still in flight are dropped (counted in
+        ``stats.skipped["fit_dropped_at_close"]``): call :meth:`finish` first to fuse
+        them. ``with LocalizerNode(...) as node:`` closes the node on leaving."""
+        self.localizer.close()
+
+    def __enter__(self) -> LocalizerNode:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # -- outputs --------------------------------------------------------------------------
 

@@ -27,3 +27,8 @@ class DeviceError(SonarlocError):
 
 class DeviceTimeoutError(DeviceError, TimeoutError):
     """No data arrived from a device within the timeout."""
+
+
+class FitWorkerError(SonarlocError):
+    """A landmark fit in a background worker (``LocalizerConfig.fit_workers``) failed;
+    the worker's exception is the ``__cause__``."""

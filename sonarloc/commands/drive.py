@@ -42,6 +42,17 @@ def _seed(text: str) -> int:
     return v
 
 
+def _workers(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of workers, got {text!r}") \
+            from None
+    if not 0 <= v <= 64:
+        raise argparse.ArgumentTypeError(f"must be 0 to 64, got {text!r}")
+    return v
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     accept_negative_values(parser)
     parser.add_argument("--map", default="room", metavar="MAP",
@@ -67,6 +78,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also write the estimated poses (FORMATS.md section 5)")
     parser.add_argument("--json", action="store_true",
                         help="print the report as one JSON object")
+    parser.add_argument("--fit-workers", type=_workers, default=0, metavar="N",
+                        help="fit landmarks in N background workers, off the calling "
+                             "thread (default 0: in the call)")
+    parser.add_argument("--fit-executor", default="thread", choices=("thread", "process"),
+                        help="background fit workers: threads or processes (default thread)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
     pan = parse_pan_schedule(args.pan) if args.pan else None
     config = DriveConfig(map=args.map, rig=args.rig, device=args.device, seed=args.seed,
                          duration_s=args.duration, tier=args.tier, method=args.method,
-                         pan_deg=pan)
+                         pan_deg=pan, fit_workers=args.fit_workers,
+                         fit_executor=args.fit_executor)
     bar = Progress(1.0, "sonarloc drive", unit="s")
     try:
         def progress(t: float, total: float) -> None:

@@ -37,8 +37,10 @@ from __future__ import annotations
 import bisect
 import math
 import operator
+import weakref
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol
 
@@ -46,6 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sonarloc import se2
+from sonarloc.errors import FitWorkerError
 from sonarloc.fit.result import Landmark
 from sonarloc.io.logfile import (
     InitRecord,
@@ -62,6 +65,7 @@ from sonarloc.localize.confirmed import POSE, ConfirmedFeatures, missing_dof
 from sonarloc.localize.echoes import EchoObservation
 from sonarloc.localize.ekf import Feature, Gaussian, Observation, OdomNoise
 from sonarloc.localize.features import FeatureMap
+from sonarloc.localize.fitpool import FitExecutor, FitPool, fit_job
 from sonarloc.localize.odomframe import (
     Frame,
     OdomJoiner,
@@ -262,6 +266,23 @@ class LocalizerConfig:
         than as no echo: readings at or above this [us] are taken as no echo and counted
         (``stats.timeouts``), as ``sonarloc fit --max-tof``. None (default): every
         reading is an echo.
+    fit_workers : (method ``kuc``) fit closed segments in this many background workers
+        (:mod:`~sonarloc.localize.fitpool`) instead of in the caller's call, so a call
+        that closes a batch of segments does not stall the caller. 0 (default): fit
+        and fuse in the call, as before. The landmarks are fused in the order their
+        segments closed, each at its own reference time (rewind and replay): the
+        belief once every fit is fused is the synchronous one; the estimates reported
+        meanwhile lack the fits still in flight. Only with the built-in fitter
+        (:class:`SegmentFitSource`); another ``landmark_source`` is called in the call.
+        Call :meth:`Localizer.close` (or use ``with``) to stop the workers.
+    fit_executor : ``"thread"`` (default) or ``"process"`` workers (forkserver, else
+        spawn; segments and landmarks pickled across).
+    fit_max_lag_s : back-pressure [s of log time]: when the oldest fit in flight was
+        submitted longer ago than this (the workers fall behind), the call waits for it
+        (counted in ``stats.fit_waits``); finished landmarks that old are fused whatever
+        ``fuse_per_call`` says. Must be below ``history_s``.
+    fuse_per_call : at most this many finished landmarks fused per call (the rest wait
+        for the next calls), so the fusion work is spread over calls too.
     """
 
     method: Method = "kuc"
@@ -295,8 +316,28 @@ class LocalizerConfig:
     relocalize: bool = False
     relocalization: RelocalizeConfig = field(default_factory=RelocalizeConfig)
     max_tof_us: float | None = None
+    fit_workers: int = 0
+    fit_executor: FitExecutor = "thread"
+    fit_max_lag_s: float = 2.0
+    fuse_per_call: int = 1
 
     def __post_init__(self) -> None:
+        if isinstance(self.fit_workers, bool) or not isinstance(self.fit_workers, int) or \
+                self.fit_workers < 0:
+            raise ValueError(f"`fit_workers` must be a non-negative integer, got "
+                             f"{self.fit_workers!r}")
+        if self.fit_executor not in ("thread", "process"):
+            raise ValueError(f"`fit_executor` must be 'thread' or 'process', got "
+                             f"{self.fit_executor!r}")
+        if isinstance(self.fuse_per_call, bool) or not isinstance(self.fuse_per_call, int) \
+                or self.fuse_per_call < 1:
+            raise ValueError(f"`fuse_per_call` must be a positive integer, got "
+                             f"{self.fuse_per_call!r}")
+        if not self.fit_max_lag_s > 0:
+            raise ValueError(f"`fit_max_lag_s` must be positive, got {self.fit_max_lag_s!r}")
+        if self.fit_workers and not self.fit_max_lag_s < self.history_s:
+            raise ValueError(f"`fit_max_lag_s` must be below `history_s` ({self.history_s!r}) "
+                             f"with `fit_workers`, got {self.fit_max_lag_s!r}")
         if self.max_tof_us is not None and not (math.isfinite(self.max_tof_us)
                                                 and self.max_tof_us > 0):
             raise ValueError(f"`max_tof_us` must be a positive number of microseconds or "
@@ -396,6 +437,10 @@ class LocalizerStats:
     odom_jumps: int = 0
     #: readings at or above ``LocalizerConfig.max_tof_us``, taken as no echo
     timeouts: int = 0
+    #: batches of segments sent to background workers (``LocalizerConfig.fit_workers``),
+    #: and calls that waited for one (``fit_max_lag_s``: the workers fell behind)
+    fit_jobs: int = 0
+    fit_waits: int = 0
 
     def summary(self) -> str:
         parts = [f"{self.odom} odom", f"{self.tof} tof", f"{self.observations} observations",
@@ -419,6 +464,9 @@ class LocalizerStats:
             parts.append(f"{self.odom_jumps} odometry jumps")
         if self.timeouts:
             parts.append(f"{self.timeouts} timeouts taken as no echo")
+        if self.fit_jobs:
+            parts.append(f"{self.fit_jobs} fit batches in workers ({self.fit_waits} waited "
+                         f"for)")
         if self.skipped:
             parts.append("skipped: " + ", ".join(f"{k} {v}" for k, v in
                                                  sorted(self.skipped.items())))
@@ -481,6 +529,18 @@ class FusionOutcome:
     reason: str
 
 
+@dataclass
+class _FitJob:
+    """A batch of closed segments fitting in a background worker: the log time of the
+    reading that closed the batch, the source that closed them (its ``on_fit``), the
+    segments and the future of their landmarks."""
+
+    t_s: float
+    source: SegmentFitSource
+    segments: list[Any]
+    future: Future[list[Landmark]]
+
+
 class SegmentFitSource:
     """The fitting stage's online segmenter and batch fitter as a :class:`LandmarkSource`.
 
@@ -541,63 +601,46 @@ class SegmentFitSource:
 
     def push(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
              sensor: int) -> list[Landmark]:
+        return self.fit(self.take(t_s, x_m, y_m, yaw_rad, tof_us, sensor))
+
+    def flush(self) -> list[Landmark]:
+        return self.fit(self.take_rest())
+
+    def take(self, t_s: float, x_m: float, y_m: float, yaw_rad: float, tof_us: float,
+             sensor: int) -> list[Any]:
+        """:meth:`push` without the fit: the closed segments whose batch is due (often
+        none), for :meth:`fit` here or :func:`~sonarloc.localize.fitpool.fit_job` in a
+        worker (then :meth:`fitted`)."""
         for s in self.segmenter.push(t_s, x_m, y_m, yaw_rad, tof_us, sensor):
             self._waiting.append((t_s, s))
         if self._waiting and (len(self._waiting) >= self.batch
                               or t_s - self._waiting[0][0] >= self.max_wait_s):
-            return self._fit()
+            return self._take_waiting()
         return []
 
-    def flush(self) -> list[Landmark]:
+    def take_rest(self) -> list[Any]:
+        """:meth:`flush` without the fit: every segment still open or waiting."""
         for s in self.segmenter.flush():
             self._waiting.append((math.inf, s))
-        return self._fit()
+        return self._take_waiting()
 
-    def _fit(self) -> list[Landmark]:
+    def _take_waiting(self) -> list[Any]:
         segs = [s for _, s in self._waiting]
         self._waiting.clear()
-        return self.fit(segs)
+        return segs
 
     def fit(self, segs: Sequence[Any]) -> list[Landmark]:
-        """Fit closed segments (one vectorised batch); one landmark per segment, in order."""
-        from sonarloc.fit.landmarks import fit_segments
+        """Fit closed segments (one vectorised batch,
+        :func:`~sonarloc.localize.fitpool.fit_job`); one landmark per segment, in order."""
+        return self.fitted(segs, fit_job(segs, self.fit_config))
 
-        if not segs:
-            return []
-        # too few echoes for the fitter: it would say so; skip the work
-        need = self.fit_config.min_echoes
-        long = [s for s in segs if getattr(s, "n_echo", need) >= need]
-        fitted = iter(fit_segments(long, self.fit_config)) if long else iter(())
-        out = []
-        for s in segs:
-            lm = next(fitted) if getattr(s, "n_echo", need) >= need else _too_few(s, need)
-            r = s.readings
-            echo = np.isfinite(r.tof_us)
-            if echo.any():
-                view = (float(np.mean(r.x_m[echo])), float(np.mean(r.y_m[echo])))
-                readings = tuple(np.asarray(a, dtype=float)[echo] for a in
-                                 (r.t_s, r.x_m, r.y_m, r.yaw_rad, r.tof_us))
-                lm = replace(lm, extra={**lm.extra, "view_xy": view, "echoes": readings})
-            if self.on_fit is not None:
+    def fitted(self, segs: Sequence[Any], landmarks: list[Landmark]) -> list[Landmark]:
+        """The landmarks :func:`~sonarloc.localize.fitpool.fit_job` fitted to ``segs``,
+        after :attr:`on_fit` has seen each pair (in the caller's thread)."""
+        if self.on_fit is not None:
+            for s, lm in zip(segs, landmarks, strict=True):
                 self.on_fit(s, lm)
-            out.append(lm)
-        return out
-
-
-def _too_few(seg: Any, need: int) -> Landmark:
-    """The ``too_few_points`` result of a segment with fewer echoes than the fitter needs
-    (what :func:`~sonarloc.fit.landmarks.fit_segments` would return, without fitting)."""
-    from sonarloc.fit.result import FitStatus
-
-    r = seg.readings
-    echo = np.flatnonzero(np.isfinite(r.tof_us))
-    k = int(echo[-1]) if echo.size else len(r.t_s) - 1
-    nan3 = np.full(3, np.nan)
-    return Landmark("point", nan3, np.full((3, 3), np.nan), math.nan, math.nan,
-                    int(echo.size), float(r.t_s[k]),
-                    (float(r.x_m[k]), float(r.y_m[k]), float(r.yaw_rad[k])),
-                    FitStatus.TOO_FEW_POINTS, f"{echo.size} echoes; {need} are needed",
-                    sensors=tuple(sorted({int(v) for v in np.asarray(r.sensor)[echo]})))
+        return landmarks
 
 
 def _fitted_kappa(lm: Landmark) -> float:
@@ -679,12 +722,123 @@ class Localizer:
         self.odom_joiner = OdomJoiner(c.odom_max_speed_mps, c.odom_max_yaw_rate_rad_s)
         self._reset_cov = np.diag([c.odom_reset_sd_m**2, c.odom_reset_sd_m**2,
                                    math.radians(c.odom_reset_sd_deg) ** 2])
+        # background fits (LocalizerConfig.fit_workers): the jobs in the order their
+        # segments closed, and the landmarks of finished ones waiting to be fused (with
+        # their job's time), fused in that order
+        self._pool: FitPool | None = None
+        self._jobs: deque[_FitJob] = deque()
+        self._ready: deque[tuple[float, Landmark]] = deque()
+        self._fit_now = -math.inf   # the latest log time seen (back-pressure)
+        if c.fit_workers and c.method == "kuc":
+            self._pool = FitPool(c.fit_workers, c.fit_executor)
+            # a Localizer dropped without close() does not leave its workers behind
+            self._pool_finalizer = weakref.finalize(self, self._pool.close, False)
+
+    # -- background fits -------------------------------------------------------------
+
+    def close(self) -> None:
+        """Stop the background fit workers (``LocalizerConfig.fit_workers``; nothing to
+        do without). Fits still in flight are dropped and counted
+        (``stats.skipped["fit_dropped_at_close"]``, in segments): call :meth:`finish`
+        first to fuse them. Later calls fit in the call, as with ``fit_workers=0``."""
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        dropped = sum(len(j.segments) for j in self._jobs) + len(self._ready)
+        if dropped:
+            self.stats.skipped["fit_dropped_at_close"] += dropped
+        self._jobs.clear()
+        self._ready.clear()
+        self._pool_finalizer.detach()
+        pool.close()
+
+    def __enter__(self) -> Localizer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def pending_fits(self) -> int:
+        """Segments fitting in background workers plus fitted landmarks not yet fused."""
+        return sum(len(j.segments) for j in self._jobs) + len(self._ready)
+
+    def _submit(self, source: SegmentFitSource, segs: list[Any], t_s: float) -> None:
+        """Send a batch of closed segments to a worker."""
+        if not segs:
+            return
+        assert self._pool is not None
+        try:
+            future = self._pool.submit(segs, source.fit_config)
+        except Exception as err:   # a broken process pool, a pool shut down
+            self.stats.skipped["fit_worker_error"] += len(segs)
+            raise FitWorkerError(f"could not send {len(segs)} segments to a fit worker: "
+                                 f"{err!r}") from err
+        self._jobs.append(_FitJob(t_s, source, segs, future))
+        self.stats.fit_jobs += 1
+
+    def _collect(self, job: _FitJob) -> None:
+        """A finished (or waited for) job's landmarks, queued to be fused."""
+        try:
+            landmarks = job.future.result()
+        except Exception as err:
+            self.stats.skipped["fit_worker_error"] += len(job.segments)
+            raise FitWorkerError(f"a background fit of {len(job.segments)} segments "
+                                 f"(closed at t={job.t_s:.3f} s) failed: {err!r}") from err
+        for lm in job.source.fitted(job.segments, landmarks):
+            self._ready.append((job.t_s, lm))
+
+    def _service_fits(self, t_s: float) -> None:
+        """Once per call with background fits: collect finished jobs in order (waiting
+        for the oldest if older than ``fit_max_lag_s``), and fuse up to
+        ``fuse_per_call`` of their landmarks (all those that old)."""
+        pool = self._pool
+        if pool is None:
+            return
+        if t_s > self._fit_now:
+            self._fit_now = t_s
+        for err in pool.warm_up_errors():
+            raise FitWorkerError(f"warming up a fit worker failed: {err!r}") from err
+        horizon = self._fit_now - self.config.fit_max_lag_s
+        jobs = self._jobs
+        while jobs and (jobs[0].future.done() or jobs[0].t_s < horizon):
+            if not jobs[0].future.done():
+                self.stats.fit_waits += 1
+            self._collect(jobs.popleft())
+        ready = self._ready
+        n = 0
+        while ready and (n < self.config.fuse_per_call or ready[0][0] < horizon):
+            self.add_landmark(ready.popleft()[1])
+            n += 1
+
+    def _drain_fits(self) -> list[FusionOutcome]:
+        """Wait for every background fit and fuse its landmarks, in order."""
+        while self._jobs:
+            self._collect(self._jobs.popleft())
+        out = []
+        while self._ready:
+            out.append(self.add_landmark(self._ready.popleft()[1]))
+        return out
+
+    def _flush_source(self) -> list[FusionOutcome]:
+        """Close the fitter's open segments, fit them and fuse them (with background
+        workers: sent to one, fused later)."""
+        src = self._source
+        if src is None:
+            return []
+        if self._pool is not None and isinstance(src, SegmentFitSource):
+            self._submit(src, src.take_rest(), self._fit_now)
+            return []
+        return [self.add_landmark(lm) for lm in src.flush()]
 
     # -- configuration messages -----------------------------------------------------
 
     def set_rig(self, sensors: Sequence[SensorMount], speed_of_sound_mps: float = 343.0) -> None:
         """Transducer mount poses in ``base_link`` and the speed of sound."""
         check_air_speed_of_sound(speed_of_sound_mps, "`speed_of_sound_mps`")
+        if self._pool is not None:
+            self._drain_fits()   # fused as they would have been before the new rig
+            self._pool.warm(float(speed_of_sound_mps))
         self._mounts = {m.id: np.array([m.x_m, m.y_m, math.radians(m.yaw_deg)])
                         for m in sensors}
         self._c_mps = float(speed_of_sound_mps)
@@ -703,10 +857,10 @@ class Localizer:
         if self._pending:
             self.stats.skipped[self._no_odom_after()] += len(self._pending)
         if self._source is not None:
-            for lm in self._source.flush():
-                self.add_landmark(lm)
+            self._flush_source()
             self._source = None
             self._last_pushed_t = -math.inf
+        self._drain_fits()
         self._odom_start_t = math.nan
         self.odom_joiner.forget()
         self._prior = Gaussian.from_pose(x_m, y_m, yaw_rad, sd_xy_m, sd_yaw_rad)
@@ -809,6 +963,7 @@ class Localizer:
         if self._reloc is not None:
             self._reloc.on_odom(t, odom)
         self._drain_pending(t)
+        self._service_fits(t)
         if self._reloc is not None:
             self._maybe_relocalize(t, odom)
         if self._unknown:
@@ -980,6 +1135,7 @@ class Localizer:
             self.stats.skipped["tof_without_odom"] += 1
         if self._entries and t_s <= self._last_odom_t:
             self._drain_pending(self._last_odom_t)
+        self._service_fits(t_s)
 
     def _timeout_as_no_echo(self, tof_us: float | None) -> float | None:
         """``tof_us``, or None when at or above ``config.max_tof_us`` (counted)."""
@@ -1331,9 +1487,8 @@ class Localizer:
         if self._pending:
             self.stats.skipped[self._no_odom_after()] += len(self._pending)
             self._pending.clear()
-        if self._source is not None:
-            for lm in self._source.flush():
-                out.append(self.add_landmark(lm))
+        out += self._flush_source()
+        out += self._drain_fits()
         return out
 
     def _no_odom_after(self) -> str:
@@ -1573,6 +1728,10 @@ class Localizer:
         c, s = math.cos(bth), math.sin(bth)
         px, py, pth = bx + c * mx - s * my, by + s * mx + c * my, bth + mth  # base ⊕ mount
         tof = math.nan if r.tof_us is None else float(r.tof_us)
+        if self._pool is not None and isinstance(self._source, SegmentFitSource):
+            self._submit(self._source, self._source.take(r.t_s, px, py, pth, tof, r.sensor),
+                         r.t_s)
+            return
         for lm in self._source.push(r.t_s, px, py, pth, tof, r.sensor):
             self.add_landmark(lm)
 
@@ -1669,8 +1828,7 @@ class Localizer:
         else:
             self.stats.odom_jumps += 1
         if self._source is not None:
-            for lm in self._source.flush():
-                self.add_landmark(lm)
+            self._flush_source()
             if not isinstance(self._source, SegmentFitSource):
                 self._source = None   # a LandmarkSource's flush ends its stream
         return self.reset_state(self._entries[-1].state)

@@ -61,6 +61,11 @@ class DriveReport:
     # a control loop that calls it must allow for. 99th percentile and worst call.
     call_p99_ms: float = math.nan
     call_max_ms: float = math.nan
+    # background fit workers (LocalizerConfig.fit_workers; 0: fits in the call), and the
+    # calls that waited for a fit (fit_max_lag_s)
+    fit_workers: int = 0
+    fit_executor: str = "thread"
+    fit_waits: int = 0
     wall_time_s: float = math.nan
     realtime_factor: float = math.nan
     device_stats: dict[str, Any] = field(default_factory=dict)
@@ -117,10 +122,14 @@ class DriveReport:
                if self.landmarks_skipped else "")
             + (f"; {self.readings_fused} readings fused" if self.readings_fused else ""),
             f"  compute         {f(self.compute_per_reading_us, '.0f')} us per reading "
-            f"(fit + filter), wall {f(self.wall_time_s, '.1f')} s, "
+            f"({'fit + filter' if not self.fit_workers else 'filter'}), "
+            f"wall {f(self.wall_time_s, '.1f')} s, "
             f"{f(self.realtime_factor, '.1f')}x real time",
             f"  per record      {f(self.call_p99_ms, '.1f')} ms CPU at the 99th percentile, "
-            f"{f(self.call_max_ms, '.1f')} ms at worst (one Localizer call)",
+            f"{f(self.call_max_ms, '.1f')} ms at worst (one Localizer call)"
+            + (f"; fits in {self.fit_workers} {self.fit_executor} worker"
+               f"{'s' if self.fit_workers > 1 else ''}, {self.fit_waits} waits"
+               if self.fit_workers else ""),
         ]
         if self.status:
             lines.append(f"  status          {self.status}")

@@ -93,6 +93,8 @@ class DriveConfig:
     method: Literal["kuc", "conventional", "odometry"] = "kuc"
     rate: float | None = None  # pacing of the simulated module; None = as fast as possible
     read_timeout_s: float = 20.0
+    fit_workers: int = 0  # LocalizerConfig.fit_workers: fits off the caller's thread
+    fit_executor: Literal["thread", "process"] = "thread"
 
     def __post_init__(self) -> None:
         if self.device not in ("can", "serial"):
@@ -253,7 +255,8 @@ def run_drive(config: DriveConfig = DriveConfig(),
     tee = _Tee(simulate_records(world_map, rig, duration_s=duration, seed=config.seed,
                                 tier=config.tier))
     keeper = _SegmentKeeper()
-    loc_config = LocalizerConfig(method=config.method)
+    loc_config = LocalizerConfig(method=config.method, fit_workers=config.fit_workers,
+                                 fit_executor=config.fit_executor)
     node = LocalizerNode(FeatureMap.from_map(world_map), config=loc_config,
                          keep_landmarks=20_000,
                          landmark_source=_recording_source(keeper,
@@ -272,7 +275,7 @@ def run_drive(config: DriveConfig = DriveConfig(),
     call_cpu = array("d")  # the calling thread's CPU seconds of each node call
     last_status = ""
     t_stream = time.perf_counter()
-    with module:
+    with module, node:
         if not tee.have_init.wait(config.read_timeout_s) or tee.init is None:
             raise tee.error or DeviceTimeoutError("the simulator produced no init record")
         node.feed(tee.init)  # the prior: an operator's input, not device data
@@ -345,6 +348,8 @@ def run_drive(config: DriveConfig = DriveConfig(),
         compute_per_reading_us=compute / n_tof * 1e6 if n_tof else math.nan,
         call_p99_ms=float(np.percentile(call_cpu, 99)) * 1e3 if call_cpu else math.nan,
         call_max_ms=max(call_cpu) * 1e3 if call_cpu else math.nan,
+        fit_workers=config.fit_workers, fit_executor=config.fit_executor,
+        fit_waits=st.fit_waits,
         wall_time_s=time.perf_counter() - t_start,
         realtime_factor=float(duration) / stream_s if stream_s > 0 else math.nan,
         device_stats={k: v for k, v in device_stats.items()
