@@ -647,7 +647,9 @@ class Segmenter:
             for s in [s for s in opened if sensor in s.sensors
                       and self._off_axis(s, x, y, yaw) > self._away]:
                 closed += self._close(s, "swept")
-        cy, sy = math.cos(yaw), math.sin(yaw)
+        cos, sin, atan2, floor, hypot, pi = (math.cos, math.sin, math.atan2, math.floor,
+                                             math.hypot, math.pi)
+        cy, sy = cos(yaw), sin(yaw)
         wide = self._tan_miss_wide
         cheap = wide < math.inf       # the cheap miss pre-test applies
         miss = self._miss
@@ -656,6 +658,7 @@ class Segmenter:
             gate = self._gate_m
             beam = self._beam
             two_beam = 2.0 * beam
+            arc_angles = self._arc
             best, best_score = None, math.inf
             covered: list[tuple[_Open, float]] = []   # landmark within the miss width
             matched: list[_Open] = []    # segments this echo matches (finite score)
@@ -663,26 +666,27 @@ class Segmenter:
                 # the miss test (applied below to all but the best match). Cheap test
                 # first: a landmark well off the axis is neither missed nor censored (the
                 # exact angle is only needed near the miss half-width)
+                _, lx, ly, lyaw, lR, _ = s.last
                 mx, my = s.mid
-                last = s.last
-                dx, dy = (last[1] - x) + mx, (last[2] - y) + my
+                ex, ey = lx - x, ly - y
+                dx, dy = ex + mx, ey + my
                 along = dx * cy + dy * sy
                 if not (cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along)):
-                    a = math.atan2(dy, dx) - yaw
-                    off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
+                    a = atan2(dy, dx) - yaw
+                    off = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
                     if off <= miss:
                         covered.append((s, off))
                 # the match score: normalised range mismatch with an arc point the new
                 # beam covers (inf: no match); a pan's landmark stays at range lR
-                _, lx, ly, lyaw, lR, _ = s.last
                 if x == lx and y == ly:   # same spot (pan): the landmark stays at range lR
                     a = yaw - lyaw
-                    if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) > 2.0 * beam:
+                    if abs(a - _TWO_PI * floor((a + pi) / _TWO_PI)) > two_beam:
                         continue
                     d = abs(R - lR)
                     score = d / gate if d <= gate else math.inf
                 else:
-                    d = math.hypot(x - lx, y - ly)
+                    # (ex, ey) is -(x - lx, y - ly) exactly, and hypot takes abs values
+                    d = hypot(ex, ey)
                     if abs(R - lR) > d + gate + 1e-9 * (1.0 + lR + R):
                         continue
                     # no arc point within the new beam: the arc spans +-beam about the
@@ -690,24 +694,24 @@ class Segmenter:
                     # direction differs by at most asin(d / lR) (the triangle's angle at
                     # the point, acute while d < lR)
                     a = lyaw - yaw
-                    a = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
+                    a = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
                     if a > two_beam and d <= 0.99 * lR and \
                             a > two_beam + math.asin(d / lR) + 1e-9:
                         continue
                     arc = s.arc
                     if arc is None:
-                        arc = s.arc = self._arc_points(s)
+                        arc = s.arc = [(lR * cos(lyaw + b), lR * sin(lyaw + b))
+                                       for b in arc_angles]
                     d_best = math.inf
-                    ex, ey = lx - x, ly - y
                     for px, py in arc:
                         # the closest point within the gate that the new beam covers
                         # (range first: the cheaper test, and most points fail it)
                         dx, dy = ex + px, ey + py
-                        d = abs(math.hypot(dx, dy) - R)
+                        d = abs(hypot(dx, dy) - R)
                         if d >= d_best or d > gate:
                             continue
-                        a = math.atan2(dy, dx) - yaw
-                        if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) <= beam:
+                        a = atan2(dy, dx) - yaw
+                        if abs(a - _TWO_PI * floor((a + pi) / _TWO_PI)) <= beam:
                             d_best = d
                     score = d_best / gate if d_best <= gate else math.inf
                 if score < math.inf:
@@ -758,14 +762,14 @@ class Segmenter:
         else:
             best = None
             for s in opened:
-                mx, my = s.mid
                 last = s.last
+                mx, my = s.mid
                 dx, dy = (last[1] - x) + mx, (last[2] - y) + my
                 along = dx * cy + dy * sy
                 if cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
-                a = math.atan2(dy, dx) - yaw
-                off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
+                a = atan2(dy, dx) - yaw
+                off = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
                 if off <= miss:
                     if sensor in s.sensors and s.trailing < self._censor:
                         s.rows.append(ref)
