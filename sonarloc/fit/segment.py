@@ -57,6 +57,8 @@ from sonarloc.physics.tof import ModuleParams
 
 _TWO_PI = 2.0 * math.pi
 _LIST_MAX = 4096    # push_many's columns as lists up to this many readings (_floats)
+_SKIP_LAGS = 16     # push_many: pairs of a reading and its 16 previous tested in numpy
+_NO_INDEX = -(1 << 62)   # _Open.k of a last echo outside the current chunk
 
 
 def _wrap(a: float) -> float:
@@ -297,6 +299,7 @@ class _Open:
     occluded_lead: bool = False     # the reading before the first echo: a nearer echo
     occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
     first: tuple[float, float] = (math.nan, math.nan)   # where its first echo was taken
+    k: int = _NO_INDEX      # push_many: the index of its last echo in the chunk
 
 
 class _RecentIndex:
@@ -619,14 +622,16 @@ class Segmenter:
     # -- the per-reading decisions (shared by push and push_many) ----------------------
 
     def _step(self, row: tuple[float, float, float, float, float, int], R: float,
-              ref: _Row) -> tuple[list[Segment], _Open | None]:
+              ref: _Row, skip: int = 0) -> tuple[list[Segment], _Open | None]:
         """One accepted reading ``row`` = (t, x, y, yaw wrapped, tof, sensor), ``R`` its
         range (inf: no echo), against the open segments: closes, misses, censoring and
         the extension of the best matching segment. ``ref`` is what a segment's ``rows``
         get for it (the row, or push_many's index; ``~index``: the reading with no
         echo). Returns the segments closed and the
         segment extended (None: none; for an echo, the caller opens one, knowing the
-        sensor's recent readings).
+        sensor's recent readings). ``skip`` (push_many): bit L set if this reading
+        surely neither covers nor matches a segment whose last echo is the chunk's
+        reading ``ref - L`` (:meth:`_skip_bits`); such segments are passed over.
 
         The loops over the open segments are written out inline (this runs once per
         reading, over every open segment): the match score and the miss test of
@@ -663,6 +668,8 @@ class Segmenter:
             covered: list[tuple[_Open, float]] = []   # landmark within the miss width
             matched: list[_Open] = []    # segments this echo matches (finite score)
             for s in opened:
+                if skip and skip >> (ref - s.k) & 1:   # type: ignore[operator]
+                    continue
                 # the miss test (applied below to all but the best match). Cheap test
                 # first: a landmark well off the axis is neither missed nor censored (the
                 # exact angle is only needed near the miss half-width)
@@ -751,6 +758,7 @@ class Segmenter:
             best.rows.append(ref)
             best.n_echo += 1
             best.last = (t, x, y, yaw, R, sensor)
+            best.k = ref if isinstance(ref, int) else _NO_INDEX
             best.mid = (R * math.cos(yaw + 0.0), R * math.sin(yaw + 0.0))
             best.arc = None
             best.misses = 0
@@ -762,6 +770,8 @@ class Segmenter:
         else:
             best = None
             for s in opened:
+                if skip and skip >> (ref - s.k) & 1:   # type: ignore[operator]
+                    continue
                 last = s.last
                 mx, my = s.mid
                 dx, dy = (last[1] - x) + mx, (last[2] - y) + my
@@ -812,6 +822,7 @@ class Segmenter:
         finally:
             for s in self._open:    # the chunk's indices become rows of their own
                 s.rows = [ch.row_of(r) if isinstance(r, int) else r for r in s.rows]
+                s.k = _NO_INDEX
             self._chunk = None
 
     def _chunk_loop(self, ch: _Chunk, index: np.ndarray) -> tuple[list[int], SegmentBlock]:
@@ -830,6 +841,9 @@ class Segmenter:
         # _start's lead rows and occluded_lead, worked out in advance for the echoes
         # that may open a segment (bits; -1: not worked out, _start's own loop does it)
         bits = self._lead_bits(ch, recent, ~chained) if recent is not None else None
+        # pairs of readings that surely do nothing (None: no sweep test, which they skip)
+        skips = self._skip_bits(ch) if self._away == math.inf else None
+        max_gap = self._max_gap
         lags: dict[int, tuple[int, ...]] = {}
         one = recent is not None and recent.order is None
         want = self._censor - 1
@@ -847,10 +861,20 @@ class Segmenter:
                 if len(opened) == 1:       # misses of the only open segment
                     i = miss_run(ch, i, next_echo[i])
                     continue
+                # covering none of the open segments (their last echoes' lags all set in
+                # its skip bits), with no gap due and no sweep test, it changes nothing
+                sk = skips[i] if skips is not None else 0
+                if sk and not tl[i] - self._oldest_last > max_gap:
+                    for s in opened:
+                        if not sk >> (i - s.k) & 1:
+                            break
+                    else:
+                        i += 1
+                        continue
             row = (tl[i], xl[i], yl[i], yawl[i], tofl[i], sl[i])
             ch.at = i        # segments closed now go to ch.closed
             if opened:
-                _, took = step(row, R, i)
+                _, took = step(row, R, i, skips[i] if skips is not None else 0)
             else:
                 # an echo with nothing open: _step would change nothing (no segment to
                 # close, miss or extend), so it opens one; the earliest last echo is its
@@ -886,6 +910,7 @@ class Segmenter:
                     k = j - 1
                     lx, ly, lyaw, lR = xl[k], yl[k], yawl[k], Rl[k]
                     s.last = (tl[k], lx, ly, lyaw, lR, sl[k])
+                    s.k = k
                     s.mid = (lR * math.cos(lyaw + 0.0), lR * math.sin(lyaw + 0.0))
                     s.arc = None
                     s.misses = 0
@@ -924,6 +949,40 @@ class Segmenter:
                 b |= near & (R[j] < nearer)
         bits = np.full(ch.m, -1, dtype=np.int64)
         bits[c] = b
+        return _ints(bits)
+
+    def _skip_bits(self, ch: _Chunk) -> Sequence[int] | None:
+        """For each reading ``i`` of the chunk, bit L (1 ... :data:`_SKIP_LAGS`) set if
+        :meth:`_step` surely finds it neither covering nor matching a segment whose last
+        echo is reading ``i - L``: the cheap miss test fails (the landmark is well off
+        the new axis) and, for an echo, the range test of the match fails (the ranges
+        differ by more than the transducers' distance and the gate). Both depend on the
+        two readings alone; numpy's trigonometry may differ from math's in the last
+        bits, so the tests keep a margin ``eps`` (far above those bits, far below the
+        gate), which only passes a few more pairs on to the exact tests. None when the
+        cheap miss test does not apply, or for a short chunk."""
+        m = ch.m
+        lags = min(_SKIP_LAGS, m - 1)
+        wide = self._tan_miss_wide
+        if lags < 1 or not wide < math.inf or m < 256:
+            return None
+        x, y, yaw, R = ch.x, ch.y, ch.yaw, ch.R
+        r_max = float(R[ch.echo].max()) if ch.echo.any() else 0.0
+        eps = 1e-8 * (1.0 + 2.0 * r_max + float(max(np.abs(x).max(), np.abs(y).max())))
+        e_miss = eps * (1.0 + wide)
+        gate = self._gate_m + eps
+        cy, sy = np.cos(yaw), np.sin(yaw)
+        with np.errstate(invalid="ignore"):     # no echo: inf * 0 (never a last echo)
+            px, py = x + R * cy, y + R * sy     # the landmark on the axis
+        bits = np.zeros(m, dtype=np.int64)
+        with np.errstate(invalid="ignore"):     # inf - inf: no echo on both sides
+            for lag in range(1, lags + 1):
+                i, k = slice(lag, m), slice(0, m - lag)
+                xi, yi, ci, si = x[i], y[i], cy[i], sy[i]
+                dx, dy = px[k] - xi, py[k] - yi
+                skip = np.abs(dy * ci - dx * si) > wide * (dx * ci + dy * si) + e_miss
+                skip &= np.abs(R[i] - R[k]) > np.hypot(x[k] - xi, y[k] - yi) + gate
+                bits[lag:] |= skip.astype(np.int64) << lag
         return _ints(bits)
 
     def _miss_run(self, ch: _Chunk, i: int, e: int) -> int:
@@ -1086,7 +1145,8 @@ class Segmenter:
         # its mid: the middle of :meth:`_arc_points` (the landmark on the echo's axis)
         s = _Open(self._next_id, lead, 1, (t, x, y, yaw, R, sensor), sensors={sensor},
                   mid=(R * math.cos(yaw + 0.0), R * math.sin(yaw + 0.0)),
-                  occluded_lead=occluded, first=(x, y))
+                  occluded_lead=occluded, first=(x, y),
+                  k=ref if isinstance(ref, int) else _NO_INDEX)
         self._next_id += 1
         self._open.append(s)
         self._oldest_last = min(self._oldest_last, t)
