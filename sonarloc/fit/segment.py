@@ -58,6 +58,7 @@ from sonarloc.physics.tof import ModuleParams
 _TWO_PI = 2.0 * math.pi
 _LIST_MAX = 4096    # push_many's columns as lists up to this many readings (_floats)
 _SKIP_LAGS = 16     # push_many: pairs of a reading and its 16 previous tested in numpy
+_SKIP_MIN = 256     # ... in chunks of at least this many readings
 _NO_INDEX = -(1 << 62)   # _Open.k of a last echo outside the current chunk
 
 
@@ -964,7 +965,7 @@ class Segmenter:
         m = ch.m
         lags = min(_SKIP_LAGS, m - 1)
         wide = self._tan_miss_wide
-        if lags < 1 or not wide < math.inf or m < 256:
+        if lags < 1 or not wide < math.inf or m < _SKIP_MIN:
             return None
         x, y, yaw, R = ch.x, ch.y, ch.yaw, ch.R
         r_max = float(R[ch.echo].max()) if ch.echo.any() else 0.0
