@@ -862,16 +862,12 @@ class Segmenter:
                 if len(opened) == 1:       # misses of the only open segment
                     i = miss_run(ch, i, next_echo[i])
                     continue
-                # covering none of the open segments (their last echoes' lags all set in
-                # its skip bits), with no gap due and no sweep test, it changes nothing
-                sk = skips[i] if skips is not None else 0
-                if sk and not tl[i] - self._oldest_last > max_gap:
-                    for s in opened:
-                        if not sk >> (i - s.k) & 1:
-                            break
-                    else:
-                        i += 1
-                        continue
+                # no gap due and no sweep test: _step's miss loop here, over the segments
+                # its skip bits do not pass over
+                if skips is not None and not tl[i] - self._oldest_last > max_gap:
+                    self._misses_of(ch, i, skips[i])
+                    i += 1
+                    continue
             row = (tl[i], xl[i], yl[i], yawl[i], tofl[i], sl[i])
             ch.at = i        # segments closed now go to ch.closed
             if opened:
@@ -985,6 +981,41 @@ class Segmenter:
                 skip &= np.abs(R[i] - R[k]) > np.hypot(x[k] - xi, y[k] - yi) + gate
                 bits[lag:] |= skip.astype(np.int64) << lag
         return _ints(bits)
+
+    def _misses_of(self, ch: _Chunk, i: int, skip: int) -> None:
+        """:meth:`_step` of the chunk's no-echo reading ``i`` while several segments are
+        open, no gap is due and there is no sweep test (``skip``: its skip bits): the
+        same misses, censoring and closes, in the same float operations."""
+        x, y, yaw, sensor = ch.xl[i], ch.yl[i], ch.yawl[i], ch.sl[i]
+        cy = sy = 0.0
+        turned = False      # cy, sy worked out
+        wide, miss = self._tan_miss_wide, self._miss
+        gone: list[_Open] = []
+        for s in self._open:
+            if skip >> (i - s.k) & 1:
+                continue
+            if not turned:
+                cy, sy = math.cos(yaw), math.sin(yaw)
+                turned = True
+            last = s.last
+            mx, my = s.mid
+            dx, dy = (last[1] - x) + mx, (last[2] - y) + my
+            along = dx * cy + dy * sy
+            if along <= 0.0 or abs(dy * cy - dx * sy) > wide * along:
+                continue
+            a = math.atan2(dy, dx) - yaw
+            off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
+            if off <= miss:
+                if sensor in s.sensors and s.trailing < self._censor:
+                    s.rows.append(i)
+                    s.trailing += 1
+                s.misses += 1
+                if self._gone(s, off):
+                    gone.append(s)
+        if gone:
+            ch.at = i
+            for s in gone:
+                self._close(s, "misses")
 
     def _miss_run(self, ch: _Chunk, i: int, e: int) -> int:
         """:meth:`_step` of the no-echo readings ``i`` to ``e - 1`` of the chunk while
