@@ -472,6 +472,11 @@ class Segmenter:
         # ``max_gap_s`` after it
         self._oldest_last = math.inf
         self._chunk: _Chunk | None = None      # push_many's current chunk
+        # _step's settings in one tuple: tan of the miss test's width with a margin,
+        # whether that cheap pre-test applies, the miss half-width, the gate [m], the beam
+        # half-width, twice it, the arc's angles
+        self._consts = (self._tan_miss_wide, self._tan_miss_wide < math.inf, self._miss,
+                        self._gate_m, self._beam, 2.0 * self._beam, self._arc)
 
     @property
     def open_segments(self) -> int:
@@ -653,18 +658,11 @@ class Segmenter:
             for s in [s for s in opened if sensor in s.sensors
                       and self._off_axis(s, x, y, yaw) > self._away]:
                 closed += self._close(s, "swept")
-        cos, sin, atan2, floor, hypot, pi = (math.cos, math.sin, math.atan2, math.floor,
-                                             math.hypot, math.pi)
-        cy, sy = cos(yaw), sin(yaw)
-        wide = self._tan_miss_wide
-        cheap = wide < math.inf       # the cheap miss pre-test applies
-        miss = self._miss
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        wide, cheap, miss, gate, beam, two_beam, arc_angles = self._consts
         gone: list[_Open] = []
         if R < math.inf:
-            gate = self._gate_m
-            beam = self._beam
-            two_beam = 2.0 * beam
-            arc_angles = self._arc
+            atan2, floor, hypot, pi = math.atan2, math.floor, math.hypot, math.pi
             best, best_score = None, math.inf
             covered: list[tuple[_Open, float]] = []   # landmark within the miss width
             matched: list[_Open] = []    # segments this echo matches (finite score)
@@ -708,7 +706,7 @@ class Segmenter:
                         continue
                     arc = s.arc
                     if arc is None:
-                        arc = s.arc = [(lR * cos(lyaw + b), lR * sin(lyaw + b))
+                        arc = s.arc = [(lR * math.cos(lyaw + b), lR * math.sin(lyaw + b))
                                        for b in arc_angles]
                     d_best = math.inf
                     for px, py in arc:
@@ -760,7 +758,9 @@ class Segmenter:
             best.n_echo += 1
             best.last = (t, x, y, yaw, R, sensor)
             best.k = ref if isinstance(ref, int) else _NO_INDEX
-            best.mid = (R * math.cos(yaw + 0.0), R * math.sin(yaw + 0.0))
+            # (R cos(yaw + 0.0), R sin(yaw + 0.0)): yaw + 0.0 is yaw but for -0.0, whose
+            # cosine is cos(0.0), and sine, -0.0, plus 0.0 is sin(0.0)
+            best.mid = (R * cy, R * (sy + 0.0))
             best.arc = None
             best.misses = 0
             best.trailing = 0
@@ -779,8 +779,8 @@ class Segmenter:
                 along = dx * cy + dy * sy
                 if cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
                     continue
-                a = atan2(dy, dx) - yaw
-                off = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
+                a = math.atan2(dy, dx) - yaw
+                off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
                 if off <= miss:
                     if sensor in s.sensors and s.trailing < self._censor:
                         s.rows.append(ref)
