@@ -62,3 +62,17 @@ def test_echoes_at_the_edge_of_the_gate_are_matched_as_the_reference_does():
         ScanReadings(*cols[:5], cols[5].astype(np.int64)))
     joined = sum(s.n_echo == 4 for s in closed)
     assert 100 < joined < 300      # both sides of the gate
+
+
+def test_echoes_on_negative_zero_axes_give_identical_segments():
+    # axes and positions of -0.0 (as a log may hold) beside +0.0 and tiny angles: the
+    # segments' landmark offsets from cos and sin of the axis, as the reference's
+    rng = np.random.default_rng(3)
+    pushes: list[Push] = []
+    for k in range(300):
+        yaw = (-0.0, 0.0, 1e-300, -1e-300)[k % 4]
+        x = 0.01 * (k // 4)
+        tof = 2e6 * (1.5 - x) / 343.0 + rng.normal(0.0, 3.0)
+        pushes.append((0.05 * k, x, (-0.0, 0.0)[k % 3 == 0], yaw,
+                       tof if rng.random() < 0.8 else math.nan, k % 2))
+    assert _assert_same(pushes, {"min_echoes": 2}, chunks=(1, 5, 300)) >= 1
