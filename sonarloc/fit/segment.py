@@ -474,9 +474,9 @@ class Segmenter:
         self._chunk: _Chunk | None = None      # push_many's current chunk
         # _step's settings in one tuple: tan of the miss test's width with a margin,
         # whether that cheap pre-test applies, the miss half-width, the gate [m], the beam
-        # half-width, twice it, the arc's angles
+        # half-width and twice it
         self._consts = (self._tan_miss_wide, self._tan_miss_wide < math.inf, self._miss,
-                        self._gate_m, self._beam, 2.0 * self._beam, self._arc)
+                        self._gate_m, self._beam, 2.0 * self._beam)
 
     @property
     def open_segments(self) -> int:
@@ -563,8 +563,11 @@ class Segmenter:
         echo while no segment is open change nothing, a run of echoes from the same
         spot each matching the previous one extends the only open segment (a panning
         transducer crossing a landmark) in one go, a run of no-echo readings while one
-        segment is open takes a loop for that segment alone (its misses), and a new
-        segment's lead readings come from numpy tests of the chunk's candidate echoes.
+        segment is open takes a loop for that segment alone (its misses), a new
+        segment's lead readings come from numpy tests of the chunk's candidate echoes,
+        and the open segments whose last echo is one of a reading's 16 previous are
+        passed over where numpy tests of the two readings show they surely neither
+        match nor miss (a moving ring's transducers pointing elsewhere).
         """
         closed: list[tuple[int, Segment]] = []
         for at, block in self._push_blocks(t_s, x_m, y_m, yaw_rad, tof_us, sensor, chunk):
@@ -659,7 +662,7 @@ class Segmenter:
                       and self._off_axis(s, x, y, yaw) > self._away]:
                 closed += self._close(s, "swept")
         cy, sy = math.cos(yaw), math.sin(yaw)
-        wide, cheap, miss, gate, beam, two_beam, arc_angles = self._consts
+        wide, cheap, miss, gate, beam, two_beam = self._consts
         gone: list[_Open] = []
         if R < math.inf:
             atan2, floor, hypot, pi = math.atan2, math.floor, math.hypot, math.pi
@@ -706,8 +709,7 @@ class Segmenter:
                         continue
                     arc = s.arc
                     if arc is None:
-                        arc = s.arc = [(lR * math.cos(lyaw + b), lR * math.sin(lyaw + b))
-                                       for b in arc_angles]
+                        arc = s.arc = self._arc_points(s)
                     d_best = math.inf
                     for px, py in arc:
                         # the closest point within the gate that the new beam covers
