@@ -57,6 +57,9 @@ from sonarloc.physics.tof import ModuleParams
 
 _TWO_PI = 2.0 * math.pi
 _LIST_MAX = 4096    # push_many's columns as lists up to this many readings (_floats)
+_SKIP_LAGS = 16     # push_many: pairs of a reading and its 16 previous tested in numpy
+_SKIP_MIN = 256     # ... in chunks of at least this many readings
+_NO_INDEX = -(1 << 62)   # _Open.k of a last echo outside the current chunk
 
 
 def _wrap(a: float) -> float:
@@ -297,6 +300,7 @@ class _Open:
     occluded_lead: bool = False     # the reading before the first echo: a nearer echo
     occluded_trail: bool = False    # the first reading after the last echo: a nearer echo
     first: tuple[float, float] = (math.nan, math.nan)   # where its first echo was taken
+    k: int = _NO_INDEX      # push_many: the index of its last echo in the chunk
 
 
 class _RecentIndex:
@@ -468,6 +472,11 @@ class Segmenter:
         # ``max_gap_s`` after it
         self._oldest_last = math.inf
         self._chunk: _Chunk | None = None      # push_many's current chunk
+        # _step's settings in one tuple: tan of the miss test's width with a margin,
+        # whether that cheap pre-test applies, the miss half-width, the gate [m], the beam
+        # half-width and twice it
+        self._consts = (self._tan_miss_wide, self._tan_miss_wide < math.inf, self._miss,
+                        self._gate_m, self._beam, 2.0 * self._beam)
 
     @property
     def open_segments(self) -> int:
@@ -554,8 +563,11 @@ class Segmenter:
         echo while no segment is open change nothing, a run of echoes from the same
         spot each matching the previous one extends the only open segment (a panning
         transducer crossing a landmark) in one go, a run of no-echo readings while one
-        segment is open takes a loop for that segment alone (its misses), and a new
-        segment's lead readings come from numpy tests of the chunk's candidate echoes.
+        segment is open takes a loop for that segment alone (its misses), a new
+        segment's lead readings come from numpy tests of the chunk's candidate echoes,
+        and the open segments whose last echo is one of a reading's 16 previous are
+        passed over where numpy tests of the two readings show they surely neither
+        match nor miss (a moving ring's transducers pointing elsewhere).
         """
         closed: list[tuple[int, Segment]] = []
         for at, block in self._push_blocks(t_s, x_m, y_m, yaw_rad, tof_us, sensor, chunk):
@@ -619,14 +631,16 @@ class Segmenter:
     # -- the per-reading decisions (shared by push and push_many) ----------------------
 
     def _step(self, row: tuple[float, float, float, float, float, int], R: float,
-              ref: _Row) -> tuple[list[Segment], _Open | None]:
+              ref: _Row, skip: int = 0) -> tuple[list[Segment], _Open | None]:
         """One accepted reading ``row`` = (t, x, y, yaw wrapped, tof, sensor), ``R`` its
         range (inf: no echo), against the open segments: closes, misses, censoring and
         the extension of the best matching segment. ``ref`` is what a segment's ``rows``
         get for it (the row, or push_many's index; ``~index``: the reading with no
         echo). Returns the segments closed and the
         segment extended (None: none; for an echo, the caller opens one, knowing the
-        sensor's recent readings).
+        sensor's recent readings). ``skip`` (push_many): bit L set if this reading
+        surely neither covers nor matches a segment whose last echo is the chunk's
+        reading ``ref - L`` (:meth:`_skip_bits`); such segments are passed over.
 
         The loops over the open segments are written out inline (this runs once per
         reading, over every open segment): the match score and the miss test of
@@ -648,41 +662,40 @@ class Segmenter:
                       and self._off_axis(s, x, y, yaw) > self._away]:
                 closed += self._close(s, "swept")
         cy, sy = math.cos(yaw), math.sin(yaw)
-        wide = self._tan_miss_wide
-        cheap = wide < math.inf       # the cheap miss pre-test applies
-        miss = self._miss
+        wide, cheap, miss, gate, beam, two_beam = self._consts
         gone: list[_Open] = []
         if R < math.inf:
-            gate = self._gate_m
-            beam = self._beam
-            two_beam = 2.0 * beam
+            atan2, floor, hypot, pi = math.atan2, math.floor, math.hypot, math.pi
             best, best_score = None, math.inf
             covered: list[tuple[_Open, float]] = []   # landmark within the miss width
             matched: list[_Open] = []    # segments this echo matches (finite score)
             for s in opened:
+                if skip and skip >> (ref - s.k) & 1:   # type: ignore[operator]
+                    continue
                 # the miss test (applied below to all but the best match). Cheap test
                 # first: a landmark well off the axis is neither missed nor censored (the
                 # exact angle is only needed near the miss half-width)
+                _, lx, ly, lyaw, lR, _ = s.last
                 mx, my = s.mid
-                last = s.last
-                dx, dy = (last[1] - x) + mx, (last[2] - y) + my
+                ex, ey = lx - x, ly - y
+                dx, dy = ex + mx, ey + my
                 along = dx * cy + dy * sy
                 if not (cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along)):
-                    a = math.atan2(dy, dx) - yaw
-                    off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
+                    a = atan2(dy, dx) - yaw
+                    off = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
                     if off <= miss:
                         covered.append((s, off))
                 # the match score: normalised range mismatch with an arc point the new
                 # beam covers (inf: no match); a pan's landmark stays at range lR
-                _, lx, ly, lyaw, lR, _ = s.last
                 if x == lx and y == ly:   # same spot (pan): the landmark stays at range lR
                     a = yaw - lyaw
-                    if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) > 2.0 * beam:
+                    if abs(a - _TWO_PI * floor((a + pi) / _TWO_PI)) > two_beam:
                         continue
                     d = abs(R - lR)
                     score = d / gate if d <= gate else math.inf
                 else:
-                    d = math.hypot(x - lx, y - ly)
+                    # (ex, ey) is -(x - lx, y - ly) exactly, and hypot takes abs values
+                    d = hypot(ex, ey)
                     if abs(R - lR) > d + gate + 1e-9 * (1.0 + lR + R):
                         continue
                     # no arc point within the new beam: the arc spans +-beam about the
@@ -690,7 +703,7 @@ class Segmenter:
                     # direction differs by at most asin(d / lR) (the triangle's angle at
                     # the point, acute while d < lR)
                     a = lyaw - yaw
-                    a = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
+                    a = abs(a - _TWO_PI * floor((a + pi) / _TWO_PI))
                     if a > two_beam and d <= 0.99 * lR and \
                             a > two_beam + math.asin(d / lR) + 1e-9:
                         continue
@@ -698,16 +711,15 @@ class Segmenter:
                     if arc is None:
                         arc = s.arc = self._arc_points(s)
                     d_best = math.inf
-                    ex, ey = lx - x, ly - y
                     for px, py in arc:
                         # the closest point within the gate that the new beam covers
                         # (range first: the cheaper test, and most points fail it)
                         dx, dy = ex + px, ey + py
-                        d = abs(math.hypot(dx, dy) - R)
+                        d = abs(hypot(dx, dy) - R)
                         if d >= d_best or d > gate:
                             continue
-                        a = math.atan2(dy, dx) - yaw
-                        if abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)) <= beam:
+                        a = atan2(dy, dx) - yaw
+                        if abs(a - _TWO_PI * floor((a + pi) / _TWO_PI)) <= beam:
                             d_best = d
                     score = d_best / gate if d_best <= gate else math.inf
                 if score < math.inf:
@@ -747,7 +759,10 @@ class Segmenter:
             best.rows.append(ref)
             best.n_echo += 1
             best.last = (t, x, y, yaw, R, sensor)
-            best.mid = (R * math.cos(yaw + 0.0), R * math.sin(yaw + 0.0))
+            best.k = ref if isinstance(ref, int) else _NO_INDEX
+            # (R cos(yaw + 0.0), R sin(yaw + 0.0)): yaw + 0.0 is yaw but for -0.0, whose
+            # cosine is cos(0.0), and sine, -0.0, plus 0.0 is sin(0.0)
+            best.mid = (R * cy, R * (sy + 0.0))
             best.arc = None
             best.misses = 0
             best.trailing = 0
@@ -758,8 +773,10 @@ class Segmenter:
         else:
             best = None
             for s in opened:
-                mx, my = s.mid
+                if skip and skip >> (ref - s.k) & 1:   # type: ignore[operator]
+                    continue
                 last = s.last
+                mx, my = s.mid
                 dx, dy = (last[1] - x) + mx, (last[2] - y) + my
                 along = dx * cy + dy * sy
                 if cheap and (along <= 0.0 or abs(dy * cy - dx * sy) > wide * along):
@@ -808,6 +825,7 @@ class Segmenter:
         finally:
             for s in self._open:    # the chunk's indices become rows of their own
                 s.rows = [ch.row_of(r) if isinstance(r, int) else r for r in s.rows]
+                s.k = _NO_INDEX
             self._chunk = None
 
     def _chunk_loop(self, ch: _Chunk, index: np.ndarray) -> tuple[list[int], SegmentBlock]:
@@ -826,6 +844,9 @@ class Segmenter:
         # _start's lead rows and occluded_lead, worked out in advance for the echoes
         # that may open a segment (bits; -1: not worked out, _start's own loop does it)
         bits = self._lead_bits(ch, recent, ~chained) if recent is not None else None
+        # pairs of readings that surely do nothing (None: no sweep test, which they skip)
+        skips = self._skip_bits(ch) if self._away == math.inf else None
+        max_gap = self._max_gap
         lags: dict[int, tuple[int, ...]] = {}
         one = recent is not None and recent.order is None
         want = self._censor - 1
@@ -843,10 +864,16 @@ class Segmenter:
                 if len(opened) == 1:       # misses of the only open segment
                     i = miss_run(ch, i, next_echo[i])
                     continue
+                # no gap due and no sweep test: _step's miss loop here, over the segments
+                # its skip bits do not pass over
+                if skips is not None and not tl[i] - self._oldest_last > max_gap:
+                    self._misses_of(ch, i, skips[i])
+                    i += 1
+                    continue
             row = (tl[i], xl[i], yl[i], yawl[i], tofl[i], sl[i])
             ch.at = i        # segments closed now go to ch.closed
             if opened:
-                _, took = step(row, R, i)
+                _, took = step(row, R, i, skips[i] if skips is not None else 0)
             else:
                 # an echo with nothing open: _step would change nothing (no segment to
                 # close, miss or extend), so it opens one; the earliest last echo is its
@@ -882,6 +909,7 @@ class Segmenter:
                     k = j - 1
                     lx, ly, lyaw, lR = xl[k], yl[k], yawl[k], Rl[k]
                     s.last = (tl[k], lx, ly, lyaw, lR, sl[k])
+                    s.k = k
                     s.mid = (lR * math.cos(lyaw + 0.0), lR * math.sin(lyaw + 0.0))
                     s.arc = None
                     s.misses = 0
@@ -921,6 +949,75 @@ class Segmenter:
         bits = np.full(ch.m, -1, dtype=np.int64)
         bits[c] = b
         return _ints(bits)
+
+    def _skip_bits(self, ch: _Chunk) -> Sequence[int] | None:
+        """For each reading ``i`` of the chunk, bit L (1 ... :data:`_SKIP_LAGS`) set if
+        :meth:`_step` surely finds it neither covering nor matching a segment whose last
+        echo is reading ``i - L``: the cheap miss test fails (the landmark is well off
+        the new axis) and, for an echo, the range test of the match fails (the ranges
+        differ by more than the transducers' distance and the gate). Both depend on the
+        two readings alone; numpy's trigonometry may differ from math's in the last
+        bits, so the tests keep a margin ``eps`` (far above those bits, far below the
+        gate), which only passes a few more pairs on to the exact tests. None when the
+        cheap miss test does not apply, or for a short chunk."""
+        m = ch.m
+        lags = min(_SKIP_LAGS, m - 1)
+        wide = self._tan_miss_wide
+        if lags < 1 or not wide < math.inf or m < _SKIP_MIN:
+            return None
+        x, y, yaw, R = ch.x, ch.y, ch.yaw, ch.R
+        r_max = float(R[ch.echo].max()) if ch.echo.any() else 0.0
+        eps = 1e-8 * (1.0 + 2.0 * r_max + float(max(np.abs(x).max(), np.abs(y).max())))
+        e_miss = eps * (1.0 + wide)
+        gate = self._gate_m + eps
+        cy, sy = np.cos(yaw), np.sin(yaw)
+        with np.errstate(invalid="ignore"):     # no echo: inf * 0 (never a last echo)
+            px, py = x + R * cy, y + R * sy     # the landmark on the axis
+        bits = np.zeros(m, dtype=np.int64)
+        with np.errstate(invalid="ignore"):     # inf - inf: no echo on both sides
+            for lag in range(1, lags + 1):
+                i, k = slice(lag, m), slice(0, m - lag)
+                xi, yi, ci, si = x[i], y[i], cy[i], sy[i]
+                dx, dy = px[k] - xi, py[k] - yi
+                skip = np.abs(dy * ci - dx * si) > wide * (dx * ci + dy * si) + e_miss
+                skip &= np.abs(R[i] - R[k]) > np.hypot(x[k] - xi, y[k] - yi) + gate
+                bits[lag:] |= skip.astype(np.int64) << lag
+        return _ints(bits)
+
+    def _misses_of(self, ch: _Chunk, i: int, skip: int) -> None:
+        """:meth:`_step` of the chunk's no-echo reading ``i`` while several segments are
+        open, no gap is due and there is no sweep test (``skip``: its skip bits): the
+        same misses, censoring and closes, in the same float operations."""
+        x, y, yaw, sensor = ch.xl[i], ch.yl[i], ch.yawl[i], ch.sl[i]
+        cy = sy = 0.0
+        turned = False      # cy, sy worked out
+        wide, miss = self._tan_miss_wide, self._miss
+        gone: list[_Open] = []
+        for s in self._open:
+            if skip >> (i - s.k) & 1:
+                continue
+            if not turned:
+                cy, sy = math.cos(yaw), math.sin(yaw)
+                turned = True
+            last = s.last
+            mx, my = s.mid
+            dx, dy = (last[1] - x) + mx, (last[2] - y) + my
+            along = dx * cy + dy * sy
+            if along <= 0.0 or abs(dy * cy - dx * sy) > wide * along:
+                continue
+            a = math.atan2(dy, dx) - yaw
+            off = abs(a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI))
+            if off <= miss:
+                if sensor in s.sensors and s.trailing < self._censor:
+                    s.rows.append(i)
+                    s.trailing += 1
+                s.misses += 1
+                if self._gone(s, off):
+                    gone.append(s)
+        if gone:
+            ch.at = i
+            for s in gone:
+                self._close(s, "misses")
 
     def _miss_run(self, ch: _Chunk, i: int, e: int) -> int:
         """:meth:`_step` of the no-echo readings ``i`` to ``e - 1`` of the chunk while
@@ -1082,7 +1179,8 @@ class Segmenter:
         # its mid: the middle of :meth:`_arc_points` (the landmark on the echo's axis)
         s = _Open(self._next_id, lead, 1, (t, x, y, yaw, R, sensor), sensors={sensor},
                   mid=(R * math.cos(yaw + 0.0), R * math.sin(yaw + 0.0)),
-                  occluded_lead=occluded, first=(x, y))
+                  occluded_lead=occluded, first=(x, y),
+                  k=ref if isinstance(ref, int) else _NO_INDEX)
         self._next_id += 1
         self._open.append(s)
         self._oldest_last = min(self._oldest_last, t)
