@@ -405,10 +405,10 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 
 # ---------------------------------------------------------------- 4. large CSV
 
-BASELINE_REV = "8bf243e"
-"""main at the start of session 15 (2026-11-27; session 14's block reading, segmenter
-travel-cut fix and simpler cut search landed): section 4's "before" columns, run from a
-`git archive` of it."""
+BASELINE_REV = "0eca529"
+"""main at the start of session 22 (2026-11-29; before the pair search's grouping by
+motion alone and the segmenter's skipped pairs): section 4's "before" columns, run from
+a `git archive` of it."""
 
 _STAGES = r"""
 import json, sys, time
@@ -682,7 +682,7 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
         "",
         "CPU seconds of each stage (medians of "
         f"{'1' if q else '3'} in a fresh process per code version), *now* and *before* "
-        f"(main at {BASELINE_REV}, the start of session 14, run from a `git archive` of it "
+        f"(main at {BASELINE_REV}, the start of session 22, run from a `git archive` of it "
         "in the same run, alternating with *now*); CPU and wall clock of the whole "
         "command (`python -m sonarloc fit SCAN.csv --json`, medians) and the wall clock of "
         "its start-up (`import sonarloc.commands.fit`). With the machine shared, wall "
