@@ -226,6 +226,12 @@ class LocalizerNode:
         ``LocalizerConfig.fit_workers``: waits for the fits in flight and fuses them)."""
         self.localizer.finish()
 
+    def warm_up(self) -> None:
+        """Build the landmark fitter's tables before the first reading (see
+        :meth:`Localizer.warm_up`): call it once while the robot starts up, so the
+        first call that fits is not the slowest of the run."""
+        self.localizer.warm_up()
+
     def close(self) -> None:
         """Stop the background fit workers (``LocalizerConfig.fit_workers``; nothing to do
         without them). Fits still in flight are dropped (counted in

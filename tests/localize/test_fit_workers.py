@@ -223,3 +223,25 @@ def test_drive_cli_fit_workers(run_cli):
     assert rep["landmarks_matched"] > 0 and rep["fit_waits"] >= 0
     bad = run_cli("drive", "--fit-workers", "-1", "--no-plot")
     assert bad.returncode == 2 and "--fit-workers" in bad.stderr
+
+
+def test_warm_up_fills_the_fitter_s_tables_and_changes_no_estimate(drive):
+    """`LocalizerNode.warm_up` / `Localizer.warm_up` build the tables the first fit would
+    (the waveform tier's delay table, the piston beam's) for the rig's speed of sound,
+    and a warmed-up node's estimates are the cold one's, bit for bit."""
+    from sonarloc.fit import model
+
+    fmap, recs = drive
+    cold_rows, _ = _run(Localizer(fmap), recs)
+    model.waveform_delay_table.cache_clear()
+    model._piston_table.cache_clear()
+    node = LocalizerNode(fmap)
+    node.warm_up()
+    assert model.waveform_delay_table.cache_info().currsize >= 1
+    assert model._piston_table.cache_info().currsize >= 1
+    warm_rows, _ = _run(node.localizer, recs)
+    assert np.array_equal(warm_rows, cold_rows)
+    # nothing to fit, nothing built
+    model.waveform_delay_table.cache_clear()
+    Localizer(fmap, LocalizerConfig(method="conventional")).warm_up()
+    assert model.waveform_delay_table.cache_info().currsize == 0
