@@ -40,7 +40,7 @@ import operator
 import weakref
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import Future
+from concurrent.futures import BrokenExecutor, Future
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol
 
@@ -442,6 +442,8 @@ class LocalizerStats:
     #: and calls that waited for one (``fit_max_lag_s``: the workers fell behind)
     fit_jobs: int = 0
     fit_waits: int = 0
+    #: worker pools replaced after they broke (a process worker killed)
+    fit_pool_restarts: int = 0
 
     def summary(self) -> str:
         parts = [f"{self.odom} odom", f"{self.tof} tof", f"{self.observations} observations",
@@ -468,6 +470,8 @@ class LocalizerStats:
         if self.fit_jobs:
             parts.append(f"{self.fit_jobs} fit batches in workers ({self.fit_waits} waited "
                          f"for)")
+        if self.fit_pool_restarts:
+            parts.append(f"{self.fit_pool_restarts} fit worker pools restarted")
         if self.skipped:
             parts.append("skipped: " + ", ".join(f"{k} {v}" for k, v in
                                                  sorted(self.skipped.items())))
@@ -763,6 +767,23 @@ class Localizer:
         if self.config.method == "kuc":
             fitpool_warm_up(self._c_mps)
 
+    def _restart_pool(self) -> int:
+        """Replace a broken worker pool (a process worker killed, e.g. by the kernel's
+        out-of-memory killer) with a new one, so that one lost worker does not stop the
+        fits for good. The jobs in flight on the old pool are dropped (they fail with
+        it); returns their number of segments. Counted in ``stats.fit_pool_restarts``."""
+        old = self._pool
+        assert old is not None
+        lost = sum(len(j.segments) for j in self._jobs)
+        self._jobs.clear()
+        self._pool_finalizer.detach()
+        old.close(wait=False)
+        c = self.config
+        self._pool = FitPool(c.fit_workers, c.fit_executor, self._c_mps)
+        self._pool_finalizer = weakref.finalize(self, self._pool.close, False)
+        self.stats.fit_pool_restarts += 1
+        return lost
+
     def __enter__(self) -> Localizer:
         return self
 
@@ -775,13 +796,28 @@ class Localizer:
         return sum(len(j.segments) for j in self._jobs) + len(self._ready)
 
     def _submit(self, source: SegmentFitSource, segs: list[Any], t_s: float) -> None:
-        """Send a batch of closed segments to a worker."""
+        """Send a batch of closed segments to a worker (to a new pool if the pool broke:
+        see :meth:`_restart_pool`)."""
         if not segs:
             return
         assert self._pool is not None
         try:
             future = self._pool.submit(segs, source.fit_config)
-        except Exception as err:   # a broken process pool, a pool shut down
+        except BrokenExecutor as err:
+            lost = self._restart_pool()   # these segments go to the new pool
+            self.stats.skipped["fit_worker_error"] += lost
+            try:
+                future = self._pool.submit(segs, source.fit_config)
+            except Exception as err2:
+                self.stats.skipped["fit_worker_error"] += len(segs)
+                raise FitWorkerError(f"could not send {len(segs)} segments to a new fit "
+                                     f"worker pool: {err2!r}") from err2
+            if lost:
+                self._jobs.append(_FitJob(t_s, source, segs, future))
+                self.stats.fit_jobs += 1
+                raise FitWorkerError(f"the fit worker pool broke ({err!r}): {lost} segments "
+                                     "in flight lost; a new pool fits the next ones") from err
+        except Exception as err:   # a pool shut down
             self.stats.skipped["fit_worker_error"] += len(segs)
             raise FitWorkerError(f"could not send {len(segs)} segments to a fit worker: "
                                  f"{err!r}") from err
@@ -793,9 +829,15 @@ class Localizer:
         try:
             landmarks = job.future.result()
         except Exception as err:
-            self.stats.skipped["fit_worker_error"] += len(job.segments)
+            lost = len(job.segments)
+            then = ""
+            if isinstance(err, BrokenExecutor):   # its other jobs failed with it
+                lost += self._restart_pool()
+                then = "; the pool broke and a new one fits the next segments"
+            self.stats.skipped["fit_worker_error"] += lost
             raise FitWorkerError(f"a background fit of {len(job.segments)} segments "
-                                 f"(closed at t={job.t_s:.3f} s) failed: {err!r}") from err
+                                 f"(closed at t={job.t_s:.3f} s) failed: {err!r}{then}"
+                                 ) from err
         for lm in job.source.fitted(job.segments, landmarks):
             self._ready.append((job.t_s, lm))
 

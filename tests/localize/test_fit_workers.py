@@ -245,3 +245,32 @@ def test_warm_up_fills_the_fitter_s_tables_and_changes_no_estimate(drive):
     model.waveform_delay_table.cache_clear()
     Localizer(fmap, LocalizerConfig(method="conventional")).warm_up()
     assert model.waveform_delay_table.cache_info().currsize == 0
+
+
+def test_a_killed_process_worker_is_replaced_and_fits_go_on(drive):
+    """A process worker killed mid-drive (as the out-of-memory killer would): at most one
+    FitWorkerError for the segments lost with it, a new pool in its place
+    (`stats.fit_pool_restarts`), and the fits and fusions go on after it."""
+    fmap, recs = drive
+    loc = Localizer(fmap, LocalizerConfig(fit_workers=1, fit_executor="process"))
+    half = len(recs) // 2
+    errors = []
+    with loc:
+        for rec in recs[:half]:
+            loc.handle(rec)
+        assert loc._pool is not None
+        for proc in list(loc._pool._executor._processes.values()):  # type: ignore[attr-defined]
+            proc.kill()
+            proc.join()
+        fused_before = loc.stats.accepted
+        for rec in recs[half:]:
+            try:
+                loc.handle(rec)
+            except FitWorkerError as err:
+                errors.append(err)
+        loc.finish()
+    assert len(errors) <= 1
+    assert all("pool broke" in str(e) for e in errors)
+    assert loc.stats.fit_pool_restarts == 1
+    assert "1 fit worker pools restarted" in loc.stats.summary()
+    assert loc.stats.accepted > fused_before + 5    # fitted by the new pool and fused
