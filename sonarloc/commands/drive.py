@@ -21,14 +21,22 @@ from sonarloc.commands._args import accept_negative_values, refuse_overwrite
 
 # Values such as "-180:180:3" start with "-": let argparse take them as values.
 
-def _positive(text: str) -> float:
+def _positive_number(text: str, what: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
     return v
+
+
+def _positive(text: str) -> float:
+    return _positive_number(text, "a number of seconds")
+
+
+def _rate(text: str) -> float:
+    return _positive_number(text, "a multiple of real time")
 
 
 def _seed(text: str) -> int:
@@ -83,6 +91,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "thread (default 0: in the call)")
     parser.add_argument("--fit-executor", default="thread", choices=("thread", "process"),
                         help="background fit workers: threads or processes (default thread)")
+    parser.add_argument("--rate", type=_rate, metavar="R",
+                        help="pace the simulated module at R times real time (1: as a live "
+                             "robot; default: as fast as the host reads, several times real "
+                             "time, which background fit workers fall behind)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -99,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     config = DriveConfig(map=args.map, rig=args.rig, device=args.device, seed=args.seed,
                          duration_s=args.duration, tier=args.tier, method=args.method,
                          pan_deg=pan, fit_workers=args.fit_workers,
-                         fit_executor=args.fit_executor)
+                         fit_executor=args.fit_executor, rate=args.rate)
     bar = Progress(1.0, "sonarloc drive", unit="s")
     try:
         def progress(t: float, total: float) -> None:

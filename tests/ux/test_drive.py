@@ -141,3 +141,15 @@ def test_a_regular_install_finds_its_maps_outside_a_checkout(tmp_path: Path):
     proc = subprocess.run([str(py), "-m", "sonarloc", "drive", "--duration", "2", "--no-plot"],
                           cwd=work, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_drive_rate_paces_the_simulated_module(run_cli):
+    """`--rate R` paces the module at R times real time (as `serve-sim --rate`): the
+    drive cannot run faster than that; a bad value names the flag."""
+    proc = run_cli("drive", "--duration", "3", "--rate", "10", "--json", "--no-plot")
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads(proc.stdout)
+    assert rep["readings"] > 0 and rep["realtime_factor"] <= 10.5
+    for bad in ("0", "-2", "fast"):
+        proc = run_cli("drive", "--rate", bad, "--no-plot")
+        assert proc.returncode == 2 and "--rate" in proc.stderr
