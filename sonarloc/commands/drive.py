@@ -39,26 +39,24 @@ def _rate(text: str) -> float:
     return _positive_number(text, "a multiple of real time")
 
 
-def _seed(text: str) -> int:
+def _integer(text: str, what: str, lo: int, hi: int | None = None) -> int:
     try:
         v = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") \
-            from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be non-negative, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if v < lo or (hi is not None and v > hi):
+        raise argparse.ArgumentTypeError(
+            f"must be non-negative, got {text!r}" if hi is None
+            else f"must be {lo} to {hi}, got {text!r}")
     return v
+
+
+def _seed(text: str) -> int:
+    return _integer(text, "a non-negative integer", 0)
 
 
 def _workers(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of workers, got {text!r}") \
-            from None
-    if not 0 <= v <= 64:
-        raise argparse.ArgumentTypeError(f"must be 0 to 64, got {text!r}")
-    return v
+    return _integer(text, "a number of workers", 0, 64)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
