@@ -284,6 +284,26 @@ def delay_table(c_mps: float = 343.0) -> DelayTable:
     return DelayTable(_module(float(c_mps)))
 
 
+def warm_up(point_kappa_us: ArrayLike, point_kind: Sequence[str], point_radius_m: ArrayLike,
+            wall_kappa_us: ArrayLike, c_mps: float = 343.0,
+            ranges_m: tuple[float, float] = (0.1, 8.0)) -> int:
+    """Build the rows of the :func:`delay_table` that a map's features need: their
+    strengths (a cylinder's grows with range) over ``ranges_m`` (first, last) [m]; rows
+    are otherwise built by the first fusion that needs them (on the room drive the first
+    fusion's call spent ~80 ms building the table). Returns the strengths looked up."""
+    rng = np.geomspace(float(ranges_m[0]), float(ranges_m[1]), 32)
+    kaps = [np.asarray(wall_kappa_us, dtype=float).reshape(-1)]
+    radii = np.broadcast_to(np.asarray(point_radius_m, dtype=float), (len(point_kind),))
+    for kap, kind, radius in zip(np.asarray(point_kappa_us, dtype=float).reshape(-1),
+                                 point_kind, radii, strict=True):
+        kaps.append(kappa_at_range_us(kap, kind, rng, radius) if kind in _GROWING_KINDS
+                    else np.array([kap]))
+    k = np.concatenate(kaps)
+    k = k[np.isfinite(k) & (k > 0)]
+    delay_table(float(c_mps)).moments(np.zeros(k.size), k)
+    return int(k.size)
+
+
 def reading_sd_us(delay_sd_us: ArrayLike, c_mps: float = 343.0) -> Array:
     """SD of a reading around its predicted mean: jitter, delay spread and counting."""
     p = _module(float(c_mps))

@@ -758,14 +758,19 @@ class Localizer:
         pool.close()
 
     def warm_up(self) -> None:
-        """Build the landmark fitter's tables now (beam and delay tables, cached per
-        process and speed of sound: the rig's, 343 m/s before one is set), so that the
-        first call that fits does not pay for them: on the room drive that call took
-        102 ms of CPU cold and 66 ms warm (:func:`~sonarloc.localize.fitpool.warm_up`,
-        ~60 ms once per process). For a node about to drive; nothing to do for the
-        methods without fits. With ``fit_workers`` the pool warms its workers itself."""
+        """Build the landmark fitter's tables and the fusion's delay table for the map's
+        features now (cached per process and speed of sound: the rig's, 343 m/s before
+        one is set), so that the first calls that fit and fuse do not pay for them: on
+        the room drive the first such call took 85-134 ms of CPU cold, 47-49 ms warm
+        (:func:`~sonarloc.localize.fitpool.warm_up`,
+        :func:`~sonarloc.localize.echoes.warm_up`; ~0.13 s). For a node about to
+        drive; nothing to do for the methods without fits. With ``fit_workers`` the pool
+        warms its workers itself."""
         if self.config.method == "kuc":
             fitpool_warm_up(self._c_mps)
+            fm = self.fmap
+            echoes.warm_up(fm.point_kappa_us, fm.point_kind, fm.point_radius_m,
+                           fm.wall_kappa_us, self._c_mps)
 
     def _restart_pool(self) -> int:
         """Replace a broken worker pool (a process worker killed, e.g. by the kernel's

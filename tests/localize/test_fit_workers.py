@@ -227,18 +227,24 @@ def test_drive_cli_fit_workers(run_cli):
 
 def test_warm_up_fills_the_fitter_s_tables_and_changes_no_estimate(drive):
     """`LocalizerNode.warm_up` / `Localizer.warm_up` build the tables the first fit would
-    (the waveform tier's delay table, the piston beam's) for the rig's speed of sound,
-    and a warmed-up node's estimates are the cold one's, bit for bit."""
+    (the waveform tier's delay table, the piston beam's) and the fusion's delay table for
+    the map's features, for the rig's speed of sound; a warmed-up node's estimates are
+    the cold one's, bit for bit."""
     from sonarloc.fit import model
+    from sonarloc.localize import echoes
 
     fmap, recs = drive
+    echoes.delay_table.cache_clear()
     cold_rows, _ = _run(Localizer(fmap), recs)
     model.waveform_delay_table.cache_clear()
     model._piston_table.cache_clear()
+    echoes.delay_table.cache_clear()
     node = LocalizerNode(fmap)
     node.warm_up()
     assert model.waveform_delay_table.cache_info().currsize >= 1
     assert model._piston_table.cache_info().currsize >= 1
+    # the fusion's delay table: the rows of the map's strengths
+    assert echoes.delay_table(343.0)._row_built.sum() > 10
     warm_rows, _ = _run(node.localizer, recs)
     assert np.array_equal(warm_rows, cold_rows)
     # nothing to fit, nothing built
