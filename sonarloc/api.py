@@ -227,9 +227,9 @@ class LocalizerNode:
         self.localizer.finish()
 
     def warm_up(self) -> None:
-        """Build the landmark fitter's tables before the first reading (see
-        :meth:`Localizer.warm_up`): call it once while the robot starts up, so the
-        first call that fits is not the slowest of the run."""
+        """Build the landmark fitter's and the fusion's tables before the first reading
+        (see :meth:`Localizer.warm_up`): call it once while the robot starts up, so the
+        first call that fits and fuses is not the slowest of the run."""
         self.localizer.warm_up()
 
     def close(self) -> None:

@@ -735,9 +735,7 @@ class Localizer:
         self._ready: deque[tuple[float, Landmark]] = deque()
         self._fit_now = -math.inf   # the latest log time seen (back-pressure)
         if c.fit_workers and c.method == "kuc":
-            self._pool = FitPool(c.fit_workers, c.fit_executor)
-            # a Localizer dropped without close() does not leave its workers behind
-            self._pool_finalizer = weakref.finalize(self, self._pool.close, False)
+            self._start_pool()
 
     # -- background fits -------------------------------------------------------------
 
@@ -783,11 +781,17 @@ class Localizer:
         self._jobs.clear()
         self._pool_finalizer.detach()
         old.close(wait=False)
-        c = self.config
-        self._pool = FitPool(c.fit_workers, c.fit_executor, self._c_mps)
-        self._pool_finalizer = weakref.finalize(self, self._pool.close, False)
+        self._start_pool()
         self.stats.fit_pool_restarts += 1
         return lost
+
+    def _start_pool(self) -> None:
+        """The background fit workers (``LocalizerConfig.fit_workers``), warmed up for
+        the current speed of sound."""
+        c = self.config
+        self._pool = FitPool(c.fit_workers, c.fit_executor, self._c_mps)
+        # a Localizer dropped without close() does not leave its workers behind
+        self._pool_finalizer = weakref.finalize(self, self._pool.close, False)
 
     def __enter__(self) -> Localizer:
         return self
@@ -806,28 +810,23 @@ class Localizer:
         if not segs:
             return
         assert self._pool is not None
+        lost, broke = 0, None
         try:
-            future = self._pool.submit(segs, source.fit_config)
-        except BrokenExecutor as err:
-            lost = self._restart_pool()   # these segments go to the new pool
-            self.stats.skipped["fit_worker_error"] += lost
             try:
                 future = self._pool.submit(segs, source.fit_config)
-            except Exception as err2:
-                self.stats.skipped["fit_worker_error"] += len(segs)
-                raise FitWorkerError(f"could not send {len(segs)} segments to a new fit "
-                                     f"worker pool: {err2!r}") from err2
-            if lost:
-                self._jobs.append(_FitJob(t_s, source, segs, future))
-                self.stats.fit_jobs += 1
-                raise FitWorkerError(f"the fit worker pool broke ({err!r}): {lost} segments "
-                                     "in flight lost; a new pool fits the next ones") from err
-        except Exception as err:   # a pool shut down
+            except BrokenExecutor as err:   # a process worker died: a new pool takes them
+                broke, lost = err, self._restart_pool()
+                self.stats.skipped["fit_worker_error"] += lost
+                future = self._pool.submit(segs, source.fit_config)
+        except Exception as err:   # a pool shut down, or the new one broken too
             self.stats.skipped["fit_worker_error"] += len(segs)
             raise FitWorkerError(f"could not send {len(segs)} segments to a fit worker: "
                                  f"{err!r}") from err
         self._jobs.append(_FitJob(t_s, source, segs, future))
         self.stats.fit_jobs += 1
+        if lost:
+            raise FitWorkerError(f"the fit worker pool broke ({broke!r}): {lost} segments "
+                                 "in flight lost; a new pool fits the next ones") from broke
 
     def _collect(self, job: _FitJob) -> None:
         """A finished (or waited for) job's landmarks, queued to be fused."""

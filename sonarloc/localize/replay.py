@@ -138,6 +138,8 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
     watch = TimeoutWatch() if loc.config.max_tof_us is None else None
     for rec in items:
         kind = type(rec)
+        if watch is not None and isinstance(rec, TofRecord):
+            watch.push_one(math.nan if rec.tof_us is None else float(rec.tof_us))
         if isinstance(rec, TofRun):
             assert pipe is not None
             if watch is not None:
@@ -160,8 +162,6 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
             if kind is TruthRecord:
                 continue
             if kind is TofRecord:
-                if watch is not None:
-                    _watch_one(watch, rec)  # type: ignore[arg-type]
                 pipe.tof(rec)  # type: ignore[arg-type]
                 continue
         if math.isnan(first_t):
@@ -182,8 +182,6 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
             loc.set_prior(rec.t_s, init[0], init[1], math.radians(init[2]),
                           DEFAULT_INIT_SD_XY_M, math.radians(DEFAULT_INIT_SD_YAW_DEG))
             have_prior = True
-        if watch is not None and isinstance(rec, TofRecord):
-            _watch_one(watch, rec)
         if pipe is not None:
             if isinstance(rec, OdomRecord):
                 pipe.odom(rec)
@@ -210,10 +208,6 @@ def replay_log(source: str | Path | IO[str], fmap: FeatureMap, *,
     advice = None if watch is None else watch.advice()
     return ReplayResult(stats, loc, rows, last, wall, duration, cpu,
                         [] if advice is None else [advice])
-
-
-def _watch_one(watch: TimeoutWatch, rec: TofRecord) -> None:
-    watch.push_one(math.nan if rec.tof_us is None else float(rec.tof_us))
 
 
 class PoseCsvWriter:

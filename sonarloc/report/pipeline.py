@@ -274,8 +274,8 @@ def run_drive(config: DriveConfig = DriveConfig(),
     compute = 0.0
     call_cpu = array("d")  # the calling thread's CPU seconds of each node call
     last_status = ""
-    t_stream = time.perf_counter()
     node.warm_up()  # as a robot's node would while it starts up: not in a timed call
+    t_stream = time.perf_counter()
     with module, node:
         if not tee.have_init.wait(config.read_timeout_s) or tee.init is None:
             raise tee.error or DeviceTimeoutError("the simulator produced no init record")
