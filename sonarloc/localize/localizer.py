@@ -758,10 +758,10 @@ class Localizer:
     def warm_up(self) -> None:
         """Build the landmark fitter's tables and the fusion's delay table for the map's
         features now (cached per process and speed of sound: the rig's, 343 m/s before
-        one is set), so that the first calls that fit and fuse do not pay for them: on
-        the room drive the first such call took 85-134 ms of CPU cold, 47-49 ms warm
+        one is set), so that the first calls that fit and fuse do not pay for them
         (:func:`~sonarloc.localize.fitpool.warm_up`,
-        :func:`~sonarloc.localize.echoes.warm_up`; ~0.13 s). For a node about to
+        :func:`~sonarloc.localize.echoes.warm_up`; ~0.12 s; the first fitting call of a
+        room drive 70.7 -> 35.2 ms of CPU, benchmarks/results/warmup.md). For a node about to
         drive; nothing to do for the methods without fits. With ``fit_workers`` the pool
         warms its workers itself."""
         if self.config.method == "kuc":
