@@ -698,24 +698,21 @@ def _search(plans: dict[int, _Cuts], cfg: FitConfig) -> tuple[
     pass: it is missing). Returns the fits and the cuts' landmarks without the odometry
     term: the cuts that pass are those of fitting every cut.
 
-    Two batches, whatever the number of cuts. Until session 14 small inputs (fewer than
-    128 cuts) fitted every cut in one batch, larger ones began with a probing batch: the
-    middle cut of each segment, both parts, a part whose fit found a plausible reflector
-    with a chi-square p below 1e-8 ruling out the cuts that would leave a part holding
-    it (such a part fits no better, up to the fits' local minima). On moving ring16 room
-    drives (benchmarks/bench_fit.py section 4's 300 s CSV: 139 ``UNRESOLVED`` segments;
-    a 60 s one: 27) that rule
-    lost splits fitting every cut finds, 3 of 51 and 2 of 14 (two a corner and a wall
-    each, both parts within 2.8 cm of the simulator's reflectors; one a corner cut into
-    a line and a point), and its batch cost more than it saved: the middle cut's parts
-    hold both reflectors' echoes, the slowest to fit (spike refits, tier trials, fresh
-    brackets). Cachegrind, the stage alone (1.8 G of start-up left out): 300 s 11.98 ->
-    10.78 G instructions (1459 -> 1650 parts), 60 s 5.03 -> 4.58 G; the two batches
-    against one of every cut: 10.78 / 12.47 G (300 s), 4.58 / 4.29 (60 s), 6.91 / 8.56
-    (a 30 s drive, 261 cuts), 2.45 / 2.73 (10 s, 92 cuts), 0.669 / 0.660 (a rotation's
-    17 cuts). The cost goes mostly with the number of model evaluations (~2 M
-    instructions each, against ~700 per padded reading): lockstep tails of the tier
-    fits, half of them on <= 10 rows."""
+    Two batches, whatever the number of cuts. Not a probing batch first (the middle cut
+    of each segment, a part whose fit found a plausible reflector ruling out the cuts
+    that would leave a part holding it): on moving ring16 room drives
+    (benchmarks/bench_fit.py section 4's 300 s CSV: 139 ``UNRESOLVED`` segments; a 60 s
+    one: 27) that rule lost splits fitting every cut finds, 3 of 51 and 2 of 14 (two a
+    corner and a wall each, both parts within 2.8 cm of the simulator's reflectors; one
+    a corner cut into a line and a point), and its batch cost more than it saved: the
+    middle cut's parts hold both reflectors' echoes, the slowest to fit (spike refits,
+    tier trials, fresh brackets). Cachegrind, the stage alone (1.8 G of start-up left
+    out): the probing batch against these two, 300 s 11.98 / 10.78 G instructions, 60 s
+    5.03 / 4.58 G; these two against one batch of every cut: 10.78 / 12.47 G (300 s),
+    4.58 / 4.29 (60 s), 6.91 / 8.56 (a 30 s drive, 261 cuts), 2.45 / 2.73 (10 s, 92
+    cuts), 0.669 / 0.660 (a rotation's 17 cuts). The cost goes mostly with the number
+    of model evaluations (~2 M instructions each, against ~700 per padded reading):
+    lockstep tails of the tier fits, half of them on <= 10 rows."""
     parts = _Parts()
     short = [(i, c, int(2 * c > p.echo.size)) for i, p in plans.items() for c in p.cuts]
     parts.fit(plans, short, cfg)
@@ -735,9 +732,9 @@ def _split_groups(segments: Sequence[Segment], landmarks: Sequence[Landmark],
     parts both pass are ranked by total cost, and the first whose parts still pass with
     the term wins (the term only widens covariances, so it can only fail a part: the
     winner is the one fitting every cut with it would give). The term is added to the
-    fits made (:class:`_Parts`), not by fitting them again (as until session 10: one
-    more round of fits, 0.31 of the 6.1 s CPU of the cut stage of a moving ring's 300 s
-    drive, benchmarks/bench_fit.py section 4)."""
+    fits made (:class:`_Parts`), not by fitting them again (that round of fits cost 0.31
+    of the 6.1 s CPU of the cut stage of a moving ring's 300 s drive,
+    benchmarks/bench_fit.py section 4)."""
     cfg = config or FitConfig()
     plans: dict[int, _Cuts] = {}
     for i, (seg, lm) in enumerate(zip(segments, landmarks, strict=True)):

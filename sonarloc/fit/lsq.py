@@ -114,8 +114,7 @@ class FitConfig:
         (:func:`sonarloc.fit.model.log_sf32`), the objective summed in float64. Passes
         of pans about 3x cheaper, of moving batches (~10 segments a pass) ~1.2-1.3x;
         results within a few thousandths of an SD of the float64 ones (tests). On by
-        default for pans since 2026-11-21 (session 5), for moving batches since
-        2026-11-27; ``float32=False`` for the float64 passes.
+        default; ``float32=False`` for the float64 passes.
     start : where the refinement starts. ``"grid"``: the global bearing grid bracket.
         ``"arc"``: for stationary point segments (pans) whose echo arc is whole (a
         no-echo reading within 5 deg beyond each end, at most half as many no-echo
@@ -127,9 +126,8 @@ class FitConfig:
         instead of the grid's nodes, and about 3x closer in bearing (0.4 deg RMS against
         1.2-1.4 on 0.3-1 deg pans). The other segments (moving, partial arcs at a scan's
         edge, occluded ends, coarse pans, echoes scattered off the arc) get the grid.
-        The default since 2026-11-21 (session 5): with the default's steps it reaches
-        the grid-started fit's answers (benchmarks/results/fit.md) at about two thirds
-        of its cost.
+        The default: with the default's steps it reaches the grid-started fit's
+        answers (benchmarks/results/fit.md) at about two thirds of its cost.
     arc_iterations : steps of the segments started from the arc (``None``:
         ``iterations``; those from the grid always take ``iterations``).
     """
@@ -668,8 +666,7 @@ def _truncated_slope_far32(jk: NDArray[np.float32], z: NDArray[np.float32],
 
 def _use_float32(kind: str, tier: str, batch: SegmentBatch, cfg: FitConfig) -> bool:
     """Whether :func:`_evaluate32` does the model passes (``cfg.float32`` and the
-    detection model; every tier since session 6, moving batches too since
-    2026-11-27)."""
+    detection model; every tier, pans and moving batches alike)."""
     return cfg.float32 and cfg.detection
 
 
@@ -1475,8 +1472,8 @@ def _path_start(tier: str, batch: SegmentBatch, y: Array, use: NDArray, cfg: Fit
     seen for 20 s by seven ring transducers (nearest 1.3 m, last reading 3.5 m) was
     bracketed to the wrong place, fitted as a wall and a fifth of its echoes dropped as
     spikes, where the trilaterated point fits them all (the simulator's truth). Refined
-    beside the bracket's start rather than instead of it (as first landed in session
-    13): a start that looks better need not converge to the better fit."""
+    beside the bracket's start rather than instead of it: a start that looks better
+    need not converge to the better fit."""
     B = batch.size
     tri = np.zeros((B, 3))
     better = np.zeros(B, dtype=bool)
@@ -1641,10 +1638,9 @@ def _refine(kind: str, tier: str, p: Array, batch: SegmentBatch, y: Array, use: 
 
     A segment stops when its Newton decrement g^T H^-1 g (the expected decrease of the
     objective) falls below ``cfg.tolerance``; stopped segments are frozen for the rest
-    of the round and left out of the remaining iterations, their damping kept (until
-    session 12 it grew x8 at each of the round's further steps until they were
-    compacted out, so a segment's next round depended on the other segments of the
-    batch; now only the float32 passes' rounding does). ``stop_above`` (B,): a segment
+    of the round and left out of the remaining iterations, their damping kept (were it
+    grown at the other segments' steps, a segment's next round would depend on the
+    batch it shares; only the float32 passes' rounding does). ``stop_above`` (B,): a segment
     whose -2 log-likelihood (with the round's variances) still exceeds this after
     :data:`STOP_CHECK_ITER` steps (or at any later step) is given up (frozen for good,
     not converged; see :func:`fit_batch`). Returns the state at the result (variances
@@ -1781,9 +1777,7 @@ def _solve(kind: str, tier: str, batch: SegmentBatch, y: Array, use: NDArray, cf
     if plain and idx.size:
         # the second starts refined with the first ones, in the same passes: their
         # lockstep tails no longer run after the first's (a row's steps are its own but
-        # for the float32 passes' rounding, see :func:`_refine`; on the rotation of
-        # benchmarks/bench_fit.py section 4, before the damping fix of the same session,
-        # 92 of 4445 landmarks moved by at most 0.63 % of their SDs)
+        # for the float32 passes' rounding, see :func:`_refine`)
         both = np.concatenate([np.arange(batch.size), idx])
         st_all = _refine_any(kind, tier, np.concatenate([start, start2[idx]]),
                              _take(batch, both), y[both], use[both], cfg,

@@ -769,9 +769,9 @@ def module_reach_m(module: ModuleParams) -> tuple[float, float]:
     twice its maximum range (an echo from beyond it is too weak to be detected).
 
     TOFs recorded in milliseconds, a timeout count reported as an echo, or a module
-    other than the one configured put the fit there; until session 15 such fits were
-    ``OK``: a pole 1 mm away (the fit's range bound) from a pan logged in ms, a wall
-    1715 m away from readings of 1e7 us (tests/fit/test_fit_fuzz.py); the
+    other than the one configured put the fit there (without these bounds such fits
+    were ``OK``: a pole 1 mm away, the fit's range bound, from a pan logged in ms; a
+    wall 1715 m away from readings of 1e7 us: tests/fit/test_fit_fuzz.py); the
     two-reflector fit's landmarks are held to the same bounds."""
     blank_m = module.blanking_us / us_per_m(module)
     return 0.5 * blank_m, 2.0 * module.max_range_m

@@ -16,11 +16,11 @@ sensitivity ``s = d params / d c`` is the implicit-function derivative of its op
 ``s = -H^-1 dg/dc``: ``H`` the Fisher matrix at the fit, ``dg/dc`` the change of the
 objective's gradient there when the poses are bent by a small ``c`` (two evaluations of
 the fit's own objective, batched, no refit); ``s s^T sigma_c^2`` is added to the
-covariance. (Until session 9 ``s`` came from refitting the bent segments from the fit:
-that refit stops as soon as its Newton decrement is below the fit's tolerance, which a
-bend small enough to be linear often is at once, so ``s`` was 0 for ~1 in 12 moving
-segments and off by up to ~8x for others; the derivative is within ~10 % of a tightly
-converged central difference for most, docs/FITTING.md, at ~1/9 of the cost.)
+covariance. (Not a refit of the bent segments: that refit stops as soon as its Newton
+decrement is below the fit's tolerance, which a bend small enough to be linear often is
+at once, so ``s`` came out 0 for ~1 in 12 moving segments and off by up to ~8x for
+others; the derivative is within ~10 % of a tightly converged central difference for
+most, docs/FITTING.md, at ~1/9 of the cost.)
 
 The default ``sigma_c`` is calibrated on the world simulator's default odometry (0.2 %
 wheel-scale difference, 3 mm/sqrt(m) wheel noise, 0.4 m wheelbase: 0.3 deg/m systematic
@@ -260,9 +260,9 @@ def odometry_chi2(batch: SegmentBatch, fit: BatchFit, travel: Array, cfg: FitCon
     taken; its position by the path from it on to the reference (the robot's centre,
     ``arm_m`` behind each transducer: :func:`ring_arm`), each element turned by the
     heading error there and stretched by the distance's, plus its lever arm turned
-    (:class:`_Path`; until session 12 the chord to the reference was turned by the mean
-    heading error and stretched along itself: exact for a straight path only, where a
-    ring's segments turn by 20-180 deg). Each walk is expanded in :data:`WALK_TERMS`
+    (:class:`_Path`; not the chord to the reference turned by the mean heading error
+    and stretched along itself: that is exact for a straight path only, and a ring's
+    segments turn by 20-180 deg). Each walk is expanded in :data:`WALK_TERMS`
     Karhunen-Loeve modes with standard-normal weights.
 
     With ``A`` the whitened TOF sensitivities to the weights (the model's pose

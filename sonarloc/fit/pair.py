@@ -833,7 +833,7 @@ SCREEN_ITER = 8
 """Quasi-Newton iterations before the screen. The screen runs two starts of every
 candidate: its best grid start and its single fit split in two; the other grid
 starts run only for the candidates it passes, whose search is then the one from all
-starts (since session 5: half the screen's work). Measured on 354 candidates (the 243
+starts (half the screen's work of running them all). Measured on 354 candidates (the 243
 of bench_fit section 4, close-pair pans of both tiers at 10-24 deg): the two passed
 every candidate whose pair reached the bar (54 accepted; after the screen's
 iterations the best grid start led in 34 of them, the other grid starts in 19)."""
@@ -1521,7 +1521,7 @@ _ARMS_OF_ONE_U = ("neither component's minimum is seen (both PARTIAL) where the 
 both be ``PARTIAL``: two half-U's explain a U whose minimum the single fit sees. On a
 moving ring's 300 s drive (benchmarks/bench_fit.py section 4) the pairs accepted for
 ``OK`` singles were all of this kind and all single reflectors by the simulator's truth
-(odometry error bends the U; session 11)."""
+(odometry error bends the U)."""
 
 
 def pair_landmarks(pf: PairFit, single: Landmark, cfg: FitConfig) -> list[Landmark]:
@@ -1607,8 +1607,8 @@ def resolve_pair_groups(segments: Sequence[Segment], landmarks: Sequence[Landmar
 
     The candidates of one kind of motion, whatever their tiers, are searched in lockstep
     (every quasi-Newton step of all of them in one cost call, :class:`_Segments`: their
-    readings end to end, whatever their sizes; formerly one search per tier
-    and kind of motion of the no-echo readings too, up to six); each candidate's search
+    readings end to end, whatever their sizes: three searches at most, not one per tier
+    and kind of motion); each candidate's search
     is the one it would have alone (up to floating-point rounding: the sums, and
     :func:`sonarloc.fit.model.echo_terms` evaluates the terms of a call all at once or
     masked by how many need them).

@@ -375,8 +375,8 @@ Measured: where the fresh bracket changed the tier it had stayed 185-265 above t
 rotation of benchmarks/bench_fit.py section 4; an auto-tier plane of
 benchmarks/bench_fit_quality.py); of the 1153 refinements of that rotation that stayed
 10-100 above it, none came below the bar after a fresh bracket (one came within
-``TIER_TIE``, a kappa SD). Bracketing those again was two thirds of the re-bracketing
-cost (was 10 until 2026-11-21)."""
+``TIER_TIE``, a kappa SD). Bracketing those again (a threshold of 10) was two thirds of
+the re-bracketing cost."""
 
 
 HOPELESS_DCOST = 200.0
@@ -388,8 +388,8 @@ rotation: all 26 passes, 0.5-13 per step, ending 230-1100 above the bar). Refine
 that far above are bracketed again (``REBRACKET_DCOST`` is lower); the fit kept is the
 better of the two, so only a hopeless alternative's reported likelihood gain
 (``dcost_waveform``, ``dcost_piston``: where it stopped, a lower bound of the gain)
-changes. Measured on the 200,000-reading rotation of benchmarks/bench_fit.py section 4
-(2026-11-21, session 6): from that step on, fits still more than 200 above their bar came
+changes. Measured on the 200,000-reading rotation of benchmarks/bench_fit.py section 4:
+from that step on, fits still more than 200 above their bar came
 down by at most 158 (refined from the Gaussian fit) and 220 (bracketed again; none of
 them ended within 21 of the bar, none of those that did reach it or came within
 ``TIER_TIE`` was given up)."""
@@ -634,9 +634,9 @@ def _drop_past_wall_ends(batch: SegmentBatch, sel: Selection, moving: NDArray[np
     if rows.size == 0:
         return batch
     # the readings kept moved to the front of their rows, in order: a batch's valid
-    # columns are a prefix (fit_batch cuts its chunks to their counts; until session 12
-    # the holes left here cut off 458 valid no-echo readings of 127 walls on a moving
-    # ring's 300 s drive, benchmarks/bench_fit.py section 4)
+    # columns are a prefix (fit_batch cuts its chunks to their counts: holes left here
+    # would cut off valid no-echo readings, 458 of 127 walls on a moving ring's 300 s
+    # drive, benchmarks/bench_fit.py section 4)
     keep = batch.ne_valid & ~past
     order = np.argsort(~keep, axis=1, kind="stable")
     ne_px, ne_py, ne_yaw = (np.take_along_axis(a, order, axis=1)

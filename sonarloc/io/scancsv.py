@@ -159,7 +159,7 @@ BLOCK_ROWS = 1 << 18
 """Lines of a scan CSV parsed at a time by :func:`iter_scan_csv` (and fitted at a time by
 ``sonarloc fit``). Measured (benchmarks/bench_fit_memory.py, a 1,000,000-line continuous
 rotation, 43 MB): ``sonarloc fit`` peaks at 261 MB with blocks of this size against 604
-MB with the whole file as one block (as the command read it until session 14), 122 MB
+MB with the whole file as one block, 122 MB
 at 2**16 lines and 99 MB at 2**14, for 1.04x, 1.21x and 1.63x the CPU of one block
 (each batch of lockstep fits has a fixed cost); files up to this size are one block."""
 

@@ -500,8 +500,8 @@ class MapBuilder:
         point gates (of rho or alpha, wall gates: 0.8 m, 60 deg by default), or a
         covariance not positive definite. It adds no information, only a count. A `FLAT`
         wall driven past at one angle can leave rho and alpha undetermined together (SDs
-        of 7e7 m, correlation 1: the builder inverted that covariance and stopped,
-        session 14). On that log (bench_localize's map building, seed 200, true poses)
+        of 7e7 m, correlation 1: inverting that covariance stopped the builder). On
+        that log (bench_localize's map building, seed 200, true poses)
         8 of 304 points and 8 of 227 walls are this vague; 20 and 32 have an SD beyond
         one gate, kept (their weight is small)."""
         cfg = self.config
@@ -784,8 +784,8 @@ def _inside_wall(centre: Array, walls: list[BuiltFeature], cfg: BuildConfig) -> 
     """True if ``centre`` lies on a built wall (within ``on_wall_m`` of its line) away
     from its ends (further than ``end_gate_m`` inside: a vertex reflects at the end, and
     the wall's feet run past it. Measured in benchmarks/bench_localize.py's map building
-    (room, ring16, localized poses; session 11): a corner 7 cm inside its wall's built
-    end; the gate of before, ``corner_gate_m``, dropped it)."""
+    (room, ring16, localized poses): a corner 7 cm inside its wall's built end, which
+    a gate of ``corner_gate_m`` dropped)."""
     for w in walls:
         a, b = w.coords
         d = b - a
