@@ -16,9 +16,6 @@ Run: ``python benchmarks/bench_decoders.py [--quick]``; writes benchmarks/result
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import platform
 import random
 import statistics
 import sys
@@ -32,6 +29,7 @@ if str(ROOT) not in sys.path:
 
 import can  # noqa: E402
 
+from benchmarks._machine import load_average, machine_line  # noqa: E402
 from sonarloc.io.logfile import Record  # noqa: E402
 from sonarloc.io.protocol.canbus import CanDecoder, CanEncoder  # noqa: E402
 from sonarloc.io.protocol.framing import SerialDecoder, SerialEncoder  # noqa: E402
@@ -98,7 +96,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     duration = 20.0 if args.quick else 120.0
     repeats = 3 if args.quick else 15
 
-    load = os.getloadavg()[0]
+    load = load_average()
     recs, what = drive_records(duration)
     span = max(r.t_s for r in recs) - min(r.t_s for r in recs)
     msgs: list[Message] = [m for r in recs for m in messages_from_record(r)]
@@ -174,10 +172,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         rate = n / t
         lines.append(f"| {name} | {n} | {t:.3f} | {rate:,.0f} | {base:.0f} | {rate / base:,.0f}x |")
         print(lines[-1], flush=True)
-    lines += ["", f"Machine: {platform.machine()} {platform.processor()}, Python "
-              f"{platform.python_version()}, python-can {can.__version__}; "
-              f"{datetime.date.today().isoformat()}; {'quick' if args.quick else 'full'} run; "
-              f"load average {load:.1f} on {os.cpu_count()} CPUs at the start (shared machine)."]
+    lines += ["", machine_line(f"python-can {can.__version__}", f"{repeats} repeats",
+                               "shared machine: other jobs may run", quick=args.quick,
+                               load=load)]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n", encoding="utf-8")
     print(f"wrote {args.out}", file=sys.stderr)

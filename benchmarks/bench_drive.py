@@ -17,9 +17,6 @@ Run: ``python benchmarks/bench_drive.py [--quick]``; writes benchmarks/results/d
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import platform
 import statistics
 import sys
 from collections.abc import Sequence
@@ -29,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks._machine import load_average, machine_line  # noqa: E402
 from sonarloc.report.pipeline import DriveConfig, run_drive  # noqa: E402
 
 ROWS: list[tuple[str, str, str]] = [  # (rig, method, device)
@@ -52,7 +50,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(list(argv) if argv is not None else None)
     seeds = [0] if args.quick else [0, 1, 2, 3, 4]
     duration = 20.0 if args.quick else None
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = load_average()
 
     lines = []
     for rig, method, device in ROWS:
@@ -100,10 +98,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         *lines,
         "",
-        f"Machine: {platform.machine()} ({os.cpu_count()} CPUs), Python "
-        f"{platform.python_version()}; {datetime.date.today().isoformat()}; "
-        f"{'quick' if args.quick else 'full'} run; load average {load:.1f} at the start "
-        "(shared machine: other jobs may run).",
+        machine_line(f"seeds {seeds}", "shared machine: other jobs may run",
+                     quick=args.quick, load=load),
         "",
     ])
     args.out.mkdir(parents=True, exist_ok=True)

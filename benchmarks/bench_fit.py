@@ -30,7 +30,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import datetime  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -49,6 +48,7 @@ if str(ROOT) not in sys.path:
 
 from scipy.optimize import OptimizeWarning, curve_fit  # noqa: E402
 
+from benchmarks._machine import machine_line  # noqa: E402
 from sonarloc.fit.crlb import crlb  # noqa: E402
 from sonarloc.fit.landmarks import conventional, fit_segments  # noqa: E402
 from sonarloc.fit.lsq import FitConfig, fit_batch, pack_segments  # noqa: E402
@@ -942,12 +942,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         lines += large_csv_lines(csv, q)
     lines += [
         "",
-        f"Machine: {platform.machine()}, {platform.processor() or 'cpu'}, "
-        f"Python {platform.python_version()}, numpy {np.__version__}; "
-        f"{datetime.date.today().isoformat()}; {'--quick' if q else 'full run'}; "
-        f"seed 2003; {time.perf_counter() - t_start:.0f} s. CPU times of this process; "
-        "the machine was shared with other jobs, so absolute numbers are noisy, the ratios "
-        "(measured in the same run) less so.",
+        machine_line("seed 2003", f"{time.perf_counter() - t_start:.0f} s",
+                     "CPU times of this process", "the machine was shared with other jobs, "
+                     "so absolute numbers are noisy, the ratios (measured in the same run) "
+                     "less so", quick=q),
     ]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -18,10 +18,8 @@ benchmarks/results/fit_memory.md.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -36,6 +34,7 @@ if str(ROOT) not in sys.path:
 
 import numpy as np  # noqa: E402
 
+from benchmarks._machine import machine_line  # noqa: E402
 from sonarloc.fit.synth import rotation_scan  # noqa: E402
 from sonarloc.io.scancsv import BLOCK_ROWS, write_scan_csv  # noqa: E402
 
@@ -152,10 +151,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows = measure(n, blocks, repeats, Path(tmp))
     lines = ["# `sonarloc fit`: memory against the lines read at a time", "",
              *table(rows, n, repeats), "",
-             f"Machine: {platform.machine()} ({os.cpu_count()} CPUs), Python "
-             f"{platform.python_version()}, numpy {np.__version__}; "
-             f"{datetime.date.today().isoformat()}; {'quick' if args.quick else 'full'} run. "
-             "The machine may be shared with other jobs: CPU times are noisy, peaks less so."]
+             machine_line(f"{repeats} repeat(s)", "the machine may be shared with other "
+                          "jobs: CPU times are noisy, peaks less so", quick=args.quick)]
     text = "\n".join(lines) + "\n"
     print(text)
     out = Path(args.out)

@@ -24,9 +24,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
@@ -38,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks._machine import machine_line  # noqa: E402
 from sonarloc.fit.landmarks import fit_scan  # noqa: E402
 from sonarloc.fit.result import Landmark  # noqa: E402
 from sonarloc.fit.synth import Reflector, pan_scan  # noqa: E402
@@ -439,9 +438,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "mean position of the echoes' transducers)", "",
                   "Rows as in the walls' table.", ""] + tbl + [""]
         print("\n".join(tbl), flush=True)
-    lines.append(f"Machine: {platform.machine()} {platform.python_version()}, "
-                 f"{datetime.date.today().isoformat()}; {'--quick' if q else 'full run'}; "
-                 "other jobs were running on the 2 shared cores (CPU times are indicative).")
+    lines.append(machine_line("other jobs were running on the shared cores (CPU times are "
+                              "indicative)", quick=q))
     out = ROOT / "benchmarks" / "results" / "fit_quality.md"
     if not q:
         out.parent.mkdir(parents=True, exist_ok=True)

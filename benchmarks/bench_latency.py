@@ -22,10 +22,7 @@ benchmarks/results/latency.md.
 from __future__ import annotations
 
 import argparse
-import datetime
 import math
-import os
-import platform
 import statistics
 import sys
 import time
@@ -40,6 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks._machine import load_average, machine_line  # noqa: E402
 from sonarloc.api import LocalizerNode  # noqa: E402
 from sonarloc.io.logfile import TruthRecord  # noqa: E402
 from sonarloc.localize.features import FeatureMap  # noqa: E402
@@ -126,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     assert world.route is not None
     duration = 20.0 if args.quick else default_duration_s(rig, True, Route(world.route))
     fmap = FeatureMap.from_map(world)
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = load_average()
 
     runs: dict[str, list[Run]] = {label: [] for label, _, _ in ROWS}
     for seed in seeds:
@@ -180,10 +178,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         *lines,
         "",
-        f"Machine: {platform.machine()} ({os.cpu_count()} CPUs), Python "
-        f"{platform.python_version()}; {datetime.date.today().isoformat()}; "
-        f"{'quick' if args.quick else 'full'} run, {pace}; load average {load:.1f} at the "
-        "start (shared machine: other jobs may run).",
+        machine_line(f"seeds {seeds}", f"records fed {pace}",
+                     "shared machine: other jobs may run", quick=args.quick, load=load),
         "",
     ])
     args.out.mkdir(parents=True, exist_ok=True)

@@ -22,10 +22,8 @@ benchmarks/results/localize.md and localize.png.
 from __future__ import annotations
 
 import argparse
-import datetime
 import io
 import math
-import platform
 import resource
 import sys
 import time
@@ -42,6 +40,7 @@ if str(ROOT) not in sys.path:
 
 from scipy.stats import chi2  # noqa: E402
 
+from benchmarks._machine import machine_line  # noqa: E402
 from sonarloc import se2  # noqa: E402
 from sonarloc.io.logfile import (  # noqa: E402
     LogWriter,
@@ -755,11 +754,9 @@ def run_sections(args: argparse.Namespace) -> int:
     lines = mapping_lines(map_building(200, 40.0 if quick else 174.0)) + [""]
     dur = 30.0 if quick else 60.0
     lines += reloc_lines(relocalization(n_seeds, dur), n_seeds, dur)
-    lines += ["", f"Map building and relocalization sections: {platform.machine()}, Python "
-              f"{platform.python_version()}, numpy {np.__version__}; "
-              f"{datetime.date.today().isoformat()}; {'--quick' if quick else 'full'} "
-              f"`--sections` run ({n_seeds} seed(s)), other jobs running on the machine "
-              "(solve times are indicative)."]
+    lines += ["", machine_line("`--sections` run", f"{n_seeds} seed(s)", "other jobs "
+                               "running on the machine (solve times are indicative)",
+                               quick=quick, label="Map building and relocalization sections")]
     out = Path(args.out)
     old = out.read_text(encoding="utf-8") if out.exists() else ""
     cut = old.find("## Map building")
@@ -1038,13 +1035,10 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{b_rmse:.1f} mm; status at the end: {b_status}.", ""]
     lines += mapping_lines(mapping) + [""]
     lines += reloc_lines(reloc, n_seeds, reloc_s)
-    lines += ["", f"Machine: {platform.machine()} {platform.processor() or ''}, Python "
-              f"{platform.python_version()}, numpy {np.__version__}; "
-              f"{datetime.date.today().isoformat()}; "
-              f"{'--quick' if quick else 'full run'}, {n_seeds} seed(s), soak "
-              f"{soak_hours:g} h, batch soak {batch_hours:g} h. Other jobs were running "
-              "on the machine (2 cores shared): absolute speeds vary from run to run; the "
-              "ratios come from the same run."]
+    lines += ["", machine_line(f"{n_seeds} seed(s)", f"soak {soak_hours:g} h",
+                               f"batch soak {batch_hours:g} h", "other jobs were running on "
+                               "the machine (cores shared): absolute speeds vary from run to "
+                               "run; the ratios come from the same run", quick=quick)]
     text = "\n".join(lines) + "\n"
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -23,9 +23,6 @@ benchmarks/results/physics.md and physics.png.
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -37,6 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks._machine import machine_line  # noqa: E402
 from sonarloc.physics.sound import tof_from_range_us  # noqa: E402
 from sonarloc.physics.tiers import (  # noqa: E402
     auto_tables,
@@ -198,11 +196,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     n_p = p_theta.shape[0]
     lines += [
         "",
-        f"Machine: {platform.machine()} {platform.processor() or ''} "
-        f"({os.cpu_count()} CPUs), Python {platform.python_version()}, "
-        f"numpy {np.__version__}; {datetime.date.today().isoformat()}; "
-        f"repeats {repeats}; paper scan {n_p:,} pings, clutter {n_clutter:,} pings"
-        f"{' (--quick)' if args.quick else ''}. Shared machine: other jobs may run.",
+        machine_line(f"repeats {repeats}", f"paper scan {n_p:,} pings, clutter "
+                     f"{n_clutter:,} pings", "shared machine: other jobs may run",
+                     quick=args.quick),
         "",
     ]
     args.out.parent.mkdir(parents=True, exist_ok=True)

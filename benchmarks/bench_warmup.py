@@ -15,10 +15,8 @@ benchmarks/results/warmup.md.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -26,6 +24,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks._machine import load_average, machine_line  # noqa: E402
 
 _RUN = r"""
 import json, sys, time
@@ -69,6 +71,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = parser.parse_args(list(argv) if argv is not None else None)
     repeats = 2 if args.quick else 7
+    load = load_average()
     runs: dict[str, list[dict[str, float]]] = {"cold": [], "warm": []}
     for _ in range(repeats):
         for mode in runs:           # alternating, so both see the same load
@@ -83,7 +86,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     rows = [f"| {label} | {med(mode, 'first_ms'):.1f} | {med(mode, 'worst_ms'):.1f} | "
             f"{med(mode, 'warm_up_s'):.3f} | {med(mode, 'fused'):.0f} |"
             for mode, label in (("cold", "no warm-up"), ("warm", "`node.warm_up()` first"))]
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     text = "\n".join([
         "# The first call that fits and fuses, with and without `warm_up()`",
         "",
@@ -100,10 +102,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "|---|---:|---:|---:|---:|",
         *rows,
         "",
-        f"Machine: {platform.machine()} ({os.cpu_count()} CPUs), Python "
-        f"{platform.python_version()}; {datetime.date.today().isoformat()}; "
-        f"{'quick' if args.quick else 'full'} run; load average {load:.1f} at the start "
-        "(shared machine: other jobs may run).",
+        machine_line(f"{repeats} repeats", "shared machine: other jobs may run",
+                     quick=args.quick, load=load),
         "",
     ])
     args.out.mkdir(parents=True, exist_ok=True)

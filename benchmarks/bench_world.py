@@ -12,10 +12,7 @@ Run: ``python benchmarks/bench_world.py [--quick]``; writes benchmarks/results/w
 from __future__ import annotations
 
 import argparse
-import datetime
 import math
-import os
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -27,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks._machine import load_average, machine_line  # noqa: E402
 from sonarloc.maps import Map, load_map, map_from_geojson  # noqa: E402
 from sonarloc.physics.tiers import Tier  # noqa: E402
 from sonarloc.world.rig import ring16  # noqa: E402
@@ -210,11 +208,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"simulated): {rec_rate:.0f} records/s, {ping_rate:.0f} pings/s "
         f"({ping_rate * 0.03 / 4:.0f}x real time for ring16's 133 pings/s).",
         "",
-        f"Machine: {platform.machine()} {platform.processor() or ''}, Python "
-        f"{platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, load "
-        f"average {os.getloadavg()[0]:.1f} at the end (absolute rates scale with load; the "
-        "ratios are measured interleaved); "
-        f"{datetime.date.today().isoformat()}; {'--quick' if args.quick else 'full run'}.",
+        machine_line(f"{repeats} rounds", "absolute rates scale with load; the ratios are "
+                     "measured interleaved", quick=args.quick, load=load_average(),
+                     load_when="at the end"),
     ]
     text = "\n".join(lines) + "\n"
     out = Path(args.out)
