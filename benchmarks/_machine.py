@@ -6,8 +6,8 @@ days can be told apart. :func:`machine_line` writes it with the same facts, in t
 order, for every benchmark, then the script's own details::
 
     Machine: x86_64, AMD EPYC (2 CPUs), Python 3.11.7, numpy 2.4.6; 2026-11-29; full
-    run; load average 1.2 at the start; python-can 4.6.1; shared machine: other jobs may
-    run.
+    run; load average 1.2 at the start; python-can 4.6.1; 3 repeats; shared machine:
+    other jobs may run.
 
 (one line in the file). The line is found again by its label: ``bench_fit.py`` and
 ``bench_localize.py`` splice their results files at ``"\\nMachine: "``, so the label
@@ -26,6 +26,10 @@ import platform
 from pathlib import Path
 
 CPUINFO = Path("/proc/cpuinfo")
+
+SHARED = "shared machine: other jobs may run"
+"""The caveat of a benchmark run on a machine shared with other jobs (a detail for
+:func:`machine_line`; the script adds which of its numbers suffer and which do not)."""
 
 
 def cpu_model(cpuinfo: Path = CPUINFO) -> str:

@@ -29,7 +29,7 @@ if str(ROOT) not in sys.path:
 
 import can  # noqa: E402
 
-from benchmarks._machine import load_average, machine_line  # noqa: E402
+from benchmarks._machine import SHARED, load_average, machine_line  # noqa: E402
 from sonarloc.io.logfile import Record  # noqa: E402
 from sonarloc.io.protocol.canbus import CanDecoder, CanEncoder  # noqa: E402
 from sonarloc.io.protocol.framing import SerialDecoder, SerialEncoder  # noqa: E402
@@ -173,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         lines.append(f"| {name} | {n} | {t:.3f} | {rate:,.0f} | {base:.0f} | {rate / base:,.0f}x |")
         print(lines[-1], flush=True)
     lines += ["", machine_line(f"python-can {can.__version__}", f"{repeats} repeats",
-                               "shared machine: other jobs may run", quick=args.quick,
+                               SHARED, quick=args.quick,
                                load=load)]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n", encoding="utf-8")

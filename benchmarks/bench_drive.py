@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks._machine import load_average, machine_line  # noqa: E402
+from benchmarks._machine import SHARED, load_average, machine_line  # noqa: E402
 from sonarloc.report.pipeline import DriveConfig, run_drive  # noqa: E402
 
 ROWS: list[tuple[str, str, str]] = [  # (rig, method, device)
@@ -98,7 +98,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
         *lines,
         "",
-        machine_line(f"seeds {seeds}", "shared machine: other jobs may run",
+        machine_line(f"seeds {seeds}", SHARED,
                      quick=args.quick, load=load),
         "",
     ])

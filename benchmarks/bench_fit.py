@@ -48,7 +48,7 @@ if str(ROOT) not in sys.path:
 
 from scipy.optimize import OptimizeWarning, curve_fit  # noqa: E402
 
-from benchmarks._machine import machine_line  # noqa: E402
+from benchmarks._machine import SHARED, machine_line  # noqa: E402
 from sonarloc.fit.crlb import crlb  # noqa: E402
 from sonarloc.fit.landmarks import conventional, fit_segments  # noqa: E402
 from sonarloc.fit.lsq import FitConfig, fit_batch, pack_segments  # noqa: E402
@@ -943,9 +943,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines += [
         "",
         machine_line("seed 2003", f"{time.perf_counter() - t_start:.0f} s",
-                     "CPU times of this process", "the machine was shared with other jobs, "
-                     "so absolute numbers are noisy, the ratios (measured in the same run) "
-                     "less so", quick=q),
+                     "CPU times of this process", SHARED, "absolute numbers are noisy, the "
+                     "ratios (measured in the same run) less so", quick=q),
     ]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

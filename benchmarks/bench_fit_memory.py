@@ -34,7 +34,7 @@ if str(ROOT) not in sys.path:
 
 import numpy as np  # noqa: E402
 
-from benchmarks._machine import machine_line  # noqa: E402
+from benchmarks._machine import SHARED, machine_line  # noqa: E402
 from sonarloc.fit.synth import rotation_scan  # noqa: E402
 from sonarloc.io.scancsv import BLOCK_ROWS, write_scan_csv  # noqa: E402
 
@@ -151,8 +151,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows = measure(n, blocks, repeats, Path(tmp))
     lines = ["# `sonarloc fit`: memory against the lines read at a time", "",
              *table(rows, n, repeats), "",
-             machine_line(f"{repeats} repeat(s)", "the machine may be shared with other "
-                          "jobs: CPU times are noisy, peaks less so", quick=args.quick)]
+             machine_line(f"{repeats} repeat(s)", SHARED, "CPU times are noisy, peaks less so",
+                          quick=args.quick)]
     text = "\n".join(lines) + "\n"
     print(text)
     out = Path(args.out)

@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks._machine import machine_line  # noqa: E402
+from benchmarks._machine import SHARED, machine_line  # noqa: E402
 from sonarloc.fit.landmarks import fit_scan  # noqa: E402
 from sonarloc.fit.result import Landmark  # noqa: E402
 from sonarloc.fit.synth import Reflector, pan_scan  # noqa: E402
@@ -438,8 +438,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "mean position of the echoes' transducers)", "",
                   "Rows as in the walls' table.", ""] + tbl + [""]
         print("\n".join(tbl), flush=True)
-    lines.append(machine_line("other jobs were running on the shared cores (CPU times are "
-                              "indicative)", quick=q))
+    lines.append(machine_line(SHARED, "CPU times are indicative", quick=q))
     out = ROOT / "benchmarks" / "results" / "fit_quality.md"
     if not q:
         out.parent.mkdir(parents=True, exist_ok=True)

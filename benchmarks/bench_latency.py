@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks._machine import load_average, machine_line  # noqa: E402
+from benchmarks._machine import SHARED, load_average, machine_line  # noqa: E402
 from sonarloc.api import LocalizerNode  # noqa: E402
 from sonarloc.io.logfile import TruthRecord  # noqa: E402
 from sonarloc.localize.features import FeatureMap  # noqa: E402
@@ -179,7 +179,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         *lines,
         "",
         machine_line(f"seeds {seeds}", f"records fed {pace}",
-                     "shared machine: other jobs may run", quick=args.quick, load=load),
+                     SHARED, quick=args.quick, load=load),
         "",
     ])
     args.out.mkdir(parents=True, exist_ok=True)

@@ -40,7 +40,7 @@ if str(ROOT) not in sys.path:
 
 from scipy.stats import chi2  # noqa: E402
 
-from benchmarks._machine import machine_line  # noqa: E402
+from benchmarks._machine import SHARED, machine_line  # noqa: E402
 from sonarloc import se2  # noqa: E402
 from sonarloc.io.logfile import (  # noqa: E402
     LogWriter,
@@ -754,9 +754,9 @@ def run_sections(args: argparse.Namespace) -> int:
     lines = mapping_lines(map_building(200, 40.0 if quick else 174.0)) + [""]
     dur = 30.0 if quick else 60.0
     lines += reloc_lines(relocalization(n_seeds, dur), n_seeds, dur)
-    lines += ["", machine_line("`--sections` run", f"{n_seeds} seed(s)", "other jobs "
-                               "running on the machine (solve times are indicative)",
-                               quick=quick, label="Map building and relocalization sections")]
+    lines += ["", machine_line("`--sections` run", f"{n_seeds} seed(s)", SHARED,
+                               "solve times are indicative", quick=quick,
+                               label="Map building and relocalization sections")]
     out = Path(args.out)
     old = out.read_text(encoding="utf-8") if out.exists() else ""
     cut = old.find("## Map building")
@@ -1036,9 +1036,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines += mapping_lines(mapping) + [""]
     lines += reloc_lines(reloc, n_seeds, reloc_s)
     lines += ["", machine_line(f"{n_seeds} seed(s)", f"soak {soak_hours:g} h",
-                               f"batch soak {batch_hours:g} h", "other jobs were running on "
-                               "the machine (cores shared): absolute speeds vary from run to "
-                               "run; the ratios come from the same run", quick=quick)]
+                               f"batch soak {batch_hours:g} h", SHARED, "absolute speeds "
+                               "vary from run to run; the ratios come from the same run",
+                               quick=quick)]
     text = "\n".join(lines) + "\n"
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

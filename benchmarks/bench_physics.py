@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks._machine import machine_line  # noqa: E402
+from benchmarks._machine import SHARED, machine_line  # noqa: E402
 from sonarloc.physics.sound import tof_from_range_us  # noqa: E402
 from sonarloc.physics.tiers import (  # noqa: E402
     auto_tables,
@@ -197,7 +197,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines += [
         "",
         machine_line(f"repeats {repeats}", f"paper scan {n_p:,} pings, clutter "
-                     f"{n_clutter:,} pings", "shared machine: other jobs may run",
+                     f"{n_clutter:,} pings", SHARED,
                      quick=args.quick),
         "",
     ]

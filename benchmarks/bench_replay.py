@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks._machine import machine_line  # noqa: E402
+from benchmarks._machine import SHARED, machine_line  # noqa: E402
 
 #: main at the start of session 6 (2026-11-21), before its replay speed work.
 DEFAULT_BASELINE = "f7b51e7"
@@ -218,9 +218,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines += ["", f"Cold (first replay in a process, room/ring16 seed 100): baseline "
               f"{cold['baseline']:.0f}x ({cold_cpu['baseline']:.2f} s CPU), this "
               f"{cold['this']:.0f}x ({cold_cpu['this']:.2f} s CPU).", "",
-              machine_line(f"{n_seeds} seed(s)", f"{repeats} repeat(s)", "other jobs were "
-                           "running on the machine (cores shared): absolute speeds vary from "
-                           "run to run; the ratios come from the same run", quick=quick)]
+              machine_line(f"{n_seeds} seed(s)", f"{repeats} repeat(s)", SHARED, "absolute "
+                           "speeds vary from run to run; the ratios come from the same run",
+                           quick=quick)]
     text = "\n".join(lines) + "\n"
     out_path = Path(args.out)
     out_path.parent.mkdir(parents=True, exist_ok=True)

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks._machine import load_average, machine_line  # noqa: E402
+from benchmarks._machine import SHARED, load_average, machine_line  # noqa: E402
 
 _RUN = r"""
 import json, sys, time
@@ -102,7 +102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "|---|---:|---:|---:|---:|",
         *rows,
         "",
-        machine_line(f"{repeats} repeats", "shared machine: other jobs may run",
+        machine_line(f"{repeats} repeats", SHARED,
                      quick=args.quick, load=load),
         "",
     ])

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks._machine import load_average, machine_line  # noqa: E402
+from benchmarks._machine import SHARED, load_average, machine_line  # noqa: E402
 from sonarloc.maps import Map, load_map, map_from_geojson  # noqa: E402
 from sonarloc.physics.tiers import Tier  # noqa: E402
 from sonarloc.world.rig import ring16  # noqa: E402
@@ -208,8 +208,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"simulated): {rec_rate:.0f} records/s, {ping_rate:.0f} pings/s "
         f"({ping_rate * 0.03 / 4:.0f}x real time for ring16's 133 pings/s).",
         "",
-        machine_line(f"{repeats} rounds", "absolute rates scale with load; the ratios are "
-                     "measured interleaved", quick=args.quick, load=load_average(),
+        machine_line(f"{repeats} rounds", SHARED, "absolute rates scale with load; the "
+                     "ratios are measured interleaved", quick=args.quick, load=load_average(),
                      load_when="at the end"),
     ]
     text = "\n".join(lines) + "\n"
