@@ -4,7 +4,12 @@ A stand-in for a ROS node's callbacks: the readings and wheel odometry come from
 simulator here (on a robot: your sonar driver and wheel encoders), one message at a
 time. Every second the node's estimate is printed next to the simulator's truth.
 
-    python examples/embed_node.py [--duration 20] [--seed 1]
+    python examples/embed_node.py [--duration 20] [--seed 1] [--fit-workers 0]
+
+On a robot, fit in a background worker (``--fit-workers 1``): a callback that closes
+a segment then returns in a few ms instead of tens (benchmarks/results/latency.md).
+Here the simulator runs faster than real time and the worker lags behind it, so the
+default fits in the callback.
 """
 
 from __future__ import annotations
@@ -13,10 +18,10 @@ import argparse
 import math
 from pathlib import Path
 
-from sonarloc.api import LocalizerNode
+from sonarloc.api import LocalizerConfig, LocalizerNode
 from sonarloc.io.logfile import InitRecord, OdomRecord, RigRecord, TofRecord, TruthRecord
-from sonarloc.maps.geojson import load_map
-from sonarloc.world.rig import ring16
+from sonarloc.maps.geojson import Map, load_map
+from sonarloc.world.rig import Rig, ring16
 from sonarloc.world.simulate import simulate_records
 
 ROOM = Path(__file__).resolve().parents[1] / "maps" / "room.geojson"
@@ -27,17 +32,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=20.0,
                         help="simulated seconds (default %(default)s)")
     parser.add_argument("--seed", type=int, default=1, help="random seed (default %(default)s)")
+    parser.add_argument("--fit-workers", type=int, default=0, choices=(0, 1, 2),
+                        help="background fit workers (default %(default)s: fit in the call)")
     args = parser.parse_args(argv)
 
     world = load_map(ROOM)
     rig = ring16()
-    # 1. the node: map + transducer mounts (id, x_m, y_m, yaw_deg in base_link)
-    node = LocalizerNode.from_map_file(
-        ROOM, sensors=[(s.id, s.x_m, s.y_m, s.yaw_deg) for s in rig.sensors])
+    # 1. the node: map + transducer mounts (id, x_m, y_m, yaw_deg in base_link); `with`
+    #    stops its fit workers at the end
+    with LocalizerNode.from_map_file(
+            ROOM, sensors=[(s.id, s.x_m, s.y_m, s.yaw_deg) for s in rig.sensors],
+            config=LocalizerConfig(fit_workers=args.fit_workers)) as node:
+        node.warm_up()  # the fitter's tables, built now rather than in the first callback
+        run(node, world, rig, args.duration, args.seed)
+    return 0
 
+
+def run(node: LocalizerNode, world: Map, rig: Rig, duration_s: float, seed: int) -> None:
+    """Feed the simulated robot's messages to the node, print what it says."""
     truth = (0.0, 0.0, 0.0)
     next_print = 0.0
-    for rec in simulate_records(world, rig, duration_s=args.duration, seed=args.seed):
+    for rec in simulate_records(world, rig, duration_s=duration_s, seed=seed):
         if isinstance(rec, RigRecord):
             node.set_rig(rec.sensors, rec.speed_of_sound_mps)  # the module says c
         elif isinstance(rec, InitRecord):
@@ -77,7 +92,6 @@ def main(argv: list[str] | None = None) -> int:
     mx, my, myaw = node.map_to_odom
     print(f"map->odom: ({mx:.3f}, {my:.3f}, {math.degrees(myaw):.2f} deg); "
           f"{node.stats.summary()}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -101,3 +101,13 @@ def test_embed_node(tmp_path: Path, seed: int):
     assert "map->odom" in out and "fused" in out
     shown = re.findall(r"^  t=.*$", out, re.M)  # the last landmarks, with their numbers
     assert shown and not any("nan" in line for line in shown), out
+
+
+def test_embed_node_with_a_fit_worker(tmp_path: Path):
+    # the robot's setting (README of the example): fits in a background worker, the
+    # same estimate quality at the end, the worker's batches counted
+    out = run_example("embed_node.py", "--duration", "12", "--fit-workers", "1",
+                      cwd=tmp_path).stdout
+    errors = [float(e) for e in re.findall(r"error\s+([\d.]+) cm", out)]
+    assert len(errors) == 13 and errors[-1] < 5.0, out
+    assert re.search(r"\b[1-9]\d* fit batches in workers", out), out
