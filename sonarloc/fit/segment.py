@@ -18,8 +18,8 @@ Association of an echo with an open segment (the one that explains it best):
   to one of those arc points within ``gate_us`` (jitter, threshold delay growth,
   ripple jumps). Motion of the transducer is accounted for by that distance. The arc
   is 7 points spaced ``beam_half_width_deg / 3`` apart, on purpose: the exact match
-  over the continuous arc (tried twice, commits a84a8dc and 389cadd, the second with
-  ``max_travel_m``) joins more ring neighbours' echoes into one segment (fewer
+  over the continuous arc (tried twice, the second with ``max_travel_m``; docs/history/
+  FITTING.md) joins more ring neighbours' echoes into one segment (fewer
   duplicate segments of a landmark) but the fit passes fewer of the merged segments
   (fewer ``OK`` landmarks, accuracy no better; docs/FITTING.md).
 
