@@ -37,6 +37,7 @@ pose source).
 from __future__ import annotations
 
 import argparse
+import copy
 import datetime
 import io
 import os
@@ -45,6 +46,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -96,6 +98,35 @@ def feature_errors(feats: list[BuiltFeature], world: Map, gate_m: float
             [(e, f.sd_m) for f, e in pairs if f.kind == "wall"])
 
 
+def rel_errors(feats: list[BuiltFeature], world: Map, gate_m: float
+               ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+    """(error, sd_rel_m) of the built points and walls with an ``sd_rel_m``."""
+    pairs = [(f, e) for f, e in maps_compare.feature_errors(feats, world, gate_m)
+             if np.isfinite(f.sd_rel_m)]
+    return ([(e, f.sd_rel_m) for f, e in pairs if f.kind != "wall"],
+            [(e, f.sd_rel_m) for f, e in pairs if f.kind == "wall"])
+
+
+def rel_row(label: str, errs: list[tuple[float, float]]) -> str:
+    if not errs:
+        return f"| {label} | 0 | - | - | - | - | - | - |"
+    e = np.array([x[0] for x in errs])
+    sd = np.array([x[1] for x in errs])
+    z = e / np.maximum(sd, 1e-12)
+    return (f"| {label} | {len(e)} | {np.mean(z**2):.2f} | {np.median(z):.2f} | "
+            f"{np.max(z):.2f} | {100 * np.mean(z > 3):.0f} % | {1000 * np.median(e):.1f} | "
+            f"{1000 * np.median(sd):.1f} |")
+
+
+def without_rel(built: dict[str, Any]) -> dict[str, Any]:
+    """The GeoJSON map without its ``sd_rel_m`` properties (what the Localizer used
+    before they were written: ``sd_m``)."""
+    out = copy.deepcopy(built)
+    for f in out["features"]:
+        f["properties"].pop("sd_rel_m", None)
+    return out
+
+
 def row(label: str, errs: list[tuple[float, float]], errs_aligned: list[tuple[float, float]],
         cpu_s: float) -> str:
     if not errs:
@@ -109,7 +140,7 @@ def row(label: str, errs: list[tuple[float, float]], errs_aligned: list[tuple[fl
             f"{1000 * np.median(ea):.1f} | {1000 * np.median(sd):.1f} | {cpu_s:.1f} |")
 
 
-def localize_against(built: dict[str, object], text: str, motion: np.ndarray
+def localize_against(built: dict[str, Any], text: str, motion: np.ndarray
                      ) -> tuple[float, float, float, float]:
     """Position RMSE [m] and mean pose NEES (x, y, yaw) of a drive localized (kuc)
     against the built map (GeoJSON object); then the same with the estimates moved by
@@ -161,6 +192,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     cpu: dict[str, float] = {s: 0.0 for s in args.sources}
     loc: dict[str, list[tuple[int, float, float, float, float]]] = {
         s: [] for s in args.sources}
+    loc_sd: dict[str, list[tuple[int, float, float, float, float]]] = {
+        s: [] for s in args.sources}
+    acc_rel: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
+        s: ([], []) for s in args.sources}
     second = simulate(world, args.localize_seed, args.duration) \
         if args.localize_seed is not None else None
     notes: list[str] = []
@@ -183,8 +218,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             p, w = feature_errors(maps_compare.moved(feats, motion), world, args.gate)
             acc_al[src][0].extend(p)
             acc_al[src][1].extend(w)
+            p, w = rel_errors(maps_compare.moved(feats, motion), world, args.gate)
+            acc_rel[src][0].extend(p)
+            acc_rel[src][1].extend(w)
             if second is not None:
-                loc[src].append((seed, *localize_against(res.geojson(), second, motion)))
+                built = res.geojson()
+                loc[src].append((seed, *localize_against(built, second, motion)))
+                if any("sd_rel_m" in f["properties"] for f in built["features"]):
+                    loc_sd[src].append((seed, *localize_against(without_rel(built), second,
+                                                                motion)))
     lines = [
         "# Built maps: is their `sd_m` honest?",
         "",
@@ -201,6 +243,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     for src, (p, w) in acc.items():
         pa, wa = acc_al[src]
         lines += [row(f"{src}: points", p, pa, cpu[src]), row(f"{src}: walls", w, wa, cpu[src])]
+    if any(p or w for p, w in acc_rel.values()):
+        lines += ["", "The SD relative to the map frame, `sd_rel_m` (written by builds from "
+                  "odometry, with or without SLAM), against the errors after the map's best "
+                  "rigid alignment onto the true one: z = aligned error / `sd_rel_m`.", "",
+                  "| build | n | NEES aligned | median z | max z | z > 3 | median aligned "
+                  "error (mm) | median sd_rel_m (mm) |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for src, (p, w) in acc_rel.items():
+            if p or w:
+                lines += [rel_row(f"{src}: points", p), rel_row(f"{src}: walls", w)]
     if second is not None:
         lines += ["", f"A second drive (seed {args.localize_seed}, {args.duration:.0f} s) "
                   "localized (kuc) against each built map: position RMSE against the truth, "
@@ -213,6 +265,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for src, rows_ in loc.items():
             lines += [f"| {src} | {s_} | {1000 * r_:.1f} | {n_:.1f} | {1000 * ra:.1f} | "
                       f"{na:.1f} |" for s_, r_, n_, ra, na in rows_]
+            lines += [f"| {src}, `sd_m` only | {s_} | {1000 * r_:.1f} | {n_:.1f} | "
+                      f"{1000 * ra:.1f} | {na:.1f} |" for s_, r_, n_, ra, na in loc_sd[src]]
     if notes:
         lines += [""] + [f"* {n}" for n in notes]
     lines += [

@@ -277,11 +277,14 @@ def test_pose_marginals_sparse_path_agrees_with_the_dense_inverse(monkeypatch):
 
     g, x = _random_graph(np.random.default_rng(4))
     _, jac, _, _ = g.linearize(x)
-    dense = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t)
+    args = (slam._rigid_generators(x, g), slam._alignment_rows(g))
+    dense, dense_rel = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t, *args)
     monkeypatch.setattr(slam, "_DENSE_MARGINALS", 0)
-    sparse = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t)
+    sparse, sparse_rel = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t, *args)
     np.testing.assert_allclose(sparse, dense, rtol=1e-8, atol=1e-12)
-    few = slam._pose_marginals(jac, g.n_nodes, 2, g.node_t)  # nodes 0 and 3, interpolated
+    np.testing.assert_allclose(sparse_rel, dense_rel, rtol=1e-8, atol=1e-12)
+    # nodes 0 and 3, interpolated
+    few, _ = slam._pose_marginals(jac, g.n_nodes, 2, g.node_t, *args)
     np.testing.assert_allclose(few[[0, 3]], dense[[0, 3]], rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(few[1], (2 * dense[0] + dense[3]) / 3, rtol=1e-8, atol=1e-12)
 
