@@ -1093,11 +1093,9 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
               gap_s: float = math.inf, odom_noise: OdomNoise = DEFAULT_ODOM_NOISE,
               joiner: OdomJoiner | None = None, reset_cov: Array | None = None,
               trace: OdomTrace | None = None
-              ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float,
-                                  Array | None] | None]:
-    """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c,
-    base pose cov relative to the map frame), and None where the odometry restarted
-    (the segments open then are to be closed).
+              ) -> Iterator[tuple[float, int, float, Array, Array | None, Array, float] | None]:
+    """Yield (t, sensor, tof_us, transducer pose in map, base pose cov, base pose, c),
+    and None where the odometry restarted (the segments open then are to be closed).
 
     Odometry is joined across resets and jumps (``joiner``, default limits:
     :class:`~sonarloc.localize.odomframe.OdomJoiner`), counted in ``result``: the
@@ -1109,9 +1107,7 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
     frame is the first odometry pose) carried along the odometry, each increment adding
     ``odom_noise`` (:func:`~sonarloc.localize.ekf.predict`), and ``reset_cov`` across a
     reset or jump (the motion across it is unknown), interpolated between odometry
-    records. Relative to the map frame it is the same less the ``init`` prior's part
-    (the dead reckoning's covariance given the ``init`` pose: the error of the map
-    frame itself, which all the readings share, left out); None with a pose track.
+    records.
 
     A reading without a pose is counted in ``result.skipped``, never given a made-up
     one: outside the pose track (``tof_outside_poses``; pose rows whose time went
@@ -1173,7 +1169,7 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
         return (1 - f) * odo_c[a] + f * odo_c[b]
 
     def emit(r: TofRecord) -> Iterator[tuple[float, int, float, Array, Array | None, Array,
-                                              float, Array | None]]:
+                                              float]]:
         """The reading placed, or nothing where it lies inside a gap of the poses that
         the robot moved across (counted: a pose interpolated over it is a guess)."""
         nonlocal anchored
@@ -1189,21 +1185,20 @@ def _readings(source: str | Path | IO[str], poses: PoseTrack | None, result: Bui
         mount = mounts[r.sensor]
         if r.pan_deg is not None:
             mount = mount + np.array([0.0, 0.0, math.radians(r.pan_deg)])
-        cov = cov_rel = None
+        cov = None
         if track is not None:
             base, cov = track.at(r.t_s)
         else:
             anchored = True
             first = odom_first if odom_first is not None else odo_p[0]
             rel = se2.between(first, odom_at(r.t_s))
-            cov = cov_rel = odom_cov_at(r.t_s)
+            cov = odom_cov_at(r.t_s)
             if init is not None:
                 j_init, j_rel = se2.compose_jacobians(init, rel)
-                cov_rel = j_rel @ cov @ j_rel.T
-                cov = j_init @ init_cov @ j_init.T + cov_rel
+                cov = j_init @ init_cov @ j_init.T + j_rel @ cov @ j_rel.T
             base = se2.compose(init, rel) if init is not None else rel
         tof = math.nan if r.tof_us is None else float(r.tof_us)
-        yield r.t_s, r.sensor, tof, se2.compose(base, mount), cov, base, c_mps, cov_rel
+        yield r.t_s, r.sensor, tof, se2.compose(base, mount), cov, base, c_mps
 
     for rec in iter_log(source, result.log):
         if isinstance(rec, RigRecord):
@@ -1332,7 +1327,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
     result = BuildResult(MapBuilder(cfg), LogStats(), method=how)
     seg: Segmenter | None = None
     fit_cfg: FitConfig | None = None
-    ref_cov: dict[float, tuple[Array, Array | None, Array | None]] = {}
+    ref_cov: dict[float, tuple[Array, Array | None]] = {}
     drift = poses is None  # dead reckoning: an error the sightings share
     joiner = OdomJoiner(cfg.odom_max_speed_mps, cfg.odom_max_yaw_rate_rad_s)
     reset_cov = np.diag([cfg.odom_reset_sd_m**2, cfg.odom_reset_sd_m**2,
@@ -1357,7 +1352,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
                 if closed:
                     add(closed)
             continue
-        t, sensor, tof, pose, cov, base, c_mps, cov_rel = item
+        t, sensor, tof, pose, cov, base, c_mps = item
         if seg is None or fit_cfg is None:
             fit_cfg = FitConfig(module=ModuleParams(c_mps=cfg.speed_of_sound_mps or c_mps))
             seg = Segmenter(SegmenterConfig(max_readings=cfg.segment_max_readings),
@@ -1372,7 +1367,7 @@ def build_from_log(source: str | Path | IO[str], poses: PoseTrack | None = None,
         else:
             watch.push_one(tof)
         if math.isfinite(tof):
-            ref_cov[t] = (base, cov, cov_rel)
+            ref_cov[t] = (base, cov)
             if len(ref_cov) > 20000:
                 for k in list(ref_cov)[:10000]:
                     del ref_cov[k]
@@ -1430,7 +1425,7 @@ def _slam(result: BuildResult, cfg: BuildConfig, trace: OdomTrace,
 
 
 def _add_segments(result: BuildResult, segments: list[Any], landmarks: list[Landmark],
-                  ref_cov: dict[float, tuple[Array, Array | None, Array | None]], drift: bool,
+                  ref_cov: dict[float, tuple[Array, Array | None]], drift: bool,
                   observations: list[Observation] | None = None) -> None:
     """Add the fitted landmarks; the poses' covariance in ``ref_cov`` is the dead
     reckoning's drift if ``drift`` (shared by the sightings), else each pose's own.
@@ -1444,15 +1439,14 @@ def _add_segments(result: BuildResult, segments: list[Any], landmarks: list[Land
         echo = np.isfinite(r.tof_us)
         view = np.array([np.mean(r.x_m[echo]), np.mean(r.y_m[echo])]) if echo.any() else \
             np.array(lm.ref_pose[:2])
-        base, cov, cov_rel = ref_cov.get(lm.ref_t_s, (None, None, None))
+        base, cov = ref_cov.get(lm.ref_t_s, (None, None))
         feet = None
         if lm.kind == "line":
             n = np.array([math.cos(lm.params[1]), math.sin(lm.params[1])])
             xy = np.stack([r.x_m[echo], r.y_m[echo]], axis=-1)
             feet = xy + (lm.params[0] - xy @ n)[:, None] * n
         if drift:
-            what = result.builder.add(lm, view, base, None, feet, drift_cov=cov,
-                                      drift_rel_cov=cov_rel)
+            what = result.builder.add(lm, view, base, None, feet, drift_cov=cov)
         else:
             what = result.builder.add(lm, view, base, cov, feet)
         if observations is not None and base is not None and what in ("point", "wall"):

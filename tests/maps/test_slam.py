@@ -173,6 +173,7 @@ def test_a_log_without_a_loop_closure_falls_back(loop_records):
     assert "SLAM fell back to the odometry" in res.summary()
     obj = res.geojson()
     map_from_geojson(obj)
+    assert not any("sd_rel_m" in f["properties"] for f in obj["features"])
     assert "NaN" not in json.dumps(obj)
 
 
