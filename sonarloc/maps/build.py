@@ -48,7 +48,14 @@ merged ``kappa_us``. A point's own part is scaled by the fit's reduced chi-squar
 above 1 (sightings scattering beyond their stated SDs). The poses' errors are in it:
 a pose track's covariance as each sighting's own error; without a track, the dead
 reckoning's covariance (the ``init`` prior carried along the odometry with
-``odom_noise``), an error the sightings share, kept whole (:class:`_Drift`).
+``odom_noise``), an error the sightings share, kept whole (:class:`_Drift`); with SLAM,
+the optimized poses' marginal covariances, the same way. A SLAM build also writes
+``sd_rel_m``: the same SD from the poses' covariances relative to the map frame (the
+error of the frame itself, which all features share, taken out:
+:func:`sonarloc.maps.slam._pose_marginals`); the Localizer uses it instead of ``sd_m``.
+A dead-reckoned build writes none (its drift is the map's shape error: given the
+``init`` pose it is honest in that pose's frame but not after the map's best rigid
+alignment, docs/MAPS.md).
 """
 
 from __future__ import annotations

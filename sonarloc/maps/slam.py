@@ -60,7 +60,12 @@ Uncertainty
 The poses' marginal covariances come from the information matrix at the solution
 (sparse LU, solved for the node columns); a built feature carries them as an error its
 sightings share (the init prior's error and the drift left are common to all), as
-the dead reckoning's covariance is carried (:class:`sonarloc.maps.build._Drift`).
+the dead reckoning's covariance is carried (:class:`sonarloc.maps.build._Drift`), in
+its ``sd_m``. Most of that is the map frame's own error (the init prior's), which moves
+every feature alike; the poses' covariances *relative to the map frame* (the rigid
+motion of the frame that best fits the landmarks' errors taken out, whatever the
+prior: :func:`_pose_marginals`) go the same way into the features' ``sd_rel_m``, the
+map error the Localizer uses.
 """
 
 from __future__ import annotations
@@ -174,15 +179,16 @@ class OdomTrace:
 class SlamResult:
     """What :func:`optimize` found (``ok`` False: it did not, ``reason`` says why).
 
-    ``node_t`` (N,) [s], ``node_dr`` (N, 3) the dead-reckoned poses, ``node_pose`` (N, 3)
-    the optimized ones, ``node_cov`` (N, 3, 3) their marginal covariances (map frame of
-    the observations' ``base``). ``moved_m`` / ``moved_deg``: the largest difference of
-    an optimized pose from the dead reckoning; ``last_move_m`` / ``last_move_deg``: the
-    largest change in the last round. ``chi2_odom`` / ``chi2_obs``: mean squared
-    whitened residual per degree of freedom of the odometry factors and of the
-    observation factors within the Huber threshold (about 1 when the stated noise is
-    honest); ``outliers``: observations beyond it (down-weighted); ``associated``:
-    observations in the graph (of ``observations``).
+    ``node_t`` (N,) [s], ``node_dr`` (N, 3) the dead-reckoned poses, ``node_pose`` (N,
+    3) the optimized ones, ``node_cov`` (N, 3, 3) their marginal covariances (map frame
+    of the observations' ``base``), ``node_cov_rel`` (N, 3, 3) the same relative to the
+    map frame (its error against the world, common to all, taken out). ``moved_m`` /
+    ``moved_deg``: the largest difference of an optimized pose from the dead reckoning;
+    ``last_move_m`` / ``last_move_deg``: the largest change in the last round.
+    ``chi2_odom`` / ``chi2_obs``: mean squared whitened residual per degree of freedom
+    of the odometry factors and of the observation factors within the Huber threshold
+    (about 1 when the stated noise is honest); ``outliers``: observations beyond it
+    (down-weighted); ``associated``: observations in the graph (of ``observations``).
     """
 
     ok: bool
