@@ -179,9 +179,9 @@ class OdomTrace:
 class SlamResult:
     """What :func:`optimize` found (``ok`` False: it did not, ``reason`` says why).
 
-    ``node_t`` (N,) [s], ``node_dr`` (N, 3) the dead-reckoned poses, ``node_pose`` (N,
-    3) the optimized ones, ``node_cov`` (N, 3, 3) their marginal covariances (map frame
-    of the observations' ``base``), ``node_cov_rel`` (N, 3, 3) the same relative to the
+    ``node_t`` (N,) [s], ``node_dr`` (N, 3) the dead-reckoned poses, ``node_pose``
+    (N, 3) the optimized ones, ``node_cov`` (N, 3, 3) their marginal covariances (map
+    frame of the observations' ``base``), ``node_cov_rel`` (N, 3, 3) the same relative to the
     map frame (its error against the world, common to all, taken out). ``moved_m`` /
     ``moved_deg``: the largest difference of an optimized pose from the dead reckoning;
     ``last_move_m`` / ``last_move_deg``: the largest change in the last round.
