@@ -887,6 +887,7 @@ def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array,
     if dense:
         inv = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h.toarray()), np.eye(h.shape[0]))
         cov = np.stack([inv[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
+        cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
         def solve(rhs: Array) -> Array:
             return np.asarray(inv @ rhs)
@@ -912,6 +913,7 @@ def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array,
     if not dense:
         pick = np.unique(np.linspace(0, n - 1, min(n, max_nodes)).round().astype(np.int64))
         cov_p = blocks(3 * pick, 3)
+        cov_p = 0.5 * (cov_p + np.swapaxes(cov_p, 1, 2))
         if len(pick) == n:
             cov = cov_p
         else:
@@ -920,7 +922,6 @@ def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array,
             for a in range(3):
                 for b in range(3):
                     cov[:, a, b] = np.interp(node_t, tp, cov_p[:, a, b])
-    cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
 
     def relative(idx: NDArray[np.int64], blk: Array, wg: Array) -> Array:
         """Blocks ``blk`` (k, d, d) of H⁻¹ at the rows ``idx`` (k, d), less the rigid
@@ -942,10 +943,13 @@ def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array,
         # prior on node 0 says: the weights, too, are the map's shape's)
         lm_cov = np.stack([inv[np.ix_(p, p)] for p in pairs]) if dense else \
             blocks(pairs[:, 0], 2)
-        info = np.linalg.inv(relative(pairs, lm_cov, wg0))
+        lm_rel = relative(pairs, lm_cov, wg0)
         wg = np.zeros_like(gen)
-        wg[pairs.reshape(-1)] = (info @ gen[pairs]).reshape(-1, 3)
+        if np.all(np.linalg.eigvalsh(lm_rel)[:, 0] > 0):
+            wg[pairs.reshape(-1)] = np.linalg.solve(lm_rel, gen[pairs]).reshape(-1, 3)
         if np.linalg.cond(gen.T @ wg) > 1e12:  # no rigid motion fixed: node 0's
             wg = wg0
     node_rows = 3 * np.arange(n)[:, None] + np.arange(3)
-    return cov, relative(node_rows, cov, wg)
+    rel = relative(node_rows, cov, wg)
+    # (the marginals themselves where that fails: no frame error taken out)
+    return cov, rel if np.all(np.isfinite(rel)) else cov
