@@ -863,6 +863,18 @@ def _alignment_rows(g: _Graph) -> NDArray[np.int64]:
     return np.array([[o, o + 1] for o in offsets], dtype=np.int64).reshape(-1, 2)
 
 
+def _interpolated(node_t: Array, pick: NDArray[np.int64], blocks: Array) -> Array:
+    """(n, 3, 3) blocks given at the nodes ``pick`` (increasing) linearly interpolated in
+    time to every node (``blocks`` itself if every node is picked)."""
+    if len(pick) == len(node_t):
+        return blocks
+    out = np.empty((len(node_t), 3, 3))
+    for a in range(3):
+        for b in range(3):
+            out[:, a, b] = np.interp(node_t, node_t[pick], blocks[:, a, b])
+    return out
+
+
 def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array,
                     gen: Array, pairs: NDArray[np.int64]) -> tuple[Array, Array]:
     """(n, 3, 3) marginal covariances of the nodes, and the same relative to the map
@@ -910,18 +922,12 @@ def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array,
             out += [sol[r:r + d, d * j:d * j + d] for j, r in enumerate(part)]
         return np.stack(out) if out else np.zeros((0, d, d))
 
+    pick = np.arange(n)
     if not dense:
         pick = np.unique(np.linspace(0, n - 1, min(n, max_nodes)).round().astype(np.int64))
         cov_p = blocks(3 * pick, 3)
         cov_p = 0.5 * (cov_p + np.swapaxes(cov_p, 1, 2))
-        if len(pick) == n:
-            cov = cov_p
-        else:
-            cov = np.empty((n, 3, 3))
-            tp = node_t[pick]
-            for a in range(3):
-                for b in range(3):
-                    cov[:, a, b] = np.interp(node_t, tp, cov_p[:, a, b])
+        cov = _interpolated(node_t, pick, cov_p)
 
     def relative(idx: NDArray[np.int64], blk: Array, wg: Array) -> Array:
         """Blocks ``blk`` (k, d, d) of H⁻¹ at the rows ``idx`` (k, d), less the rigid
@@ -949,7 +955,8 @@ def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array,
             wg[pairs.reshape(-1)] = np.linalg.solve(lm_rel, gen[pairs]).reshape(-1, 3)
         if np.linalg.cond(gen.T @ wg) > 1e12:  # no rigid motion fixed: node 0's
             wg = wg0
-    node_rows = 3 * np.arange(n)[:, None] + np.arange(3)
-    rel = relative(node_rows, cov, wg)
+    # at the nodes solved for, then interpolated as the marginals are (their own
+    # interpolation error would be the size of the frame-relative part)
+    rel = _interpolated(node_t, pick, relative(3 * pick[:, None] + np.arange(3), cov[pick], wg))
     # (the marginals themselves where that fails: no frame error taken out)
     return cov, rel if np.all(np.isfinite(rel)) else cov

@@ -285,9 +285,14 @@ def test_pose_marginals_sparse_path_agrees_with_the_dense_inverse(monkeypatch):
     np.testing.assert_allclose(sparse, dense, rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(sparse_rel, dense_rel, rtol=1e-8, atol=1e-12)
     # nodes 0 and 3, interpolated
-    few, _ = slam._pose_marginals(jac, g.n_nodes, 2, g.node_t, *args)
+    few, few_rel = slam._pose_marginals(jac, g.n_nodes, 2, g.node_t, *args)
     np.testing.assert_allclose(few[[0, 3]], dense[[0, 3]], rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(few[1], (2 * dense[0] + dense[3]) / 3, rtol=1e-8, atol=1e-12)
+    # the frame-relative ones solved at those nodes too, and interpolated (not taken
+    # from the interpolated marginals: their error would swamp them)
+    np.testing.assert_allclose(few_rel[[0, 3]], dense_rel[[0, 3]], rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(few_rel[2], (dense_rel[0] + 2 * dense_rel[3]) / 3, rtol=1e-8,
+                               atol=1e-12)
 
 
 @pytest.mark.parametrize("kind", ["point", "line"])
