@@ -24,9 +24,17 @@ that error whole (a rotation of 2 deg moves a feature 5 m away by 17 cm), and it
 motion of the built map onto the true one (least squares over the matched points'
 centres), the map's own shape error. CPU: seconds of the builds, per seed.
 
+A SLAM build also writes each feature's SD relative to the map frame, ``sd_rel_m``
+(the frame's error against the world, which all the features share, taken out): a
+second table divides the aligned errors by it (NEES aligned; honest: points 1-2,
+walls about 1).
+
 ``--localize-seed S``: a second drive (seed S) is localized (``sonarloc localize``,
 kuc) against every built map, its init record in the true frame: position RMSE against
-the simulator's truth and the mean pose NEES (x, y, yaw: 3 when honest).
+the simulator's truth and the mean pose NEES (x, y, yaw: 3 when honest). The Localizer
+takes a feature's ``sd_rel_m`` as its map error where the map gives one, else its
+``sd_m``: rows "``sd_m`` only" localize against the same map without ``sd_rel_m`` (as
+before it was written).
 
 Run: ``python benchmarks/bench_map_sd.py [--seeds 200 201] [--duration 174] [--quick]
 [--localize-seed 202]``
@@ -37,14 +45,17 @@ pose source).
 from __future__ import annotations
 
 import argparse
+import copy
 import datetime
 import io
+import math
 import os
 import platform
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -96,6 +107,35 @@ def feature_errors(feats: list[BuiltFeature], world: Map, gate_m: float
             [(e, f.sd_m) for f, e in pairs if f.kind == "wall"])
 
 
+def rel_errors(feats: list[BuiltFeature], world: Map, gate_m: float
+               ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+    """(error, sd_rel_m) of the built points and walls with an ``sd_rel_m``."""
+    pairs = [(f, e) for f, e in maps_compare.feature_errors(feats, world, gate_m)
+             if np.isfinite(f.sd_rel_m)]
+    return ([(e, f.sd_rel_m) for f, e in pairs if f.kind != "wall"],
+            [(e, f.sd_rel_m) for f, e in pairs if f.kind == "wall"])
+
+
+def rel_row(label: str, errs: list[tuple[float, float]]) -> str:
+    if not errs:
+        return f"| {label} | 0 | - | - | - | - | - | - |"
+    e = np.array([x[0] for x in errs])
+    sd = np.array([x[1] for x in errs])
+    z = e / np.maximum(sd, 1e-12)
+    return (f"| {label} | {len(e)} | {np.mean(z**2):.2f} | {np.median(z):.2f} | "
+            f"{np.max(z):.2f} | {100 * np.mean(z > 3):.0f} % | {1000 * np.median(e):.1f} | "
+            f"{1000 * np.median(sd):.1f} |")
+
+
+def without_rel(built: dict[str, Any]) -> dict[str, Any]:
+    """The GeoJSON map without its ``sd_rel_m`` properties (what the Localizer used
+    before they were written: ``sd_m``)."""
+    out = copy.deepcopy(built)
+    for f in out["features"]:
+        f["properties"].pop("sd_rel_m", None)
+    return out
+
+
 def row(label: str, errs: list[tuple[float, float]], errs_aligned: list[tuple[float, float]],
         cpu_s: float) -> str:
     if not errs:
@@ -109,11 +149,17 @@ def row(label: str, errs: list[tuple[float, float]], errs_aligned: list[tuple[fl
             f"{1000 * np.median(ea):.1f} | {1000 * np.median(sd):.1f} | {cpu_s:.1f} |")
 
 
-def localize_against(built: dict[str, object], text: str, motion: np.ndarray
-                     ) -> tuple[float, float, float, float]:
+#: the "steady" columns leave out the localizer's first minute (its init record is in
+#: the true frame: the estimate moves into the built map's frame, centimetres away)
+STEADY_AFTER_S = 60.0
+
+
+def localize_against(built: dict[str, Any], text: str, motion: np.ndarray
+                     ) -> tuple[float, float, float, float, float, float]:
     """Position RMSE [m] and mean pose NEES (x, y, yaw) of a drive localized (kuc)
     against the built map (GeoJSON object); then the same with the estimates moved by
-    ``motion`` (the map's alignment onto the true one: errors relative to the map)."""
+    ``motion`` (the map's alignment onto the true one: errors relative to the map),
+    over the whole drive and after :data:`STEADY_AFTER_S`."""
     truth = {r.t_s: np.array([r.x_m, r.y_m, np.radians(r.yaw_deg)])
              for r in iter_log(io.StringIO(text)) if isinstance(r, TruthRecord)}
     rows: list[tuple[float, np.ndarray, np.ndarray]] = []
@@ -130,9 +176,13 @@ def localize_against(built: dict[str, object], text: str, motion: np.ndarray
     j = se2.compose_jacobians(motion, est)[1]
     cov_a = j @ cov @ np.swapaxes(j, 1, 2)
     nees_a = np.einsum("ni,ni->n", err_a, np.linalg.solve(cov_a, err_a[..., None])[..., 0])
+    t = np.array([t for t, _, _ in rows if t in truth])
+    late = t >= t[0] + STEADY_AFTER_S
     return (float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1)))), float(np.mean(nees)),
             float(np.sqrt(np.mean(np.sum(err_a[:, :2] ** 2, axis=1)))),
-            float(np.mean(nees_a)))
+            float(np.mean(nees_a)),
+            float(np.sqrt(np.mean(np.sum(err_a[late, :2] ** 2, axis=1)))) if late.any()
+            else math.nan, float(np.mean(nees_a[late])) if late.any() else math.nan)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -159,8 +209,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     acc_al: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
         s: ([], []) for s in args.sources}
     cpu: dict[str, float] = {s: 0.0 for s in args.sources}
-    loc: dict[str, list[tuple[int, float, float, float, float]]] = {
+    loc: dict[str, list[tuple[int, float, float, float, float, float, float]]] = {
         s: [] for s in args.sources}
+    loc_sd: dict[str, list[tuple[int, float, float, float, float, float, float]]] = {
+        s: [] for s in args.sources}
+    acc_rel: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
+        s: ([], []) for s in args.sources}
     second = simulate(world, args.localize_seed, args.duration) \
         if args.localize_seed is not None else None
     notes: list[str] = []
@@ -183,8 +237,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             p, w = feature_errors(maps_compare.moved(feats, motion), world, args.gate)
             acc_al[src][0].extend(p)
             acc_al[src][1].extend(w)
+            p, w = rel_errors(maps_compare.moved(feats, motion), world, args.gate)
+            acc_rel[src][0].extend(p)
+            acc_rel[src][1].extend(w)
             if second is not None:
-                loc[src].append((seed, *localize_against(res.geojson(), second, motion)))
+                built = res.geojson()
+                loc[src].append((seed, *localize_against(built, second, motion)))
+                if any("sd_rel_m" in f["properties"] for f in built["features"]):
+                    loc_sd[src].append((seed, *localize_against(without_rel(built), second,
+                                                                motion)))
     lines = [
         "# Built maps: is their `sd_m` honest?",
         "",
@@ -201,18 +262,35 @@ def main(argv: Sequence[str] | None = None) -> int:
     for src, (p, w) in acc.items():
         pa, wa = acc_al[src]
         lines += [row(f"{src}: points", p, pa, cpu[src]), row(f"{src}: walls", w, wa, cpu[src])]
+    if any(p or w for p, w in acc_rel.values()):
+        lines += ["", "The SD relative to the map frame, `sd_rel_m` (written by SLAM builds: "
+                  "the optimized poses' covariance less the rigid motion of the frame that "
+                  "best fits the landmarks), against the errors after the map's best rigid "
+                  "alignment onto the true one: z = aligned error / `sd_rel_m`.", "",
+                  "| build | n | NEES aligned | median z | max z | z > 3 | median aligned "
+                  "error (mm) | median sd_rel_m (mm) |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for src, (p, w) in acc_rel.items():
+            if p or w:
+                lines += [rel_row(f"{src}: points", p), rel_row(f"{src}: walls", w)]
     if second is not None:
         lines += ["", f"A second drive (seed {args.localize_seed}, {args.duration:.0f} s) "
                   "localized (kuc) against each built map: position RMSE against the truth, "
                   "mean pose NEES (x, y, yaw; 3 when honest); then the same with the "
                   "estimates moved by the map's best rigid alignment onto the true map "
                   "(errors relative to the map: its frame's error, from the init prior, "
-                  "taken out).", "",
+                  "taken out). The Localizer uses a feature's `sd_rel_m` where the map has "
+                  "one, else its `sd_m`; rows \"`sd_m` only\": the same map without "
+                  f"`sd_rel_m`. Steady: from {STEADY_AFTER_S:.0f} s on (the localizer starts "
+                  "in the true frame, centimetres from the built map's).", "",
                   "| map | built from seed | RMSE (mm) | NEES | RMSE aligned (mm) | "
-                  "NEES aligned |", "|---|---:|---:|---:|---:|---:|"]
+                  "NEES aligned | steady: RMSE aligned (mm) | NEES aligned |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
         for src, rows_ in loc.items():
-            lines += [f"| {src} | {s_} | {1000 * r_:.1f} | {n_:.1f} | {1000 * ra:.1f} | "
-                      f"{na:.1f} |" for s_, r_, n_, ra, na in rows_]
+            for label, rr in ((src, rows_), (f"{src}, `sd_m` only", loc_sd[src])):
+                lines += [f"| {label} | {s_} | {1000 * r_:.1f} | {n_:.1f} | "
+                          f"{1000 * ra:.1f} | {na:.1f} | {1000 * rs:.1f} | {ns:.1f} |"
+                          for s_, r_, n_, ra, na, rs, ns in rr]
     if notes:
         lines += [""] + [f"* {n}" for n in notes]
     lines += [

@@ -66,9 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--map-sd", type=float, metavar="M", default=None,
                         help="SD of the map's feature positions in metres (a map measured "
                              "with a tape: 0.01), the map error shared by the readings of "
-                             "an update; a feature's own sd_m (written by `map build`) is "
-                             "used where larger (default 0: the map taken as exact unless "
-                             "it says otherwise)")
+                             "an update; a feature's own sd_rel_m or else sd_m (written "
+                             "by `map build`) is used where larger (default 0: the map "
+                             "taken as exact unless it says otherwise)")
     add_reading_limit_options(parser, like="fit")
     parser.add_argument("--quiet", action="store_true", help="no summary on stderr")
 

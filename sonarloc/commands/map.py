@@ -11,7 +11,9 @@ alone and the summary says why; --method odometry always does (dead reckoning: i
 drifts). The map frame is the init pose's: its error (the init record's SDs) is in
 every feature's position and sd_m. Wall fits on one line are merged into walls, point fits
 into poles, rods, corners, edges and points; each feature carries its uncertainty
-(sd_m, and sd_alpha_deg for walls) and how often it was seen (n_obs). The map loads
+(sd_m, and sd_alpha_deg for walls; with SLAM also sd_rel_m, the SD relative to the
+map frame, its error taken out, which `sonarloc localize` uses) and how often it was
+seen (n_obs). The map loads
 with load_map and works in `sonarloc localize`. A summary goes to stderr; readings
 without a pose (outside POSES.csv's time span, after the last odometry) are counted
 there, never given the nearest pose. POSES.csv must be base_link poses: a scan CSV

@@ -44,9 +44,12 @@ class FeatureMap:
         infinite line (rho >= 0 from the map origin); wall_kappa_us : (W,); wall_kind,
         wall_id : W labels.
     point_sd_m, wall_sd_m : (P,), (W,) SD of each feature's position [m] as the map file
-        gives it (the ``sd_m`` property that ``map build`` writes; NaN: not given): the
-        map error :class:`~sonarloc.localize.localizer.Localizer` adds to the readings
-        of one update (``LocalizerConfig.map_sd_m``).
+        gives it (NaN: not given): its ``sd_rel_m`` property (the SD relative to the map
+        frame) where given, else its ``sd_m`` (``map build`` writes both; docs/MAPS.md):
+        the map error :class:`~sonarloc.localize.localizer.Localizer` adds to the
+        readings of one update (``LocalizerConfig.map_sd_m``). The Localizer estimates
+        the pose in the map's frame, so an error of that frame, which all the features
+        share, is not an error of a feature there.
     """
 
     point_xy: Array
@@ -255,12 +258,17 @@ def _lines(ends: Array) -> Array:
 
 
 def _sd_m(world_map: Map, feature: int) -> float:
-    """The ``sd_m`` property of source feature ``feature`` (NaN when absent or not a
-    non-negative finite number)."""
+    """The position SD of source feature ``feature`` in the map's frame: its
+    ``sd_rel_m`` property, else its ``sd_m`` (NaN when neither is a non-negative finite
+    number)."""
     if not 0 <= feature < len(world_map.features):
         return math.nan
-    v = world_map.features[feature].properties.get("sd_m")
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return math.nan
-    v = float(v)
-    return v if math.isfinite(v) and v >= 0 else math.nan
+    props = world_map.features[feature].properties
+    for name in ("sd_rel_m", "sd_m"):
+        v = props.get(name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        v = float(v)
+        if math.isfinite(v) and v >= 0:
+            return v
+    return math.nan

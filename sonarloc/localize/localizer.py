@@ -235,8 +235,9 @@ class LocalizerConfig:
     map_sd_m : SD [m] of a map feature's position: an error shared by the readings of
         one update (added to every element of their covariance; to the range, rho or
         position variance of a conventional reading or fitted landmark). The larger of
-        this and the feature's own ``sd_m`` (a map property ``map build`` writes;
-        :attr:`FeatureMap.point_sd_m`) is used. Default 0: the map taken as exact,
+        this and the feature's own SD (its ``sd_rel_m``, relative to the map frame, else
+        its ``sd_m``: map properties ``map build`` writes; :attr:`FeatureMap.point_sd_m`)
+        is used. Default 0: the map taken as exact,
         unless it says otherwise (the simulated maps are: 3 mm costs the moving drives
         of ``benchmarks/bench_localize.py`` 10-18 % of their steady accuracy).
     update_min_d, update_min_a : a map feature is fused again only once the transducer
@@ -1606,7 +1607,8 @@ class Localizer:
 
     def map_var_m2(self, kind: str | None, index: int) -> float:
         """Variance [m²] of map feature (``kind``, ``index``)'s position: the larger of its
-        ``sd_m`` (if the map gives one) and ``LocalizerConfig.map_sd_m``, squared."""
+        SD (``sd_rel_m`` or else ``sd_m``, if the map gives one) and
+        ``LocalizerConfig.map_sd_m``, squared."""
         sd = self.fmap.sd_m(kind, index)
         return max(sd if math.isfinite(sd) else 0.0, self.config.map_sd_m) ** 2
 

@@ -48,7 +48,14 @@ merged ``kappa_us``. A point's own part is scaled by the fit's reduced chi-squar
 above 1 (sightings scattering beyond their stated SDs). The poses' errors are in it:
 a pose track's covariance as each sighting's own error; without a track, the dead
 reckoning's covariance (the ``init`` prior carried along the odometry with
-``odom_noise``), an error the sightings share, kept whole (:class:`_Drift`).
+``odom_noise``), an error the sightings share, kept whole (:class:`_Drift`); with SLAM,
+the optimized poses' marginal covariances, the same way. A SLAM build also writes
+``sd_rel_m``: the same SD from the poses' covariances relative to the map frame (the
+error of the frame itself, which all features share, taken out:
+:func:`sonarloc.maps.slam._pose_marginals`); the Localizer uses it instead of ``sd_m``.
+A dead-reckoned build writes none (its drift is the map's shape error: given the
+``init`` pose it is honest in that pose's frame but not after the map's best rigid
+alignment, docs/MAPS.md).
 """
 
 from __future__ import annotations
@@ -239,6 +246,8 @@ class _PointCluster:
     #: sum of q_i' C_i⁻¹ q_i (for the fit's chi-square)
     zwz: float = 0.0
     drift: _Drift = field(default_factory=lambda: _Drift())
+    #: the drift relative to the map frame (its common error taken out; :class:`_Drift`)
+    drift_rel: _Drift = field(default_factory=lambda: _Drift())
     #: Σ Aᵢᵀ Cᵢ⁻¹ Fᵢ Cᵢ⁻¹ Aᵢ (+ the prior), Fᵢ the fit's own covariance (Cᵢ less the
     #: drift): the middle of the sandwich covariance of the fit's own error
     middle: Array | None = None
@@ -282,6 +291,7 @@ class _PointCluster:
         self.rhs += other.rhs
         self.zwz += other.zwz
         self.drift = self.drift.merged(other.drift)
+        self.drift_rel = self.drift_rel.merged(other.drift_rel)
         self.n += other.n
         self.log_kappas.extend(other.log_kappas)
         self.u_sum += other.u_sum
@@ -354,6 +364,8 @@ class _WallCluster:
     visits: _Visits = field(default_factory=_Visits)
     #: dead-reckoning covariance of (rho, alpha), in this cluster's branch
     drift: _Drift = field(default_factory=lambda: _Drift())
+    #: the same relative to the map frame (its common error taken out)
+    drift_rel: _Drift = field(default_factory=lambda: _Drift())
 
     def scatter(self) -> float:
         """Chi-square per degree of freedom of the member fits about the merged line."""
@@ -396,14 +408,20 @@ class BuiltFeature:
     #: a wall's across-line variance [m²] at a point p on it: ``c0 + c1 t + c2 t²`` with
     #: t = p · d [m] along the unit direction d = (dx, dy): (c0, c1, c2, dx, dy)
     offset_var: tuple[float, float, float, float, float] | None = None
+    #: the SD [m] relative to the map frame (``sd_m`` less the error all features share,
+    #: the map frame's own against the world: see the module docstring); NaN: not known
+    sd_rel_m: float = math.nan
+    #: a wall's ``offset_var`` relative to the map frame
+    offset_var_rel: tuple[float, float, float, float, float] | None = None
 
     def end_sd(self, ends: Array) -> float:
         """A wall's SD [m] across its line at the worse of its ends ``ends`` (2, 2)."""
-        if self.offset_var is None:
-            return self.sd_m
-        c0, c1, c2, dx, dy = self.offset_var
-        t = np.asarray(ends, dtype=float) @ np.array([dx, dy])
-        return float(np.sqrt(np.max(np.maximum(c0 + c1 * t + c2 * t**2, 0.0))))
+        return self.sd_m if self.offset_var is None else _end_sd(self.offset_var, ends)
+
+    def end_sd_rel(self, ends: Array) -> float:
+        """:meth:`end_sd` relative to the map frame (``sd_rel_m``)."""
+        return self.sd_rel_m if self.offset_var_rel is None else \
+            _end_sd(self.offset_var_rel, ends)
 
     def geojson(self, fid: str) -> dict[str, Any]:
         geom: dict[str, Any]
@@ -411,6 +429,8 @@ class BuiltFeature:
                                  "kappa_us": round(self.kappa_us, 4),
                                  "sd_m": round(self.sd_m, 5), "n_obs": self.n_obs,
                                  "n_visits": self.n_visits}
+        if math.isfinite(self.sd_rel_m):
+            props["sd_rel_m"] = round(self.sd_rel_m, 5)
         if self.kind == "wall":
             props["sd_alpha_deg"] = round(self.sd_alpha_deg, 4)
             props["vertices"] = "none"  # corners are explicit points; free ends are not edges
@@ -423,6 +443,25 @@ class BuiltFeature:
             geom = {"type": "Point",
                     "coordinates": [round(float(v), 5) for v in self.coords.tolist()]}
         return {"type": "Feature", "properties": props, "geometry": geom}
+
+
+def _offset_var(sd_rho: float, sd_alpha: float, t_c: float, d: Array, drift: Array
+                ) -> tuple[float, float, float, float, float]:
+    """A wall's across-line variance at t (:attr:`BuiltFeature.offset_var`): the fit's
+    (``sd_rho`` at the feet's centroid ``t_c``, the direction's ``sd_alpha`` about it)
+    plus the drift's (rho, alpha) covariance ``drift`` (2, 2) at the origin:
+    offset(t) = d_rho - t d_alpha; ``d`` (2,) the unit direction."""
+    return (sd_rho**2 + t_c**2 * sd_alpha**2 + float(drift[0, 0]),
+            -2.0 * t_c * sd_alpha**2 - 2.0 * float(drift[0, 1]),
+            sd_alpha**2 + float(drift[1, 1]), float(d[0]), float(d[1]))
+
+
+def _end_sd(offset_var: tuple[float, float, float, float, float], ends: Array) -> float:
+    """SD [m] across a wall's line at the worse of ``ends`` (2, 2), from its across-line
+    variance ``c0 + c1 t + c2 t²`` (:attr:`BuiltFeature.offset_var`)."""
+    c0, c1, c2, dx, dy = offset_var
+    t = np.asarray(ends, dtype=float) @ np.array([dx, dy])
+    return float(np.sqrt(np.max(np.maximum(c0 + c1 * t + c2 * t**2, 0.0))))
 
 
 class MapBuilder:
@@ -444,12 +483,15 @@ class MapBuilder:
         self.walls: list[_WallCluster] = []
         self.stats: Counter[str] = Counter()
         self.origin = np.asarray(origin, dtype=float).reshape(2).copy()
+        #: whether a sighting gave its drift relative to the map frame (:meth:`add`'s
+        #: ``drift_rel_cov``): the features then carry ``sd_rel_m``
+        self.frame_relative = False
         if not np.all(np.isfinite(self.origin)):
             raise ValueError(f"`origin` must be two finite numbers, got {origin!r}")
 
     def add(self, lm: Landmark, view_xy: Array, pose: Array | None = None,
             pose_cov: Array | None = None, feet: Array | None = None,
-            drift_cov: Array | None = None) -> str:
+            drift_cov: Array | None = None, drift_rel_cov: Array | None = None) -> str:
         """Add one landmark in ``map``.
 
         ``view_xy``: (2,) where the transducer saw it from (mean echo position);
@@ -458,7 +500,11 @@ class MapBuilder:
         ``feet``: (k, 2) normal-incidence points of a wall's echoes (its extent);
         ``drift_cov``: (3, 3) covariance of the pose's dead-reckoning drift (with
         ``pose``), an error shared with the other sightings of the feature: it weights
-        this sighting and is kept whole in the feature's ``sd_m`` (:class:`_Drift`).
+        this sighting and is kept whole in the feature's ``sd_m`` (:class:`_Drift`);
+        ``drift_rel_cov``: (3, 3) the part of it relative to the map frame (the error
+        all the map's features share taken out), kept whole in the feature's
+        ``sd_rel_m`` (written once any sighting of the build gave it; a sighting
+        without it counts its whole ``drift_cov`` there).
         Returns what happened: ``point``, ``wall`` (joined or new) or the reason it was
         skipped.
         """
@@ -479,16 +525,21 @@ class MapBuilder:
             self.stats["skipped_vague"] += 1
             return "skipped_vague"
         drift = np.zeros((2, 2))
+        drift_rel = drift
         if pose is not None and drift_cov is not None and np.all(np.isfinite(drift_cov)):
             jac = _pose_jacobian(lm.kind, p, pose)
             drift = jac @ np.asarray(drift_cov, dtype=float) @ jac.T
             cov = cov + drift
+            drift_rel = drift
+            if drift_rel_cov is not None and np.all(np.isfinite(drift_rel_cov)):
+                drift_rel = jac @ np.asarray(drift_rel_cov, dtype=float) @ jac.T
+                self.frame_relative = True
         log_k = math.log(p[2])
         if lm.kind == "point":
             self._add_point(p[:2], cov, np.asarray(view_xy, dtype=float), log_k, lm.ref_t_s,
-                            drift)
+                            drift, drift_rel)
             return "point"
-        self._add_wall(p[0], p[1], cov, feet, log_k, lm.ref_t_s, drift)
+        self._add_wall(p[0], p[1], cov, feet, log_k, lm.ref_t_s, drift, drift_rel)
         return "wall"
 
     VAGUE_GATES = 10.0
@@ -511,7 +562,7 @@ class MapBuilder:
         return bool(var.max() > 1.0 or np.linalg.eigvalsh(cov)[0] <= 0.0)
 
     def _add_point(self, q: Array, cov: Array, view: Array, log_k: float,
-                   t_s: float, drift: Array) -> None:
+                   t_s: float, drift: Array, drift_rel: Array) -> None:
         cfg = self.config
         v = view - q
         u = v / max(float(np.hypot(*v)), 1e-9)
@@ -529,11 +580,12 @@ class MapBuilder:
         best.add(q, cov, u, log_k, cov - drift)
         # weighted as the fit weights it (its information, as a scalar)
         best.drift.add(drift, 2.0 / float(np.trace(cov)))
+        best.drift_rel.add(drift_rel, 2.0 / float(np.trace(cov)))
         best.visits.add(t_s, cfg.visit_gap_s)
         self.stats["points"] += 1
 
     def _add_wall(self, rho: float, alpha: float, cov: Array, feet: Array | None,
-                  log_k: float, t_s: float, drift: Array) -> None:
+                  log_k: float, t_s: float, drift: Array, drift_rel: Array) -> None:
         cfg = self.config
         f = np.zeros((0, 2)) if feet is None else np.asarray(feet, dtype=float).reshape(-1, 2)
         best, best_score = None, math.inf
@@ -563,6 +615,7 @@ class MapBuilder:
         flip = np.diag([-1.0, 1.0]) if abs(float(se2.wrap_angle(alpha - best.alpha_ref))) > \
             math.pi / 2 else np.eye(2)
         best.drift.add(flip @ drift @ flip, float(max(len(f), 1)))
+        best.drift_rel.add(flip @ drift_rel @ flip, float(max(len(f), 1)))
         w = np.linalg.inv(cov)
         best.info += w
         best.rhs += w @ z
@@ -616,13 +669,15 @@ class MapBuilder:
             # direction's sd_alpha about it) plus the drift's (rho, alpha) at the origin:
             # offset(t) = d_rho - t d_alpha
             dr = c.drift.cov()
-            offset_var = (sd_rho**2 + t_c**2 * sd_alpha**2 + float(dr[0, 0]),
-                          -2.0 * t_c * sd_alpha**2 - 2.0 * float(dr[0, 1]),
-                          sd_alpha**2 + float(dr[1, 1]), float(d[0]), float(d[1]))
+            fit = (sd_rho, sd_alpha, t_c, d)
+            offset_var_rel = _offset_var(*fit, c.drift_rel.cov()) if self.frame_relative \
+                else None
             proto = BuiltFeature("wall", ends, math.exp(float(np.median(c.log_kappas))),
-                                 sd_rho, c.n, n_visits=len(c.visits), offset_var=offset_var,
+                                 sd_rho, c.n, n_visits=len(c.visits),
+                                 offset_var=_offset_var(*fit, dr),
                                  sd_alpha_deg=math.degrees(math.sqrt(sd_alpha**2 +
-                                                                     float(dr[1, 1]))))
+                                                                     float(dr[1, 1]))),
+                                 offset_var_rel=offset_var_rel)
             walls.append(_with_ends(proto, ends))
         walls = _join_walls(_drop_shadowed(walls, cfg), cfg.join_m)
         vertices = _wall_vertices(walls, cfg.corner_gate_m)
@@ -661,10 +716,12 @@ class MapBuilder:
             # the drift they share is kept whole on top
             chi2 = pc.chi2_per_dof(radius > 0.0)
             scale = chi2 if math.isfinite(chi2) and chi2 > 1.0 else 1.0
-            cov_xy = scale * pc.fit_cov(radius > 0.0) + pc.drift.cov()
-            sd = math.sqrt(float(np.max(np.linalg.eigvalsh(cov_xy))))
+            own = scale * pc.fit_cov(radius > 0.0)
+            sd = math.sqrt(float(np.max(np.linalg.eigvalsh(own + pc.drift.cov()))))
+            sd_rel = math.sqrt(float(np.max(np.linalg.eigvalsh(own + pc.drift_rel.cov())))) \
+                if self.frame_relative else math.nan
             points.append(BuiltFeature(kind, centre, kappa, sd, pc.n, radius,
-                                       n_visits=len(pc.visits)))
+                                       n_visits=len(pc.visits), sd_rel_m=sd_rel))
         return walls + points
 
     def geojson(self) -> dict[str, Any]:
@@ -860,6 +917,7 @@ def _merge_walls(clusters: list[_WallCluster], cfg: BuildConfig) -> list[_WallCl
             o.rhs += j @ c.info @ z
             o.zwz += c.zwz
             o.drift = o.drift.merged(c.drift, flip)
+            o.drift_rel = o.drift_rel.merged(c.drift_rel, flip)
             o.n += c.n
             o.log_kappas.extend(c.log_kappas)
             o.feet.extend(c.feet)
@@ -872,7 +930,7 @@ def _merge_walls(clusters: list[_WallCluster], cfg: BuildConfig) -> list[_WallCl
                                     c.n, deque(c.log_kappas, maxlen=255), c.zwz,
                                     deque(c.feet, maxlen=_MAX_FEET),
                                     _Visits([list(v) for v in c.visits.spans]),
-                                    c.drift.merged(_Drift())))
+                                    c.drift.merged(_Drift()), c.drift_rel.merged(_Drift())))
     return out
 
 
@@ -894,6 +952,7 @@ def _merge_points(clusters: list[_PointCluster], gate_m: float, prior_info: floa
             merged.zwz = c.zwz
             merged.middle = None if c.middle is None else c.middle.copy()
             merged.drift = c.drift.merged(_Drift())
+            merged.drift_rel = c.drift_rel.merged(_Drift())
             out.append(merged)
     return out
 
@@ -939,7 +998,8 @@ def _with_ends(wall: BuiltFeature, ends: Array) -> BuiltFeature:
     """``wall`` with its ends moved to ``ends`` (2, 2) and its ``sd_m`` the SD across
     its line at the worse of them (a yaw error moves a long wall's far end most)."""
     return BuiltFeature(wall.kind, ends, wall.kappa_us, wall.end_sd(ends), wall.n_obs,
-                        wall.radius_m, wall.sd_alpha_deg, wall.n_visits, wall.offset_var)
+                        wall.radius_m, wall.sd_alpha_deg, wall.n_visits, wall.offset_var,
+                        wall.end_sd_rel(ends), wall.offset_var_rel)
 
 
 # --------------------------------------------------------------------------- from a log
@@ -1366,7 +1426,7 @@ def _slam(result: BuildResult, cfg: BuildConfig, trace: OdomTrace,
         placed = replace(lm, params=params, cov=cov3)
         feet = se2.transform_points(pose, o.feet) if o.kind == "line" else None
         builder.add(placed, se2.transform_points(pose, o.view), pose, None, feet,
-                    drift_cov=slam.node_cov[i])
+                    drift_cov=slam.node_cov[i], drift_rel_cov=slam.node_cov_rel[i])
     result.builder = builder
     result.notes = [n for n in result.notes if not n.startswith("poses from odometry alone")]
 

@@ -318,10 +318,13 @@ def _validate(index: int, feat: MapFeature) -> None:
             raise _fail(index, f"`kappa_us` must be a positive number, got {k!r}")
         if k > MAX_KAPPA_US:
             raise _fail(index, f"`kappa_us` must be at most {MAX_KAPPA_US:g} us, got {k!r}")
-    if props.get("sd_m") is not None:   # the Localizer adds it to the readings' variance
-        sd = props["sd_m"]
-        if not _finite_number(sd) or not 0 <= sd <= MAX_COORD_M:
-            raise _fail(index, f"`sd_m` must be a non-negative number of metres, got {sd!r}")
+    # the Localizer adds sd_rel_m (else sd_m) to the readings' variance
+    for name in ("sd_m", "sd_rel_m"):
+        if props.get(name) is not None:
+            sd = props[name]
+            if not _finite_number(sd) or not 0 <= sd <= MAX_COORD_M:
+                raise _fail(index, f"`{name}` must be a non-negative number of metres, "
+                                   f"got {sd!r}")
     if "id" in props and props["id"] is not None \
             and (isinstance(props["id"], bool) or not isinstance(props["id"], (str, int))):
         raise _fail(index, f"`id` must be a string or integer, got {props['id']!r}")

@@ -60,7 +60,12 @@ Uncertainty
 The poses' marginal covariances come from the information matrix at the solution
 (sparse LU, solved for the node columns); a built feature carries them as an error its
 sightings share (the init prior's error and the drift left are common to all), as
-the dead reckoning's covariance is carried (:class:`sonarloc.maps.build._Drift`).
+the dead reckoning's covariance is carried (:class:`sonarloc.maps.build._Drift`), in
+its ``sd_m``. Most of that is the map frame's own error (the init prior's), which moves
+every feature alike; the poses' covariances *relative to the map frame* (the rigid
+motion of the frame that best fits the landmarks' errors taken out, whatever the
+prior: :func:`_pose_marginals`) go the same way into the features' ``sd_rel_m``, the
+map error the Localizer uses.
 """
 
 from __future__ import annotations
@@ -174,15 +179,16 @@ class OdomTrace:
 class SlamResult:
     """What :func:`optimize` found (``ok`` False: it did not, ``reason`` says why).
 
-    ``node_t`` (N,) [s], ``node_dr`` (N, 3) the dead-reckoned poses, ``node_pose`` (N, 3)
-    the optimized ones, ``node_cov`` (N, 3, 3) their marginal covariances (map frame of
-    the observations' ``base``). ``moved_m`` / ``moved_deg``: the largest difference of
-    an optimized pose from the dead reckoning; ``last_move_m`` / ``last_move_deg``: the
-    largest change in the last round. ``chi2_odom`` / ``chi2_obs``: mean squared
-    whitened residual per degree of freedom of the odometry factors and of the
-    observation factors within the Huber threshold (about 1 when the stated noise is
-    honest); ``outliers``: observations beyond it (down-weighted); ``associated``:
-    observations in the graph (of ``observations``).
+    ``node_t`` (N,) [s], ``node_dr`` (N, 3) the dead-reckoned poses, ``node_pose``
+    (N, 3) the optimized ones, ``node_cov`` (N, 3, 3) their marginal covariances (map
+    frame of the observations' ``base``), ``node_cov_rel`` (N, 3, 3) the same relative to the
+    map frame (its error against the world, common to all, taken out). ``moved_m`` /
+    ``moved_deg``: the largest difference of an optimized pose from the dead reckoning;
+    ``last_move_m`` / ``last_move_deg``: the largest change in the last round.
+    ``chi2_odom`` / ``chi2_obs``: mean squared whitened residual per degree of freedom
+    of the odometry factors and of the observation factors within the Huber threshold
+    (about 1 when the stated noise is honest); ``outliers``: observations beyond it
+    (down-weighted); ``associated``: observations in the graph (of ``observations``).
     """
 
     ok: bool
@@ -192,6 +198,7 @@ class SlamResult:
     node_dr: Array = field(default_factory=lambda: np.zeros((0, 3)))
     node_pose: Array = field(default_factory=lambda: np.zeros((0, 3)))
     node_cov: Array = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    node_cov_rel: Array = field(default_factory=lambda: np.zeros((0, 3, 3)))
     obs_node: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     moved_m: float = 0.0
     moved_deg: float = 0.0
@@ -786,16 +793,18 @@ def optimize(obs: list[Observation], odom: OdomTrace, dr_first: Array, prior_cov
     r, jac, _, norms = g.linearize(x)
     assert jac is not None
     try:
-        cov = _pose_marginals(jac, n, cfg.max_marginal_nodes, node_t)
+        cov, cov_rel = _pose_marginals(jac, n, cfg.max_marginal_nodes, node_t,
+                                       _rigid_generators(x, g), _alignment_rows(g))
     except (RuntimeError, np.linalg.LinAlgError, ValueError) as err:
         res.reason = f"the information matrix is singular ({err})"
         return res
-    if not np.all(np.isfinite(cov)):
+    if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(cov_rel))):
         res.reason = "the information matrix is singular (non-finite covariances)"
         return res
     res.ok = True
     res.rounds = rounds
     res.node_t, res.node_dr, res.node_pose, res.node_cov = node_t, dr, X, cov
+    res.node_cov_rel = cov_rel
     res.obs_node = obs_node
     res.moved_m = float(np.max(np.hypot(*(X[:, :2] - dr[:, :2]).T)))
     res.moved_deg = math.degrees(float(np.max(np.abs(se2.wrap_angle(X[:, 2] - dr[:, 2])))))
@@ -825,34 +834,129 @@ def _update_lms(lms: list[_Lm], x: Array, g: _Graph) -> None:
         lm.params = x[off:off + (3 if lm.kind == "point" else 2)].copy()
 
 
-def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array) -> Array:
-    """(n, 3, 3) marginal covariances of the nodes: from the information matrix J^T J
-    (inverted if small; else solved for the columns of at most ``max_nodes`` nodes,
-    linearly interpolated in time between them). Raises ``LinAlgError`` (dense) or
-    ``RuntimeError`` (sparse) if it is singular."""
-    h = (jac.T @ jac).tocsc()
-    if h.shape[0] <= _DENSE_MARGINALS:  # a dense inverse is quicker than sparse solves
-        hd = h.toarray()
-        inv = scipy.linalg.cho_solve(scipy.linalg.cho_factor(hd), np.eye(len(hd)))
-        blocks = np.stack([inv[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
-        return 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
-    lu = spla.splu(h)
-    pick = np.unique(np.linspace(0, n - 1, min(n, max_nodes)).round().astype(np.int64))
-    blocks_p: list[Array] = []
-    for k0 in range(0, len(pick), 32):  # 96 right-hand sides at a time: memory bounded
-        part = pick[k0:k0 + 32]
-        rhs = np.zeros((h.shape[0], 3 * len(part)))
-        for j, i in enumerate(part):
-            rhs[3 * i:3 * i + 3, 3 * j:3 * j + 3] = np.eye(3)
-        sol = lu.solve(rhs)
-        blocks_p += [sol[3 * i:3 * i + 3, 3 * j:3 * j + 3] for j, i in enumerate(part)]
-    cov_p = np.stack(blocks_p)
-    cov_p = 0.5 * (cov_p + np.swapaxes(cov_p, 1, 2))
-    if len(pick) == n:
-        return cov_p
-    out = np.empty((n, 3, 3))
-    tp = node_t[pick]
+def _rigid_generators(x: Array, g: _Graph) -> Array:
+    """(len(x), 3): how the state moves under a small rigid motion of the map frame
+    (translation x, y; rotation about the origin). No factor but the prior on node 0
+    sees it: the odometry and the observations are relative measurements."""
+    n = g.n_nodes
+    gen = np.zeros((len(x), 3))
+    X = x[:3 * n].reshape(n, 3)
+    rows = 3 * np.arange(n)
+    gen[rows, 0] = gen[rows + 1, 1] = gen[rows + 2, 2] = 1.0
+    gen[rows, 2], gen[rows + 1, 2] = -X[:, 1], X[:, 0]
+    for off, kind in zip(g.lm_offset, g.lm_kind, strict=True):
+        if kind == "point":   # (cx, cy, R): the centre moves, the radius does not
+            gen[off, 0] = gen[off + 1, 1] = 1.0
+            gen[off, 2], gen[off + 1, 2] = -x[off + 1], x[off]
+        else:                 # (rho, alpha): rho moves with the translation across it
+            gen[off, 0], gen[off, 1] = math.cos(x[off + 1]), math.sin(x[off + 1])
+            gen[off + 1, 2] = 1.0
+    return gen
+
+
+def _alignment_rows(g: _Graph) -> NDArray[np.int64]:
+    """(k, 2) the pairs of state rows of the landmarks that the frame-relative
+    covariances align on (:func:`_pose_marginals`): the point landmarks' centres
+    (cx, cy); with fewer than two, every landmark's (a wall's rho, alpha too)."""
+    pts = [int(o) for o, k in zip(g.lm_offset, g.lm_kind, strict=True) if k == "point"]
+    offsets = pts if len(pts) >= 2 else [int(o) for o in g.lm_offset]
+    return np.array([[o, o + 1] for o in offsets], dtype=np.int64).reshape(-1, 2)
+
+
+def _interpolated(node_t: Array, pick: NDArray[np.int64], blocks: Array) -> Array:
+    """(n, 3, 3) blocks given at the nodes ``pick`` (increasing) linearly interpolated in
+    time to every node (``blocks`` itself if every node is picked)."""
+    if len(pick) == len(node_t):
+        return blocks
+    out = np.empty((len(node_t), 3, 3))
     for a in range(3):
         for b in range(3):
-            out[:, a, b] = np.interp(node_t, tp, cov_p[:, a, b])
+            out[:, a, b] = np.interp(node_t, node_t[pick], blocks[:, a, b])
     return out
+
+
+def _pose_marginals(jac: sp.csr_matrix, n: int, max_nodes: int, node_t: Array,
+                    gen: Array, pairs: NDArray[np.int64]) -> tuple[Array, Array]:
+    """(n, 3, 3) marginal covariances of the nodes, and the same relative to the map
+    frame: of the nodes' errors less the rigid motion of the frame (generators ``gen``
+    (N, 3), :func:`_rigid_generators`) that best fits the errors of the landmarks'
+    state rows ``pairs`` (k, 2).
+
+    The covariances come from the information matrix H = J^T J (inverted if small; else
+    solved for the columns of at most ``max_nodes`` nodes, linearly interpolated in time
+    between them). The frame-relative ones are the blocks of P H⁻¹ Pᵀ, P = I - G K,
+    K = (Gᵀ W G)⁻¹ Gᵀ W: the rigid motion that a weighted least-squares fit of the
+    landmarks' errors finds, taken out of every node's error (three more solves). W is
+    block-diagonal over ``pairs``: each landmark's information relative to node 0 (its
+    covariance with node 0's pose taken out, P₀ H⁻¹ P₀ᵀ, P₀ = I - G G₀⁻¹ E₀). Only the
+    prior on node 0 sees a rigid motion of the frame, so neither W nor P H⁻¹ Pᵀ depends
+    on it: they are what the relative measurements (odometry, landmark fits) say about
+    the map's shape. With landmarks that fix no rigid motion, node 0's pose is the one
+    taken out (P₀: the covariances conditioned on it). Raises ``LinAlgError`` (dense) or
+    ``RuntimeError`` (sparse) if H is singular."""
+    h = (jac.T @ jac).tocsc()
+    dense = h.shape[0] <= _DENSE_MARGINALS   # a dense inverse is quicker than sparse solves
+    if dense:
+        inv = scipy.linalg.cho_solve(scipy.linalg.cho_factor(h.toarray()), np.eye(h.shape[0]))
+        cov = np.stack([inv[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
+        cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+
+        def solve(rhs: Array) -> Array:
+            return np.asarray(inv @ rhs)
+    else:
+        lu = spla.splu(h)
+
+        def solve(rhs: Array) -> Array:
+            return np.asarray(lu.solve(rhs))
+
+    def blocks(first: NDArray[np.int64], d: int) -> Array:
+        """(len(first), d, d) diagonal blocks of H⁻¹ from the rows ``first``, 32 at a
+        time (memory bounded)."""
+        out: list[Array] = []
+        for k0 in range(0, len(first), 32):
+            part = first[k0:k0 + 32]
+            rhs = np.zeros((h.shape[0], d * len(part)))
+            for j, r in enumerate(part):
+                rhs[r:r + d, d * j:d * j + d] = np.eye(d)
+            sol = solve(rhs)
+            out += [sol[r:r + d, d * j:d * j + d] for j, r in enumerate(part)]
+        return np.stack(out) if out else np.zeros((0, d, d))
+
+    pick = np.arange(n)
+    if not dense:
+        pick = np.unique(np.linspace(0, n - 1, min(n, max_nodes)).round().astype(np.int64))
+        cov_p = blocks(3 * pick, 3)
+        cov_p = 0.5 * (cov_p + np.swapaxes(cov_p, 1, 2))
+        cov = _interpolated(node_t, pick, cov_p)
+
+    def relative(idx: NDArray[np.int64], blk: Array, wg: Array) -> Array:
+        """Blocks ``blk`` (k, d, d) of H⁻¹ at the rows ``idx`` (k, d), less the rigid
+        motion K x of the weighted fit W G: the blocks of P H⁻¹ Pᵀ there."""
+        m_inv = np.linalg.inv(gen.T @ wg)
+        k_sigma = m_inv @ solve(wg).T            # K H⁻¹, (3, N)
+        c = k_sigma @ wg @ m_inv                 # K H⁻¹ Kᵀ, (3, 3)
+        g_i = gen[idx]                           # (k, d, 3)
+        gb = g_i @ np.swapaxes(k_sigma[:, idx], 0, 1)   # (k, d, d)
+        out = blk - gb - np.swapaxes(gb, 1, 2) + g_i @ c @ np.swapaxes(g_i, 1, 2)
+        return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+    # conditioned on node 0 (the fit of its pose alone)
+    wg0 = np.zeros_like(gen)
+    wg0[:3] = gen[:3]
+    wg = wg0
+    if len(pairs):
+        # each landmark weighted by its information relative to node 0 (whatever the
+        # prior on node 0 says: the weights, too, are the map's shape's)
+        lm_cov = np.stack([inv[np.ix_(p, p)] for p in pairs]) if dense else \
+            blocks(pairs[:, 0], 2)
+        lm_rel = relative(pairs, lm_cov, wg0)
+        wg = np.zeros_like(gen)
+        if np.all(np.linalg.eigvalsh(lm_rel)[:, 0] > 0):
+            wg[pairs.reshape(-1)] = np.linalg.solve(lm_rel, gen[pairs]).reshape(-1, 3)
+        if np.linalg.cond(gen.T @ wg) > 1e12:  # no rigid motion fixed: node 0's
+            wg = wg0
+    # at the nodes solved for, then interpolated as the marginals are (their own
+    # interpolation error would be the size of the frame-relative part)
+    rel = _interpolated(node_t, pick, relative(3 * pick[:, None] + np.arange(3), cov[pick], wg))
+    # (the marginals themselves where that fails: no frame error taken out)
+    return cov, rel if np.all(np.isfinite(rel)) else cov

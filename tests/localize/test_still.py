@@ -43,7 +43,7 @@ def still_log():
     return _still_log(10.0)
 
 
-def _shifted_geojson(sd_m=None):
+def _shifted_geojson(sd_m=None, sd_rel_m=None):
     with open(ROOM, encoding="utf-8") as f:
         d = json.load(f)
 
@@ -57,11 +57,13 @@ def _shifted_geojson(sd_m=None):
             feat["geometry"]["coordinates"] = move(feat["geometry"]["coordinates"], s)
             if sd_m is not None:
                 feat["properties"]["sd_m"] = sd_m
+            if sd_rel_m is not None:
+                feat["properties"]["sd_rel_m"] = sd_rel_m
     return d
 
 
-def _shifted_map(sd_m=None):
-    return FeatureMap.from_map(map_from_geojson(_shifted_geojson(sd_m)))
+def _shifted_map(sd_m=None, sd_rel_m=None):
+    return FeatureMap.from_map(map_from_geojson(_shifted_geojson(sd_m, sd_rel_m)))
 
 
 def _replay(text, fmap, mode, **cfg):
@@ -120,6 +122,32 @@ def test_map_sd_m_is_the_floor_of_the_map_s_own():
         pytest.approx(0.004**2)
     assert Localizer(with_sd, LocalizerConfig(map_sd_m=0.006)).map_var_all() == \
         pytest.approx(np.full(with_sd.n_points + with_sd.n_walls, 0.006**2))
+
+
+def test_the_frame_relative_sd_is_the_map_error_where_given():
+    """A map's ``sd_rel_m`` (its features' SD relative to the map frame, which ``map
+    build`` writes next to ``sd_m``) is the map error of their readings where given,
+    ``sd_m`` elsewhere: a map stating 0.2 m of frame error in ``sd_m`` and 5 mm in
+    ``sd_rel_m`` localizes exactly as the map stating 5 mm in ``sd_m`` alone, and a map
+    without ``sd_rel_m`` as before."""
+    both = _shifted_map(0.2, 0.005)
+    assert np.all(both.point_sd_m == 0.005) and np.all(both.wall_sd_m == 0.005)
+    d = _shifted_geojson(0.2)
+    for feat in d["features"]:
+        if feat["properties"].get("id") == "pole-a":
+            feat["properties"]["sd_rel_m"] = 0.005
+    mixed = FeatureMap.from_map(map_from_geojson(d))
+    i = mixed.point_id.index("pole-a")
+    assert mixed.point_sd_m[i] == 0.005
+    assert np.all(np.delete(mixed.point_sd_m, i) == 0.2) and np.all(mixed.wall_sd_m == 0.2)
+    text = _still_log(3.0)
+    _, e_rel, _ = _replay(text, both, "batch")
+    _, e_sd, _ = _replay(text, _shifted_map(0.005), "batch")
+    _, e_whole, _ = _replay(text, _shifted_map(0.2), "batch")
+    np.testing.assert_array_equal(e_rel.state.mean, e_sd.state.mean)
+    np.testing.assert_array_equal(e_rel.state.cov, e_sd.state.cov)
+    assert not np.array_equal(e_whole.state.cov, e_sd.state.cov)
+    assert _sd_m(e_whole) > 2 * _sd_m(e_sd)
 
 
 def test_online_and_batch_agree_standing_still():

@@ -293,7 +293,11 @@ def test_odometry_only_build_states_its_drift():
     with LogWriter(text) as w:
         w.write_all(simulate_records(world, ring16(), duration_s=25.0, seed=7,
                                      init_sd_xy_m=0.0, init_sd_yaw_deg=0.0))
-    feats = build_from_log(io.StringIO(text.getvalue())).builder.features()
+    res = build_from_log(io.StringIO(text.getvalue()))
+    feats = res.builder.features()
+    # (no sd_rel_m: the dead reckoning's drift is the map's shape error; docs/MAPS.md)
+    assert all(math.isnan(f.sd_rel_m) for f in feats)
+    assert not any("sd_rel_m" in f["properties"] for f in res.geojson()["features"])
     z, errs = _normalized_errors(feats, world)
     assert len(z) >= 8 and errs.max() > 0.05   # matched, and the drift is there
     assert z.max() < 3.0, np.round(z, 1)
@@ -372,3 +376,46 @@ def test_feature_errors_against_the_true_map():
     got = feature_errors([pole, wall, ghost, slanted], world, gate_m=0.3)
     assert [f for f, _ in got] == [pole, wall]
     assert got[0][1] == pytest.approx(0.05) and got[1][1] == pytest.approx(0.02)
+
+
+def test_frame_relative_drift_goes_into_sd_rel_m(rng):
+    """``drift_rel_cov`` (the drift less the map frame's own error) is kept whole in
+    ``sd_rel_m`` next to ``sd_m`` (which keeps the whole drift), for points and for
+    walls at their far end; the GeoJSON carries it, and a build without it has none."""
+    b = MapBuilder(BuildConfig(min_observations=3))
+    whole = np.diag([0.05**2, 0.05**2, 0.0])
+    rel = np.diag([0.004**2, 0.004**2, 0.0])
+    q = np.array([2.0, 1.0])
+    for k in range(20):
+        view = q + np.array([-1.0, 0.2 * (k % 5 - 2)])
+        b.add(point_lm(q + rng.normal(0, 0.0005, 2), sd=0.0005, kappa=0.15), view,
+              pose=np.array([*view, 0.0]), drift_cov=whole, drift_rel_cov=rel)
+    yaw = np.diag([0.0, 0.0, math.radians(1.0) ** 2])
+    for k in range(12):
+        x0 = 0.5 * k
+        b.add(line_lm(3.0, math.pi / 2), np.array([x0 + 0.25, 2.0]),
+              pose=np.array([0.5, 2.0, 0.0]), drift_cov=4 * yaw, drift_rel_cov=yaw,
+              feet=np.array([[x0, 3.0], [x0 + 0.5, 3.0]]))
+    feats = b.features()
+    (p,) = [f for f in feats if f.kind != "wall"]
+    (w,) = [f for f in feats if f.kind == "wall"]
+    assert p.sd_m == pytest.approx(0.05, rel=0.05)
+    assert p.sd_rel_m == pytest.approx(0.004, rel=0.05)
+    far = 5.5 * math.radians(1.0)
+    assert w.sd_m == pytest.approx(2 * far, rel=0.05)
+    assert w.sd_rel_m == pytest.approx(far, rel=0.05)
+    props = [f["properties"] for f in b.geojson()["features"]]
+    assert sorted(pr["sd_rel_m"] for pr in props) == pytest.approx(
+        sorted([p.sd_rel_m, w.sd_rel_m]), abs=1e-5)
+    assert [f.properties["sd_rel_m"] for f in b.to_map().features] == \
+        [pr["sd_rel_m"] for pr in props]
+    # without it (a pose track, or a builder fed the whole drift alone): no sd_rel_m
+    b2 = MapBuilder(BuildConfig(min_observations=3))
+    for k in range(20):
+        view = q + np.array([-1.0, 0.2 * (k % 5 - 2)])
+        b2.add(point_lm(q, sd=0.0005, kappa=0.15), view, pose=np.array([*view, 0.0]),
+               drift_cov=whole)
+    (f2,) = b2.features()
+    assert math.isnan(f2.sd_rel_m) and "sd_rel_m" not in b2.geojson()["features"][0][
+        "properties"]
+

@@ -141,6 +141,14 @@ def test_vertices_property_and_explicit_corner_override():
         (fc(feat("Point", [0, 0], kind="pole", sd_m=-0.001)), "feature 0: `sd_m` must be"),
         (fc(feat("LineString", [[0, 0], [1, 0]], kind="wall", sd_m="2 mm")),
          "feature 0: `sd_m` must be a non-negative number of metres, got '2 mm'"),
+        # its SD relative to the map frame, which the Localizer uses instead where given
+        (fc(feat("Point", [0, 0], kind="pole", sd_m=0.1),
+            feat("Point", [1, 0], kind="rod", sd_m=0.1, sd_rel_m=-0.002)),
+         "feature 1: `sd_rel_m` must be a non-negative number of metres, got -0.002"),
+        (fc(feat("LineString", [[0, 0], [1, 0]], kind="wall", sd_rel_m=math.nan)),
+         "feature 0: `sd_rel_m` must be a non-negative number of metres, got nan"),
+        (fc(feat("LineString", [[0, 0], [1, 0]], kind="wall", sd_rel_m=True)),
+         "feature 0: `sd_rel_m` must be"),
         (fc(feat("Point", [0, 0], kind="pole", kappa_us=1e308)),
          "feature 0: `kappa_us` must be at most 1e\\+06 us"),
         # a repeated position is a wall of no direction (a LineString's was refused)

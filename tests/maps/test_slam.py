@@ -173,6 +173,7 @@ def test_a_log_without_a_loop_closure_falls_back(loop_records):
     assert "SLAM fell back to the odometry" in res.summary()
     obj = res.geojson()
     map_from_geojson(obj)
+    assert not any("sd_rel_m" in f["properties"] for f in obj["features"])
     assert "NaN" not in json.dumps(obj)
 
 
@@ -277,13 +278,21 @@ def test_pose_marginals_sparse_path_agrees_with_the_dense_inverse(monkeypatch):
 
     g, x = _random_graph(np.random.default_rng(4))
     _, jac, _, _ = g.linearize(x)
-    dense = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t)
+    args = (slam._rigid_generators(x, g), slam._alignment_rows(g))
+    dense, dense_rel = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t, *args)
     monkeypatch.setattr(slam, "_DENSE_MARGINALS", 0)
-    sparse = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t)
+    sparse, sparse_rel = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t, *args)
     np.testing.assert_allclose(sparse, dense, rtol=1e-8, atol=1e-12)
-    few = slam._pose_marginals(jac, g.n_nodes, 2, g.node_t)  # nodes 0 and 3, interpolated
+    np.testing.assert_allclose(sparse_rel, dense_rel, rtol=1e-8, atol=1e-12)
+    # nodes 0 and 3, interpolated
+    few, few_rel = slam._pose_marginals(jac, g.n_nodes, 2, g.node_t, *args)
     np.testing.assert_allclose(few[[0, 3]], dense[[0, 3]], rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(few[1], (2 * dense[0] + dense[3]) / 3, rtol=1e-8, atol=1e-12)
+    # the frame-relative ones solved at those nodes too, and interpolated (not taken
+    # from the interpolated marginals: their error would swamp them)
+    np.testing.assert_allclose(few_rel[[0, 3]], dense_rel[[0, 3]], rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(few_rel[2], (dense_rel[0] + 2 * dense_rel[3]) / 3, rtol=1e-8,
+                               atol=1e-12)
 
 
 @pytest.mark.parametrize("kind", ["point", "line"])
@@ -310,3 +319,60 @@ def test_transform_with_cov_carries_the_covariance(kind, rng):
             d[1] = se2.wrap_angle(d[1]) if kind == "line" else d[1]
             jac[:, k] = d / 2e-6
         np.testing.assert_allclose(out_cov, jac @ cov @ jac.T, rtol=1e-5, atol=1e-7)
+
+
+def test_frame_relative_marginals_take_out_the_map_frame_s_error():
+    """`_pose_marginals`' second result: the nodes' covariances less the rigid motion a
+    weighted fit of the landmarks finds (P H⁻¹ Pᵀ, written out densely here), the same
+    whatever the prior on node 0 says (the map frame's error); without landmarks to fit,
+    conditioned on node 0 (its own covariance zero)."""
+    from sonarloc.maps import slam
+
+    for seed in range(3):
+        g, x = _random_graph(np.random.default_rng(seed))
+        _, jac, _, _ = g.linearize(x)
+        gen, pairs = slam._rigid_generators(x, g), slam._alignment_rows(g)
+        assert pairs.tolist() == [[12, 13], [15, 16]]   # the point's centre, the wall's line
+        cov, rel = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t, gen, pairs)
+        sigma = np.linalg.inv((jac.T @ jac).toarray())
+        p0 = np.eye(len(x)) - gen @ np.linalg.solve(gen[:3], np.eye(len(x))[:3])
+        rel0 = p0 @ sigma @ p0.T
+        w = np.zeros_like(sigma)
+        for p in pairs:
+            w[np.ix_(p, p)] = np.linalg.inv(rel0[np.ix_(p, p)])
+        proj = np.eye(len(x)) - gen @ np.linalg.solve(gen.T @ w @ gen, gen.T @ w)
+        want = proj @ sigma @ proj.T
+        for i in range(g.n_nodes):
+            np.testing.assert_allclose(rel[i], want[3 * i:3 * i + 3, 3 * i:3 * i + 3],
+                                       atol=1e-12)
+            np.testing.assert_allclose(cov[i], sigma[3 * i:3 * i + 3, 3 * i:3 * i + 3],
+                                       atol=1e-12)
+        # a prior 50 times wider: the marginals grow, the frame-relative ones stay
+        g.prior_a = _whitening(np.eye(3) * 5.0)
+        _, jac_w, _, _ = g.linearize(x)
+        cov_w, rel_w = slam._pose_marginals(jac_w, g.n_nodes, 400, g.node_t, gen, pairs)
+        assert np.all(np.trace(cov_w, axis1=1, axis2=2) > 10 * np.trace(cov, axis1=1, axis2=2))
+        np.testing.assert_allclose(rel_w, rel, atol=1e-12)
+        # nothing to fit: conditioned on node 0
+        _, rel_0 = slam._pose_marginals(jac, g.n_nodes, 400, g.node_t, gen,
+                                        np.zeros((0, 2), np.int64))
+        np.testing.assert_allclose(rel_0[0], np.zeros((3, 3)), atol=1e-12)
+        np.testing.assert_allclose(rel_0[1:], np.stack(
+            [rel0[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(1, g.n_nodes)]), atol=1e-12)
+
+
+def test_slam_build_writes_the_frame_relative_sd(slam_build):
+    """Every feature of a SLAM build carries ``sd_rel_m`` (GeoJSON too): finite,
+    positive, and covering the feature's error after the map's best rigid alignment
+    onto the true one (the loop's init is exact here: little frame error to take out)."""
+    s = slam_build.slam
+    assert s.node_cov_rel.shape == s.node_cov.shape
+    assert np.all(np.linalg.eigvalsh(s.node_cov_rel)[:, 1:] > 0)
+    feats = slam_build.builder.features()
+    assert all(math.isfinite(f.sd_rel_m) and f.sd_rel_m > 0 for f in feats)
+    props = [f["properties"] for f in slam_build.geojson()["features"]]
+    assert all("sd_rel_m" in p and "sd_m" in p for p in props)
+    world = load_map(ROOM)
+    moved = compare.moved(feats, compare.rigid_alignment(feats, world, 0.5))
+    z = np.array([e / f.sd_rel_m for f, e in compare.feature_errors(moved, world, 0.5)])
+    assert len(z) >= 9 and z.max() < 3.5 and np.mean(z**2) < 3.0
