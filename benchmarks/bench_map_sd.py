@@ -46,11 +46,8 @@ from __future__ import annotations
 
 import argparse
 import copy
-import datetime
 import io
 import math
-import os
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -63,6 +60,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks._machine import SHARED, machine_line  # noqa: E402
 from sonarloc import se2  # noqa: E402
 from sonarloc.io.logfile import LogWriter, TruthRecord, iter_log  # noqa: E402
 from sonarloc.io.posescsv import PoseTrack  # noqa: E402
@@ -295,9 +293,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         lines += [""] + [f"* {n}" for n in notes]
     lines += [
         "",
-        f"Machine: {platform.machine()}, Python {platform.python_version()}, "
-        f"{os.cpu_count()} CPUs; {datetime.date.today().isoformat()}; "
-        f"{'--quick' if args.quick else 'full run'}.",
+        machine_line(f"seeds {' '.join(map(str, args.seeds))}", f"{args.duration:g} s drives",
+                     SHARED + " (CPU times are indicative)", quick=args.quick),
     ]
     text = "\n".join(lines) + "\n"
     out = Path(args.out)
