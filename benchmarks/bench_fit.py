@@ -272,7 +272,7 @@ def methods(n: int, repeats: int, rng: np.random.Generator) -> list[dict[str, fl
               "is whole, one guarded step; else 12 deg grid on <= 16 echoes, two; "
               "derivatives at the result; float32)")
     n_fast_grid = ("sonarloc fit_batch, `FitConfig.fast(start=\"grid\", arc_iterations=None)` "
-                   "(session 4's `fast()`: 12 deg grid on <= 16 echoes for all, two guarded "
+                   "(the earlier `fast()` preset: 12 deg grid on <= 16 echoes for all, two guarded "
                    "steps)")
     n_batch = ("sonarloc fit_batch, `FitConfig.batch()` (6 deg grid, one reweighted round; "
                "float32)")
@@ -406,8 +406,8 @@ def throughput(n: int, repeats: int, rng: np.random.Generator
 # ---------------------------------------------------------------- 4. large CSV
 
 BASELINE_REV = "0eca529"
-"""main at the start of session 22 (2026-11-29; before the pair search's grouping by
-motion alone and the segmenter's skipped pairs): section 4's "before" columns, run from
+"""main on 2026-11-29, before the pair search's grouping by
+motion alone and the segmenter's skipped pairs: section 4's "before" columns, run from
 a `git archive` of it."""
 
 _STAGES = r"""
@@ -424,7 +424,7 @@ for _ in range(repeats):
     t0 = time.process_time()
     scan = read_scan_csv(path)
     t1 = time.process_time()
-    seg = Segmenter()   # as fit_scan does (feed_block: since session 7)
+    seg = Segmenter()   # as fit_scan does (feed_block)
     segs = seg.feed_block(scan) if hasattr(seg, "feed_block") else list(seg.feed(scan))
     t2 = time.process_time()
     lms = fit_segments(segs)
@@ -682,12 +682,13 @@ def large_csv_lines(csv: dict[str, float], q: bool) -> list[str]:
         "",
         "CPU seconds of each stage (medians of "
         f"{'1' if q else '3'} in a fresh process per code version), *now* and *before* "
-        f"(main at {BASELINE_REV}, the start of session 22, run from a `git archive` of it "
+        f"(main at {BASELINE_REV}, 2026-11-29, before the pair search's grouping by motion "
+        "alone and the segmenter's skipped pairs, run from a `git archive` of it "
         "in the same run, alternating with *now*); CPU and wall clock of the whole "
         "command (`python -m sonarloc fit SCAN.csv --json`, medians) and the wall clock of "
         "its start-up (`import sonarloc.commands.fit`). With the machine shared, wall "
         "clock runs well above CPU time. The first fit stage of a process also sets up the "
-        "waveform tier (its template and tables; up to session 6 ~0.4 s of it importing "
+        "waveform tier (its template and tables; formerly ~0.4 s of it importing "
         "scipy.signal and scipy.optimize, which a fit no longer imports): the stage "
         "medians leave it out, its row below and the command include it.",
         "",

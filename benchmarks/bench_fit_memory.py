@@ -3,7 +3,7 @@
 `sonarloc fit` reads and fits a scan CSV a block of lines at a time (``--block-rows``,
 default :data:`sonarloc.io.scancsv.BLOCK_ROWS`) and writes the landmarks as they come. The
 baseline, measured in the same run, is one block holding the whole file: what the command
-did until session 14 (the whole file parsed, then segmented and fitted in one batch). The
+did before ``--block-rows`` (the whole file parsed, then segmented and fitted in one batch). The
 scan is a continuous rotation over the eight reflectors of bench_fit.py section 4
 (:func:`sonarloc.fit.synth.rotation_scan`). Each run is a fresh process reporting its own
 peak resident set and CPU time; medians of the repeats, alternating the block sizes. The
@@ -82,7 +82,7 @@ def measure(n_lines: int, blocks: Sequence[int], repeats: int, tmp: Path
     rows: list[dict[str, float | str]] = []
     for b in sizes:
         rows.append({
-            "block": "whole file (one block: the command until session 14)" if b == whole
+            "block": "whole file (one block: the command before `--block-rows`)" if b == whole
             else f"{b:,}" + (" (default)" if b == BLOCK_ROWS else ""),
             "blocks": float(-(-n_lines // b)), "peak": statistics.median(peak[b]),
             "cpu": statistics.median(cpu[b]), "file_mb": size_mb, "n": float(len(base_lms)),

@@ -40,7 +40,7 @@ if str(ROOT) not in sys.path:
 
 from benchmarks._machine import SHARED, machine_line  # noqa: E402
 
-#: main at the start of session 6 (2026-11-21), before its replay speed work.
+#: main on 2026-11-21, before the replay speed work.
 DEFAULT_BASELINE = "f7b51e7"
 SCENARIOS = ("room, ring16", "room, panning transducer", "pole field, ring16")
 WARMUP_S = 5.0
