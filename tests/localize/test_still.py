@@ -175,6 +175,60 @@ def test_the_conventional_filter_standing_still(method):
     assert est.status == "tracking"
 
 
+def test_a_feature_s_map_error_is_not_averaged_down(still_log):
+    """Standing still with the limits off (every segment fused, 160 updates of the same
+    features) on the map 5 mm off, its ``sd_m`` saying so: a feature's map error is one
+    constant, its variance grown by the feature's recent fusions
+    (``map_error_memory_s``), and the belief stays consistent with the truth (NEES 5;
+    21 with the map error taken anew by each update, the position SD 0.6 mm)."""
+    off = {"update_min_d": 0.0, "update_min_a": 0.0}
+    stats, est, nees = _replay(still_log, _shifted_map(0.005), "batch", **off)
+    assert stats.accepted > 150
+    assert nees < NEES_999
+    assert _sd_m(est) > 1e-3
+    _, est0, nees0 = _replay(still_log, _shifted_map(0.005), "batch",
+                             map_error_memory_s=0.0, **off)
+    assert nees0 > NEES_999
+    assert _sd_m(est0) < 0.7 * _sd_m(est)
+
+
+def test_map_uses_count_a_feature_s_recent_fusions():
+    """Each fusion counts exp(-age / ``map_error_memory_s``); the variance an update
+    takes is the map's times one plus that; none without a map error."""
+    from sonarloc.localize.localizer import Localizer
+
+    loc = Localizer(_shifted_map(0.004), LocalizerConfig(map_error_memory_s=10.0))
+    for t in (1.0, 2.0, 3.0):
+        loc.note_fused("wall", 1, (0.0, 0.0, 0.0), t)
+    want = math.exp(-0.2) + math.exp(-0.1) + 1.0
+    assert loc.map_uses("wall", 1, 3.0) == pytest.approx(want)
+    assert loc.map_uses("wall", 1, 13.0) == pytest.approx(want * math.exp(-1.0))
+    assert loc.map_uses("wall", 0, 3.0) == 0.0 and loc.map_uses("point", 1, 3.0) == 0.0
+    assert loc.map_var_m2("wall", 1, 13.0) == pytest.approx(0.004**2 * (1 + want / math.e))
+    assert loc.map_var_m2("wall", 1) == pytest.approx(0.004**2)
+    k = loc.fmap.n_points + 1
+    assert loc.map_var_all(3.0)[k] == pytest.approx(0.004**2 * (1 + want))
+    plain = Localizer(FeatureMap.from_map(load_map(ROOM)))
+    plain.note_fused("wall", 1, (0.0, 0.0, 0.0), 1.0)
+    assert plain.map_uses("wall", 1, 1.0) == 0.0 and plain.map_var_m2("wall", 1, 1.0) == 0.0
+    off = Localizer(_shifted_map(0.004), LocalizerConfig(map_error_memory_s=0.0))
+    off.note_fused("wall", 1, (0.0, 0.0, 0.0), 1.0)
+    assert off.map_var_m2("wall", 1, 1.0) == pytest.approx(0.004**2)
+
+
+def test_a_map_without_sd_localizes_as_before():
+    """No map error (no ``sd_m``, ``map_sd_m`` 0): ``map_error_memory_s`` changes
+    nothing, to the bit (a moving drive, batch)."""
+    buf = io.StringIO()
+    with LogWriter(buf) as w:
+        w.write_all(simulate_records(load_map(ROOM), ring16(), duration_s=20.0, seed=4))
+    fmap = FeatureMap.from_map(load_map(ROOM))
+    _, ea, _ = _replay(buf.getvalue(), fmap, "batch")
+    _, eb, _ = _replay(buf.getvalue(), fmap, "batch", map_error_memory_s=0.0)
+    np.testing.assert_array_equal(ea.state.mean, eb.state.mean)
+    np.testing.assert_array_equal(ea.state.cov, eb.state.cov)
+
+
 def test_limits_off_fuse_every_segment(still_log):
     """``update_min_d = update_min_a = 0``: every segment fused (the old behaviour)."""
     stats, est, _ = _replay(still_log, FeatureMap.from_map(load_map(ROOM)), "batch",
@@ -194,7 +248,8 @@ def test_moved_enough():
     assert moved_enough((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0)
 
 
-@pytest.mark.parametrize("name", ["update_min_d", "update_min_a", "map_sd_m"])
+@pytest.mark.parametrize("name", ["update_min_d", "update_min_a", "map_sd_m",
+                                  "map_error_memory_s"])
 @pytest.mark.parametrize("value", [-0.01, math.nan, math.inf])
 def test_config_checks(name, value):
     with pytest.raises(ValueError, match=f"`{name}` must be non-negative"):
