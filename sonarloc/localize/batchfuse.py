@@ -563,7 +563,10 @@ class BatchFuser:
         ``x`` (b-a, 3) and covariances ``p`` (b-a, 3, 3) (geometry at ``x``, the delay
         model as linearised); the winners' reduced updates. ``map_var_extra_m2``: (P + W,)
         variance [m²] added to each feature's ``map_var_m2`` (shared by a segment's
-        readings; the Localizer's :meth:`~sonarloc.localize.localizer.Localizer.map_uses`)."""
+        readings; the Localizer's :meth:`~sonarloc.localize.localizer.Localizer.map_uses`);
+        given, a winner's update also takes the feature's ``map_var_m2`` once more for
+        each earlier winner of the same feature among these segments (they will have
+        been fused before it, as the live Localizer counts them)."""
         out: list[Prepared] = []
         t_r, z, rel, p_fac, v_fac = lin.batch
         for k in range(a, b):
@@ -685,7 +688,12 @@ class BatchFuser:
         # --- the winners' reduced updates: whitened by R = L Lᵀ and QR-factored
         kw = keep[wp]
         bw = kw[:, :, None] & kw[:, None, :]
-        rw = np.where(bw, r[wp], np.broadcast_to(np.eye(N), bw.shape))
+        rw_full = r[wp]
+        if map_var_extra_m2 is not None and len(wp) > 1:
+            fw = fs[wp]                                  # in segment order
+            earlier = np.triu(fw[:, None] == fw[None, :], 1).sum(axis=0)
+            rw_full = rw_full + (earlier * self._map_var[fw])[:, None, None]
+        rw = np.where(bw, rw_full, np.broadcast_to(np.eye(N), bw.shape))
         hw = np.where(kw[..., None], hx[wp], 0.0)
         nw = np.where(kw, nu[wp], 0.0)
         good = np.ones(len(wp), dtype=bool)

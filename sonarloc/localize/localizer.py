@@ -1651,12 +1651,17 @@ class Localizer:
         every reading of it shares: fused ``n`` times within the pose's memory, its
         variance taken ``1 + n`` times larger keeps the information the pose draws
         from it about ``1 / var`` rather than ``n / var``."""
-        k = index + (self.fmap.n_points if kind == "wall" else 0)
+        k = self.feature_slot(kind, index)
         n = float(self._map_n[k])
         if n == 0.0:
             return 0.0
         age = max(t_s - float(self._map_t[k]), 0.0)
         return n * math.exp(-age / self.config.map_error_memory_s)
+
+    def feature_slot(self, kind: str | None, index: int) -> int:
+        """Index of map feature (``kind``, ``index``) among the points, then the walls
+        (:meth:`map_var_all`)."""
+        return index + (self.fmap.n_points if kind == "wall" else 0)
 
     def _uses_all(self, t_s: float) -> Array:
         """(P + W,) :meth:`map_uses` of every point, then every wall."""
@@ -1675,7 +1680,7 @@ class Localizer:
         if seen is None:
             seen = self._fused_at[key] = _FusedPoses()
         seen.add(sensor_odom)
-        k = index + (self.fmap.n_points if kind == "wall" else 0)
+        k = self.feature_slot(kind, index)
         if self.config.map_error_memory_s > 0 and self._map_base_var[k] > 0 and \
                 math.isfinite(t_s):
             t_new = max(t_s, float(self._map_t[k]))

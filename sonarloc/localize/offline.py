@@ -552,7 +552,7 @@ class OfflinePipeline:
             assert self._fuser is not None
             # the features' map variances grown by their recent fusions (map_uses)
             extra = loc.map_var_all(now[k].t_ref) - loc._map_base_var \
-                if loc._map_n.any() else None
+                if loc.config.map_error_memory_s > 0 and loc._map_base_var.any() else None
             prepared = self._fuser.decide(lin, k - base, j - base, pred.mean, pred.cov,
                                           extra)
             slow = stale = False
