@@ -150,12 +150,14 @@ def test_the_frame_relative_sd_is_the_map_error_where_given():
     assert _sd_m(e_whole) > 2 * _sd_m(e_sd)
 
 
-def test_online_and_batch_agree_standing_still():
-    """The live Localizer and the batch replay skip alike and end at the same belief."""
+@pytest.mark.parametrize("memory_s", [0.0, 10.0])
+def test_online_and_batch_agree_standing_still(memory_s):
+    """The live Localizer and the batch replay skip alike and end at the same belief
+    (also with the map variance grown by each feature's fusions)."""
     text = _still_log(3.0)
     fmap = _shifted_map(0.005)
-    a, ea, _ = _replay(text, fmap, "batch")
-    b, eb, _ = _replay(text, fmap, "online")
+    a, ea, _ = _replay(text, fmap, "batch", map_error_memory_s=memory_s)
+    b, eb, _ = _replay(text, fmap, "online", map_error_memory_s=memory_s)
     assert a.accepted == b.accepted
     assert a.skipped["no_motion_since_fused"] == b.skipped["no_motion_since_fused"] > 20
     assert np.allclose(ea.state.mean[:2], eb.state.mean[:2], atol=2e-4)
