@@ -249,7 +249,7 @@ class LocalizerConfig:
         not ``n / var``. Default 0: off (each update takes the map variance as it is).
         Changes nothing on a map without a map error. On SLAM-built maps with honest
         ``sd_rel_m`` (``benchmarks/bench_map_sd.py --sd-rel-scale 0.22``), 10 s brings
-        the pose NEES from 9-13 to 3-4 and the steady error from 3.8-4.4 to 3.5-4.0 mm;
+        the pose NEES from 9-13 to 3-3.6 and the steady error from 3.8-4.4 to 3.5-4.0 mm;
         on maps whose SDs are already conservative it makes the pose underconfident
         and costs accuracy (docs/LOCALIZATION.md, "Standing still").
     update_min_d, update_min_a : a map feature is fused again only once the transducer

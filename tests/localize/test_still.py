@@ -181,7 +181,7 @@ def test_a_feature_s_map_error_is_not_averaged_down(still_log):
     """Standing still with the limits off (every segment fused, 160 updates of the same
     features) on the map 5 mm off, its ``sd_m`` saying so: a feature's map error is one
     constant, its variance grown by the feature's recent fusions
-    (``map_error_memory_s``), and the belief stays consistent with the truth (NEES 5;
+    (``map_error_memory_s``), and the belief stays consistent with the truth (NEES 4;
     21 with the map error taken anew by each update, the position SD 0.6 mm)."""
     off = {"update_min_d": 0.0, "update_min_a": 0.0}
     stats, est, nees = _replay(still_log, _shifted_map(0.005), "batch",
