@@ -36,8 +36,13 @@ takes a feature's ``sd_rel_m`` as its map error where the map gives one, else it
 ``sd_m``: rows "``sd_m`` only" localize against the same map without ``sd_rel_m`` (as
 before it was written).
 
+``--sd-rel-scale F``: the built maps' ``sd_rel_m`` multiplied by F before they are
+localized against (the SDs SLAM writes are conservative: F about 0.2 makes them honest).
+
 Run: ``python benchmarks/bench_map_sd.py [--seeds 200 201] [--duration 174] [--quick]
-[--localize-seed 202]``
+[--localize-seed 202] [--sd-rel-scale 0.22]``
+``--map-error-memory S``: localize with ``LocalizerConfig.map_error_memory_s = S``.
+
 (writes ``benchmarks/results/map_sd.md``; a 60 s drive builds in ~20 s per seed and
 pose source).
 """
@@ -65,6 +70,7 @@ from sonarloc import se2  # noqa: E402
 from sonarloc.io.logfile import LogWriter, TruthRecord, iter_log  # noqa: E402
 from sonarloc.io.posescsv import PoseTrack  # noqa: E402
 from sonarloc.localize.features import FeatureMap  # noqa: E402
+from sonarloc.localize.localizer import LocalizerConfig  # noqa: E402
 from sonarloc.localize.replay import replay_log  # noqa: E402
 from sonarloc.maps import compare as maps_compare  # noqa: E402
 from sonarloc.maps.build import BuiltFeature, build_from_log  # noqa: E402
@@ -134,6 +140,17 @@ def without_rel(built: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def scaled_rel(built: dict[str, Any], factor: float) -> dict[str, Any]:
+    """The GeoJSON map with its ``sd_rel_m`` properties multiplied by ``factor``."""
+    if factor == 1.0:
+        return built
+    out = copy.deepcopy(built)
+    for f in out["features"]:
+        if "sd_rel_m" in f["properties"]:
+            f["properties"]["sd_rel_m"] *= factor
+    return out
+
+
 def row(label: str, errs: list[tuple[float, float]], errs_aligned: list[tuple[float, float]],
         cpu_s: float) -> str:
     if not errs:
@@ -152,7 +169,8 @@ def row(label: str, errs: list[tuple[float, float]], errs_aligned: list[tuple[fl
 STEADY_AFTER_S = 60.0
 
 
-def localize_against(built: dict[str, Any], text: str, motion: np.ndarray
+def localize_against(built: dict[str, Any], text: str, motion: np.ndarray,
+                     config: LocalizerConfig | None = None
                      ) -> tuple[float, float, float, float, float, float]:
     """Position RMSE [m] and mean pose NEES (x, y, yaw) of a drive localized (kuc)
     against the built map (GeoJSON object); then the same with the estimates moved by
@@ -161,7 +179,7 @@ def localize_against(built: dict[str, Any], text: str, motion: np.ndarray
     truth = {r.t_s: np.array([r.x_m, r.y_m, np.radians(r.yaw_deg)])
              for r in iter_log(io.StringIO(text)) if isinstance(r, TruthRecord)}
     rows: list[tuple[float, np.ndarray, np.ndarray]] = []
-    replay_log(io.StringIO(text), FeatureMap.from_map(map_from_geojson(built)),
+    replay_log(io.StringIO(text), FeatureMap.from_map(map_from_geojson(built)), config=config,
                on_estimate=lambda r, e: rows.append((r.t_s, e.state.mean, e.state.cov)))
     err = np.array([m - truth[t] for t, m, _ in rows if t in truth])
     err[:, 2] = se2.wrap_angle(err[:, 2])
@@ -197,11 +215,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                     choices=["odometry", "slam", "localize", "truth"])
     ap.add_argument("--localize-seed", type=int, default=None, metavar="S",
                     help="localize a drive of seed S against every built map")
+    ap.add_argument("--sd-rel-scale", type=float, default=1.0, metavar="F",
+                    help="multiply the built maps' sd_rel_m by F before localizing")
+    ap.add_argument("--map-error-memory", type=float, default=0.0, metavar="S",
+                    help="LocalizerConfig.map_error_memory_s of the localized drives")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "map_sd.md"))
     args = ap.parse_args(argv)
     if args.quick:
         args.seeds, args.duration = args.seeds[:1], 30.0
     world = load_map(ROOT / "maps" / "room.geojson")
+    cfg = LocalizerConfig(map_error_memory_s=args.map_error_memory)
     acc: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
         s: ([], []) for s in args.sources}
     acc_al: dict[str, tuple[list[tuple[float, float]], list[tuple[float, float]]]] = {
@@ -239,11 +262,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             acc_rel[src][0].extend(p)
             acc_rel[src][1].extend(w)
             if second is not None:
-                built = res.geojson()
-                loc[src].append((seed, *localize_against(built, second, motion)))
+                built = scaled_rel(res.geojson(), args.sd_rel_scale)
+                loc[src].append((seed, *localize_against(built, second, motion, cfg)))
                 if any("sd_rel_m" in f["properties"] for f in built["features"]):
                     loc_sd[src].append((seed, *localize_against(without_rel(built), second,
-                                                                motion)))
+                                                                motion, cfg)))
     lines = [
         "# Built maps: is their `sd_m` honest?",
         "",
@@ -278,7 +301,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "estimates moved by the map's best rigid alignment onto the true map "
                   "(errors relative to the map: its frame's error, from the init prior, "
                   "taken out). The Localizer uses a feature's `sd_rel_m` where the map has "
-                  "one, else its `sd_m`; rows \"`sd_m` only\": the same map without "
+                  "one" + (f" (here multiplied by {args.sd_rel_scale:g})"
+                           if args.sd_rel_scale != 1.0 else "") +
+                  (f", `map_error_memory_s` {args.map_error_memory:g} s"
+                   if args.map_error_memory else "") +
+                  ", else its `sd_m`; rows \"`sd_m` only\": the same map without "
                   f"`sd_rel_m`. Steady: from {STEADY_AFTER_S:.0f} s on (the localizer starts "
                   "in the true frame, centimetres from the built map's).", "",
                   "| map | built from seed | RMSE (mm) | NEES | RMSE aligned (mm) | "

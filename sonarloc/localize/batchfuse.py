@@ -557,10 +557,16 @@ class BatchFuser:
                       dh[..., 2]], axis=-1)
         return nu, hx, g
 
-    def decide(self, lin: Linearized, a: int, b: int, x: Array, p: Array) -> list[Prepared]:
+    def decide(self, lin: Linearized, a: int, b: int, x: Array, p: Array,
+               map_var_extra_m2: Array | None = None) -> list[Prepared]:
         """Screen, gate and associate segments ``a..b-1`` of ``lin`` at beliefs with means
         ``x`` (b-a, 3) and covariances ``p`` (b-a, 3, 3) (geometry at ``x``, the delay
-        model as linearised); the winners' reduced updates."""
+        model as linearised); the winners' reduced updates. ``map_var_extra_m2``: (P + W,)
+        variance [m²] added to each feature's ``map_var_m2`` (shared by a segment's
+        readings; the Localizer's :meth:`~sonarloc.localize.localizer.Localizer.map_uses`);
+        given, a winner's update also takes the feature's ``map_var_m2`` once more for
+        each earlier winner of the same feature among these segments (they will have
+        been fused before it, as the live Localizer counts them)."""
         out: list[Prepared] = []
         t_r, z, rel, p_fac, v_fac = lin.batch
         for k in range(a, b):
@@ -608,6 +614,8 @@ class BatchFuser:
             ok_a[rows_c, cols_c] &= fine
             r, ok = r_a[lo:hi], ok_a[lo:hi]
             th_lin, mean, slope = th_a[lo:hi], mean_a[lo:hi], slope_a[lo:hi]
+        if map_var_extra_m2 is not None:
+            r = r + map_var_extra_m2[fs][:, None, None]
         nu, hx, _ = self._measure(x[ps], rel[ps + a], fs, th_lin, mean, slope, z[ps + a], geom)
         nu = np.where(ok, nu, 0.0)
         # --- screening, one reading at a time
@@ -680,7 +688,12 @@ class BatchFuser:
         # --- the winners' reduced updates: whitened by R = L Lᵀ and QR-factored
         kw = keep[wp]
         bw = kw[:, :, None] & kw[:, None, :]
-        rw = np.where(bw, r[wp], np.broadcast_to(np.eye(N), bw.shape))
+        rw_full = r[wp]
+        if map_var_extra_m2 is not None and len(wp) > 1:
+            fw = fs[wp]                                  # in segment order
+            earlier = np.triu(fw[:, None] == fw[None, :], 1).sum(axis=0)
+            rw_full = rw_full + (earlier * self._map_var[fw])[:, None, None]
+        rw = np.where(bw, rw_full, np.broadcast_to(np.eye(N), bw.shape))
         hw = np.where(kw[..., None], hx[wp], 0.0)
         nw = np.where(kw, nu[wp], 0.0)
         good = np.ones(len(wp), dtype=bool)

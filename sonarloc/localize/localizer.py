@@ -240,6 +240,18 @@ class LocalizerConfig:
         is used. Default 0: the map taken as exact,
         unless it says otherwise (the simulated maps are: 3 mm costs the moving drives
         of ``benchmarks/bench_localize.py`` 10-18 % of their steady accuracy).
+    map_error_memory_s : a feature's map error is one constant that all its readings
+        share, not an error drawn anew by each update: with this > 0 [s], the map
+        variance of an update (above) is multiplied by one plus the feature's recent
+        fusions, each counted ``exp(-age / map_error_memory_s)``
+        (:meth:`Localizer.map_uses`), so that a feature fused ``n`` times within the
+        pose's memory gives it about ``1 / var`` of information from its map error,
+        not ``n / var``. Default 0: off (each update takes the map variance as it is).
+        Changes nothing on a map without a map error. On SLAM-built maps with honest
+        ``sd_rel_m`` (``benchmarks/bench_map_sd.py --sd-rel-scale 0.22``), 10 s brings
+        the pose NEES from 9-13 to 3-3.6 and the steady error from 3.8-4.4 to 3.5-4.0 mm;
+        on maps whose SDs are already conservative it makes the pose underconfident
+        and costs accuracy (docs/LOCALIZATION.md, "Standing still").
     update_min_d, update_min_a : a map feature is fused again only once the transducer
         it is seen from has moved at least ``update_min_d`` [m] or turned at least
         ``update_min_a`` [rad] (odometry, ``odom`` frame) from each pose that feature was
@@ -313,6 +325,7 @@ class LocalizerConfig:
     odom_reset_sd_m: float = 0.1
     odom_reset_sd_deg: float = 5.0
     map_sd_m: float = 0.0
+    map_error_memory_s: float = 0.0
     update_min_d: float = 0.02
     update_min_a: float = math.radians(1.0)
     relocalize: bool = False
@@ -363,7 +376,7 @@ class LocalizerConfig:
         check_odom_reset_settings(self.odom_max_speed_mps, self.odom_max_yaw_rate_rad_s,
                                   self.odom_reset_sd_m, self.odom_reset_sd_deg)
         for name in ("fit_sd_floor_m", "fit_sd_floor_deg", "update_min_d", "update_min_a",
-                     "map_sd_m"):
+                     "map_sd_m", "map_error_memory_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"`{name}` must be non-negative, got {v!r}")
@@ -721,6 +734,11 @@ class Localizer:
         # transducer poses (x, y, yaw in odom) of the latest fusions of each map feature
         # ("point"/"wall", index): LocalizerConfig.update_min_d / update_min_a
         self._fused_at: dict[tuple[str, int], _FusedPoses] = {}
+        # each map feature's (points, then walls) recent fusions, decayed, and the time
+        # of the latest: LocalizerConfig.map_error_memory_s
+        self._map_base_var = self.map_var_all()
+        self._map_n = np.zeros(len(self._map_base_var))
+        self._map_t = np.zeros(len(self._map_base_var))
         c = self.config
         self._conv_cov = np.diag([c.conventional_range_sd_m**2,
                                   math.radians(c.conventional_bearing_sd_deg) ** 2])
@@ -926,6 +944,7 @@ class Localizer:
         self._entries.clear()
         self._times.clear()
         self._fused_at.clear()
+        self._forget_uses()
         self._pending.clear()
         self._last_odom_t = -math.inf
         self._consecutive_rejected = 0
@@ -1379,7 +1398,8 @@ class Localizer:
         kind_name = self.fmap.point_kind[index] if kind == "point" else \
             self.fmap.wall_kind[index]
         return EchoObservation(z, rel, p_fac, v_fac, kap, feat, float(t[-1]), self._c_mps,
-                               kind_name, map_var_m2=self.map_var_m2(kind, index))
+                               kind_name, map_var_m2=self.map_var_m2(kind, index,
+                                                                     float(t[-1])))
 
     def _rivals(self, chain: tuple[Array, Array, Array, Array, Array], kind: str | None,
                 index: int, fitted_kappa_us: float, state: Gaussian
@@ -1498,7 +1518,7 @@ class Localizer:
         if not assoc.matched or assoc.feature is None:
             self._rejected(t_ref)
             return FusionOutcome(t_ref, assoc, False, assoc.status)
-        var = self.map_var_m2(assoc.kind, assoc.index)
+        var = self.map_var_m2(assoc.kind, assoc.index, t_ref)
         if var > 0:
             cov = obs.cov.copy()
             if obs.kind == "point":
@@ -1525,7 +1545,7 @@ class Localizer:
         (``sensor_odom``: the transducer pose in ``odom`` it was seen from)."""
         entry = _Entry(max(t_ref, base.t), odom_ref, new_state, obs, feature,
                        frame=base.frame)
-        self.note_fused(assoc.kind, assoc.index, sensor_odom)
+        self.note_fused(assoc.kind, assoc.index, sensor_odom, t_ref)
         self._entries.insert(i, entry)
         self._times.insert(i, entry.t)
         self._replay(i + 1)
@@ -1605,26 +1625,70 @@ class Localizer:
         (:func:`~sonarloc.localize.confirmed.missing_dof`)."""
         self._confirmed.add(t_s, kind, index)
 
-    def map_var_m2(self, kind: str | None, index: int) -> float:
-        """Variance [m²] of map feature (``kind``, ``index``)'s position: the larger of its
-        SD (``sd_rel_m`` or else ``sd_m``, if the map gives one) and
-        ``LocalizerConfig.map_sd_m``, squared."""
+    def map_var_m2(self, kind: str | None, index: int, t_s: float = math.nan) -> float:
+        """Variance [m²] of map feature (``kind``, ``index``)'s position as one update at
+        ``t_s`` [s] takes it: the larger of its SD (``sd_rel_m`` or else ``sd_m``, if the
+        map gives one) and ``LocalizerConfig.map_sd_m``, squared, times one plus the
+        feature's recent fusions (:meth:`map_uses`; none with ``t_s`` NaN)."""
         sd = self.fmap.sd_m(kind, index)
-        return max(sd if math.isfinite(sd) else 0.0, self.config.map_sd_m) ** 2
+        var = max(sd if math.isfinite(sd) else 0.0, self.config.map_sd_m) ** 2
+        if var > 0 and math.isfinite(t_s):
+            var *= 1.0 + self.map_uses(kind, index, t_s)
+        return var
 
-    def map_var_all(self) -> Array:
-        """(P + W,) :meth:`map_var_m2` of every point, then every wall."""
+    def map_var_all(self, t_s: float = math.nan) -> Array:
+        """(P + W,) :meth:`map_var_m2` of every point, then every wall, at ``t_s``."""
         sd = np.concatenate([self.fmap.point_sd_m, self.fmap.wall_sd_m])
-        return np.maximum(np.where(np.isfinite(sd), sd, 0.0), self.config.map_sd_m) ** 2
+        var = np.maximum(np.where(np.isfinite(sd), sd, 0.0), self.config.map_sd_m) ** 2
+        if math.isfinite(t_s):
+            var = var * (1.0 + self._uses_all(t_s))
+        return var
 
-    def note_fused(self, kind: str | None, index: int, sensor_odom: Sequence[float]) -> None:
+    def map_uses(self, kind: str | None, index: int, t_s: float) -> float:
+        """How many times map feature (``kind``, ``index``) was fused lately, as seen at
+        ``t_s`` [s]: each fusion counts ``exp(-age / map_error_memory_s)`` (0 without a
+        map error: ``map_var_all`` 0). A feature's position error is one constant that
+        every reading of it shares: fused ``n`` times within the pose's memory, its
+        variance taken ``1 + n`` times larger keeps the information the pose draws
+        from it about ``1 / var`` rather than ``n / var``."""
+        k = self.feature_slot(kind, index)
+        n = float(self._map_n[k])
+        if n == 0.0:
+            return 0.0
+        age = max(t_s - float(self._map_t[k]), 0.0)
+        return n * math.exp(-age / self.config.map_error_memory_s)
+
+    def feature_slot(self, kind: str | None, index: int) -> int:
+        """Index of map feature (``kind``, ``index``) among the points, then the walls
+        (:meth:`map_var_all`)."""
+        return index + (self.fmap.n_points if kind == "wall" else 0)
+
+    def _uses_all(self, t_s: float) -> Array:
+        """(P + W,) :meth:`map_uses` of every point, then every wall."""
+        if not self._map_n.any():
+            return np.zeros_like(self._map_n)
+        age = np.maximum(t_s - self._map_t, 0.0)
+        return self._map_n * np.exp(-age / self.config.map_error_memory_s)
+
+    def note_fused(self, kind: str | None, index: int, sensor_odom: Sequence[float],
+                   t_s: float = math.nan) -> None:
         """Remember that map feature (``kind``, ``index``) was fused from transducer pose
-        ``sensor_odom`` (in ``odom``; :meth:`may_fuse_again`)."""
+        ``sensor_odom`` (in ``odom``; :meth:`may_fuse_again`) at ``t_s`` [s]
+        (:meth:`map_uses`)."""
         key = (str(kind), index)
         seen = self._fused_at.get(key)
         if seen is None:
             seen = self._fused_at[key] = _FusedPoses()
         seen.add(sensor_odom)
+        k = self.feature_slot(kind, index)
+        if self.config.map_error_memory_s > 0 and self._map_base_var[k] > 0 and \
+                math.isfinite(t_s):
+            t_new = max(t_s, float(self._map_t[k]))
+            self._map_n[k] = self.map_uses(kind, index, t_new) + 1.0
+            self._map_t[k] = t_new
+
+    def _forget_uses(self) -> None:
+        self._map_n[:] = 0.0
 
     def _rejected(self, t_ref: float) -> None:
         if self._consecutive_rejected == 0:
@@ -1652,6 +1716,7 @@ class Localizer:
         self._entries[:] = [_Entry(t, odom, Gaussian(pose, cov), frame=self.odom_joiner.frame)]
         self._times[:] = [t]
         self._fused_at.clear()
+        self._forget_uses()
         self._unknown = False
         self._consecutive_rejected = 0
         self._reject_start_t = math.nan

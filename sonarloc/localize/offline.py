@@ -550,7 +550,11 @@ class OfflinePipeline:
                              np.broadcast_to(last.state.cov, (j - k, 3, 3)).copy()),
                 se2.between(last.odom, lin.odom_ref[k - base:j - base]), noise)
             assert self._fuser is not None
-            prepared = self._fuser.decide(lin, k - base, j - base, pred.mean, pred.cov)
+            # the features' map variances grown by their recent fusions (map_uses)
+            extra = loc.map_var_all(now[k].t_ref) - loc._map_base_var \
+                if loc.config.map_error_memory_s > 0 and loc._map_base_var.any() else None
+            prepared = self._fuser.decide(lin, k - base, j - base, pred.mean, pred.cov,
+                                          extra)
             slow = stale = False
             for i, p in enumerate(prepared):
                 pos = self._enter_upto(odom, pos, p.t_ref)
@@ -661,7 +665,7 @@ class OfflinePipeline:
                       n: int, kind: str | None, index: int, sensor_odom: list[float]) -> None:
         loc = self.loc
         last = loc._entries[-1]
-        loc.note_fused(kind, index, sensor_odom)
+        loc.note_fused(kind, index, sensor_odom, p.t_ref)
         loc._append(_Entry(max(p.t_ref, last.t), p.odom_ref, state, obs, obs.feature,
                            frame=last.frame))
         st = loc.stats

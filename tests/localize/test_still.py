@@ -150,12 +150,14 @@ def test_the_frame_relative_sd_is_the_map_error_where_given():
     assert _sd_m(e_whole) > 2 * _sd_m(e_sd)
 
 
-def test_online_and_batch_agree_standing_still():
-    """The live Localizer and the batch replay skip alike and end at the same belief."""
+@pytest.mark.parametrize("memory_s", [0.0, 10.0])
+def test_online_and_batch_agree_standing_still(memory_s):
+    """The live Localizer and the batch replay skip alike and end at the same belief
+    (also with the map variance grown by each feature's fusions)."""
     text = _still_log(3.0)
     fmap = _shifted_map(0.005)
-    a, ea, _ = _replay(text, fmap, "batch")
-    b, eb, _ = _replay(text, fmap, "online")
+    a, ea, _ = _replay(text, fmap, "batch", map_error_memory_s=memory_s)
+    b, eb, _ = _replay(text, fmap, "online", map_error_memory_s=memory_s)
     assert a.accepted == b.accepted
     assert a.skipped["no_motion_since_fused"] == b.skipped["no_motion_since_fused"] > 20
     assert np.allclose(ea.state.mean[:2], eb.state.mean[:2], atol=2e-4)
@@ -173,6 +175,61 @@ def test_the_conventional_filter_standing_still(method):
     assert nees < NEES_999
     assert _sd_m(est) > 1e-3
     assert est.status == "tracking"
+
+
+def test_a_feature_s_map_error_is_not_averaged_down(still_log):
+    """Standing still with the limits off (every segment fused, 160 updates of the same
+    features) on the map 5 mm off, its ``sd_m`` saying so: a feature's map error is one
+    constant, its variance grown by the feature's recent fusions
+    (``map_error_memory_s``), and the belief stays consistent with the truth (NEES 4;
+    21 with the map error taken anew by each update, the position SD 0.6 mm)."""
+    off = {"update_min_d": 0.0, "update_min_a": 0.0}
+    stats, est, nees = _replay(still_log, _shifted_map(0.005), "batch",
+                               map_error_memory_s=10.0, **off)
+    assert stats.accepted > 150
+    assert nees < NEES_999
+    assert _sd_m(est) > 1e-3
+    _, est0, nees0 = _replay(still_log, _shifted_map(0.005), "batch", **off)
+    assert nees0 > NEES_999
+    assert _sd_m(est0) < 0.7 * _sd_m(est)
+
+
+def test_map_uses_count_a_feature_s_recent_fusions():
+    """Each fusion counts exp(-age / ``map_error_memory_s``); the variance an update
+    takes is the map's times one plus that; none without a map error."""
+    from sonarloc.localize.localizer import Localizer
+
+    loc = Localizer(_shifted_map(0.004), LocalizerConfig(map_error_memory_s=10.0))
+    for t in (1.0, 2.0, 3.0):
+        loc.note_fused("wall", 1, (0.0, 0.0, 0.0), t)
+    want = math.exp(-0.2) + math.exp(-0.1) + 1.0
+    assert loc.map_uses("wall", 1, 3.0) == pytest.approx(want)
+    assert loc.map_uses("wall", 1, 13.0) == pytest.approx(want * math.exp(-1.0))
+    assert loc.map_uses("wall", 0, 3.0) == 0.0 and loc.map_uses("point", 1, 3.0) == 0.0
+    assert loc.map_var_m2("wall", 1, 13.0) == pytest.approx(0.004**2 * (1 + want / math.e))
+    assert loc.map_var_m2("wall", 1) == pytest.approx(0.004**2)
+    k = loc.fmap.n_points + 1
+    assert loc.map_var_all(3.0)[k] == pytest.approx(0.004**2 * (1 + want))
+    plain = Localizer(FeatureMap.from_map(load_map(ROOM)),
+                      LocalizerConfig(map_error_memory_s=10.0))
+    plain.note_fused("wall", 1, (0.0, 0.0, 0.0), 1.0)
+    assert plain.map_uses("wall", 1, 1.0) == 0.0 and plain.map_var_m2("wall", 1, 1.0) == 0.0
+    off = Localizer(_shifted_map(0.004), LocalizerConfig(map_error_memory_s=0.0))
+    off.note_fused("wall", 1, (0.0, 0.0, 0.0), 1.0)
+    assert off.map_var_m2("wall", 1, 1.0) == pytest.approx(0.004**2)
+
+
+def test_a_map_without_sd_localizes_as_before():
+    """No map error (no ``sd_m``, ``map_sd_m`` 0): ``map_error_memory_s`` changes
+    nothing, to the bit (a moving drive, batch)."""
+    buf = io.StringIO()
+    with LogWriter(buf) as w:
+        w.write_all(simulate_records(load_map(ROOM), ring16(), duration_s=20.0, seed=4))
+    fmap = FeatureMap.from_map(load_map(ROOM))
+    _, ea, _ = _replay(buf.getvalue(), fmap, "batch")
+    _, eb, _ = _replay(buf.getvalue(), fmap, "batch", map_error_memory_s=10.0)
+    np.testing.assert_array_equal(ea.state.mean, eb.state.mean)
+    np.testing.assert_array_equal(ea.state.cov, eb.state.cov)
 
 
 def test_limits_off_fuse_every_segment(still_log):
@@ -194,7 +251,8 @@ def test_moved_enough():
     assert moved_enough((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0, 0.0)
 
 
-@pytest.mark.parametrize("name", ["update_min_d", "update_min_a", "map_sd_m"])
+@pytest.mark.parametrize("name", ["update_min_d", "update_min_a", "map_sd_m",
+                                  "map_error_memory_s"])
 @pytest.mark.parametrize("value", [-0.01, math.nan, math.inf])
 def test_config_checks(name, value):
     with pytest.raises(ValueError, match=f"`{name}` must be non-negative"):
