@@ -69,6 +69,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "an update; a feature's own sd_rel_m or else sd_m (written "
                              "by `map build`) is used where larger (default 0: the map "
                              "taken as exact unless it says otherwise)")
+    parser.add_argument("--map-error-memory", type=float, metavar="S", default=None,
+                        help="take a feature's map error as one constant its readings "
+                             "share: its map variance grows with its fusions of the last "
+                             "~S seconds (10 with honest map SDs; default 0: off, each "
+                             "update takes the map variance as it is)")
     add_reading_limit_options(parser, like="fit")
     parser.add_argument("--quiet", action="store_true", help="no summary on stderr")
 
@@ -80,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
     config = LocalizerConfig(method=args.method, relocalize=args.relocalize)
     config = replace_options(config, [("--odom-gap", "odom_gap_s", args.odom_gap),
                                       ("--map-sd", "map_sd_m", args.map_sd),
+                                      ("--map-error-memory", "map_error_memory_s",
+                                       args.map_error_memory),
                                       *reading_limit_options(args)])
     mode: Mode = "online" if args.online else "auto"
     if args.out:

@@ -346,6 +346,12 @@ def test_localize_map_sd_flag(run_cli, still_log, tmp_path):
         return float(ekf.nees(last, truth_pose))
 
     assert final_nees() > 3 * NEES_999
-    assert final_nees("--map-sd", "0.005") < NEES_999
+    with_sd = final_nees("--map-sd", "0.005")
+    assert with_sd < NEES_999
+    # the map error as one constant per feature: the option reaches the Localizer
+    with_memory = final_nees("--map-sd", "0.005", "--map-error-memory", "10")
+    assert with_memory < NEES_999 and with_memory != with_sd
     proc = run_cli("localize", str(log), "--map", str(map_path), "--map-sd", "-1")
     assert proc.returncode == 2 and "--map-sd" in proc.stderr and "map_sd_m" in proc.stderr
+    proc = run_cli("localize", str(log), "--map", str(map_path), "--map-error-memory", "nan")
+    assert proc.returncode == 2 and "--map-error-memory" in proc.stderr
