@@ -103,21 +103,15 @@ def localized_track(text: str, world: Map) -> PoseTrack:
                      np.array([r[2] for r in rows]))
 
 
-def feature_errors(feats: list[BuiltFeature], world: Map, gate_m: float
-                   ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
-    """(error, sd_m) of the built points and of the built walls matched to true ones."""
-    pairs = maps_compare.feature_errors(feats, world, gate_m)
-    return ([(e, f.sd_m) for f, e in pairs if f.kind != "wall"],
-            [(e, f.sd_m) for f, e in pairs if f.kind == "wall"])
-
-
-def rel_errors(feats: list[BuiltFeature], world: Map, gate_m: float
-               ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
-    """(error, sd_rel_m) of the built points and walls with an ``sd_rel_m``."""
-    pairs = [(f, e) for f, e in maps_compare.feature_errors(feats, world, gate_m)
-             if np.isfinite(f.sd_rel_m)]
-    return ([(e, f.sd_rel_m) for f, e in pairs if f.kind != "wall"],
-            [(e, f.sd_rel_m) for f, e in pairs if f.kind == "wall"])
+def by_kind(pairs: list[tuple[BuiltFeature, float]], sd: str = "sd_m"
+            ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+    """(error, SD) of the matched built points and of the walls
+    (:func:`sonarloc.maps.compare.feature_errors`' pairs), the SD their attribute ``sd``
+    (``sd_m`` or ``sd_rel_m``); features without that SD (NaN) left out."""
+    kept = [(e, float(getattr(f, sd)), f.kind) for f, e in pairs
+            if np.isfinite(getattr(f, sd))]
+    return ([(e, v) for e, v, k in kept if k != "wall"],
+            [(e, v) for e, v, k in kept if k == "wall"])
 
 
 def rel_row(label: str, errs: list[tuple[float, float]]) -> str:
@@ -251,14 +245,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             if res.slam is not None:
                 notes.append(f"seed {seed}, {src}: {res.slam.summary()}")
             feats = res.builder.features()
-            p, w = feature_errors(feats, world, args.gate)
+            p, w = by_kind(maps_compare.feature_errors(feats, world, args.gate))
             acc[src][0].extend(p)
             acc[src][1].extend(w)
             motion = maps_compare.rigid_alignment(feats, world, args.gate)
-            p, w = feature_errors(maps_compare.moved(feats, motion), world, args.gate)
+            aligned = maps_compare.feature_errors(maps_compare.moved(feats, motion), world,
+                                                  args.gate)
+            p, w = by_kind(aligned)
             acc_al[src][0].extend(p)
             acc_al[src][1].extend(w)
-            p, w = rel_errors(maps_compare.moved(feats, motion), world, args.gate)
+            p, w = by_kind(aligned, "sd_rel_m")
             acc_rel[src][0].extend(p)
             acc_rel[src][1].extend(w)
             if second is not None:
