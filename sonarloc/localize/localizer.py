@@ -1644,6 +1644,15 @@ class Localizer:
             var = var * (1.0 + self._uses_all(t_s))
         return var
 
+    def map_var_grown_m2(self, t_s: float) -> Array | None:
+        """(P + W,) what the features' recent fusions add to their map variances at
+        ``t_s`` [s] (:meth:`map_var_m2` at ``t_s`` less without fusions; the batch
+        replay's share of :meth:`map_uses`); None where nothing can grow
+        (``map_error_memory_s`` 0, or no map error)."""
+        if self.config.map_error_memory_s <= 0 or not self._map_base_var.any():
+            return None
+        return self.map_var_all(t_s) - self._map_base_var
+
     def map_uses(self, kind: str | None, index: int, t_s: float) -> float:
         """How many times map feature (``kind``, ``index``) was fused lately, as seen at
         ``t_s`` [s]: each fusion counts ``exp(-age / map_error_memory_s)`` (0 without a

@@ -550,11 +550,8 @@ class OfflinePipeline:
                              np.broadcast_to(last.state.cov, (j - k, 3, 3)).copy()),
                 se2.between(last.odom, lin.odom_ref[k - base:j - base]), noise)
             assert self._fuser is not None
-            # the features' map variances grown by their recent fusions (map_uses)
-            extra = loc.map_var_all(now[k].t_ref) - loc._map_base_var \
-                if loc.config.map_error_memory_s > 0 and loc._map_base_var.any() else None
             prepared = self._fuser.decide(lin, k - base, j - base, pred.mean, pred.cov,
-                                          extra)
+                                          loc.map_var_grown_m2(now[k].t_ref))
             slow = stale = False
             for i, p in enumerate(prepared):
                 pos = self._enter_upto(odom, pos, p.t_ref)
