@@ -248,7 +248,7 @@ class LocalizerConfig:
         pose's memory gives it about ``1 / var`` of information from its map error,
         not ``n / var``. Default 0: off (each update takes the map variance as it is).
         Changes nothing on a map without a map error. On SLAM-built maps with honest
-        ``sd_rel_m`` (``benchmarks/bench_map_sd.py --sd-rel-scale 0.22``), 10 s brings
+        ``sd_rel_m`` (x0.22; benchmarks/results/map_sd.md), 10 s brings
         the pose NEES from 9-13 to 3-3.6 and the steady error from 3.8-4.4 to 3.5-4.0 mm;
         on maps whose SDs are already conservative it makes the pose underconfident
         and costs accuracy (docs/LOCALIZATION.md, "Standing still").
